@@ -1,0 +1,88 @@
+"""Every knob of the learners, with its documented default."""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, fields
+from typing import Any
+
+from calibration_free.frames import FRAMES
+from calibration_free.likelihood import DEFAULT_CONFUSION_SMOOTHING
+from calibration_free.planning import DEFAULT_DISCOUNT, PLANNERS
+from calibration_free.task_decoders import DEFAULT_FOLDS
+from decoding.lda import DEFAULT_SHRINKAGE
+from decoding.validation import check_option, check_range
+
+DECODERS: tuple[str, ...] = ("lda", "student_t")
+
+
+@dataclass(frozen=True)
+class LearnerConfig:
+    """Settings of the calibration-free learner (and of the calibrated baseline).
+
+    Parameters
+    ----------
+    frame : {"feedback", "guidance"}, default "feedback"
+        Interaction frame (method.md §2).
+    eps : float, default 0.1
+        The user error rate the learner assumes when matching labels.
+    decoder : {"lda", "student_t"}, default "lda"
+        Shrinkage LDA with equal priors, or the thesis's Student-t predictive.
+    shrinkage : float, default 0.5
+        Covariance shrinkage towards the scaled identity, in [0, 1].
+    n_folds : int, default 10
+        Folds of the cross-validated confusion matrices.
+    confusion_smoothing : float, default 1.0
+        Pseudo-count added to every confusion-matrix cell.
+    power_prior : bool, default True
+        Add the ErrP power prior to the scores (feedback frame only).
+    beta : float, default 0.9
+        Confidence threshold on the pairwise-min confidence.
+    planner : {"uncertainty", "greedy", "random"}, default "uncertainty"
+    n_planning_signals : int, default 20
+        Past signals sampled per step by the uncertainty planner.
+    discount : float, default 0.9
+        Discount of the planner's value iteration.
+    warmup_steps : int, default 10
+        Random actions taken first, before decoders can be trained.
+    """
+
+    frame: str = "feedback"
+    eps: float = 0.1
+    decoder: str = "lda"
+    shrinkage: float = DEFAULT_SHRINKAGE
+    n_folds: int = DEFAULT_FOLDS
+    confusion_smoothing: float = DEFAULT_CONFUSION_SMOOTHING
+    power_prior: bool = True
+    beta: float = 0.9
+    planner: str = "uncertainty"
+    n_planning_signals: int = 20
+    discount: float = DEFAULT_DISCOUNT
+    warmup_steps: int = 10
+
+    def __post_init__(self) -> None:
+        check_option("frame", self.frame, FRAMES)
+        check_option("decoder", self.decoder, DECODERS)
+        check_option("planner", self.planner, PLANNERS)
+        check_range("eps", self.eps, 0.0, 0.5)
+        check_range("shrinkage", self.shrinkage, 0.0, 1.0)
+        check_range("beta", self.beta, 0.5, 1.0, inclusive=False)
+        check_range("discount", self.discount, 0.0, 1.0, inclusive=False)
+        check_range("confusion_smoothing", self.confusion_smoothing, 0.0, 1e6)
+        check_range("n_folds", self.n_folds, 2, 100)
+        check_range("n_planning_signals", self.n_planning_signals, 1, 10_000)
+        check_range("warmup_steps", self.warmup_steps, 0, 1_000_000)
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain JSON-able dictionary of every setting."""
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, values: dict[str, Any]) -> LearnerConfig:
+        """Build from a dictionary; unknown keys are an error naming them."""
+        known = {f.name for f in fields(cls)}
+        unknown = sorted(set(values) - known)
+        if unknown:
+            raise ValueError(
+                f"unknown learner setting(s) {unknown}; known: {sorted(known)}"
+            )
+        return cls(**values)

@@ -1,0 +1,254 @@
+"""The calibration-free learner: one decoder per task hypothesis, the best explanation wins.
+
+The learner's only inputs are (state, action, signal): it never sees a label nor the
+user's target. Signals enter as float32 (the service's wire format) and are computed on
+in float64, so every path sees the same numbers.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from calibration_free.config import LearnerConfig
+from calibration_free.frames import Frame
+from calibration_free.likelihood import match, pairwise_confidence, power_log_ratio
+from calibration_free.planning import UncertaintyPlanner, greedy_action, random_action
+from calibration_free.task_decoders import TaskHistory, TaskModels
+from calibration_free.world import GOAL, GridWorld
+from decoding.lda import fit_lda
+from decoding.statistics import ClassStatistics
+from decoding.student_t import fit_student_t
+from decoding.validation import check_array
+
+
+@dataclass(frozen=True)
+class Proposal:
+    """The next action, and whether performing it declares a target reached.
+
+    Attributes
+    ----------
+    action : int
+        Index into :data:`calibration_free.world.ACTIONS`.
+    declares_target : bool
+        True when the action is ``goal`` performed while confident, in the cell the learner
+        is confident about: a target reached (correct or not, the learner cannot know).
+    """
+
+    action: int
+    declares_target: bool
+
+
+@dataclass(frozen=True)
+class Beliefs:
+    """What the learner currently believes about the tasks.
+
+    Attributes
+    ----------
+    log_likelihood : ndarray, shape (n_tasks,)
+        Accumulated matching log pseudo-likelihood since the last task switch.
+    scores : ndarray, shape (n_tasks,)
+        ``log_likelihood`` plus the power prior where it applies.
+    confidence : ndarray, shape (n_tasks,)
+        Pairwise-min confidence ``W_t`` in (0, 1).
+    best_task : int
+    confident : bool
+        ``confidence[best_task] > beta``.
+    n_signals : int
+        Signals observed so far.
+    """
+
+    log_likelihood: np.ndarray
+    scores: np.ndarray
+    confidence: np.ndarray
+    best_task: int
+    confident: bool
+    n_signals: int
+
+
+class TaskLearner:
+    """What the calibration-free learner and the calibrated baseline share.
+
+    Subclasses provide :meth:`observe`, :meth:`_scores` and :meth:`_corrected_samples`.
+    """
+
+    def __init__(
+        self,
+        world: GridWorld,
+        config: LearnerConfig | None = None,
+        rng: np.random.Generator | int | None = None,
+    ) -> None:
+        self.world = world
+        self.config = config or LearnerConfig()
+        self.frame = Frame(world, self.config.frame, self.config.eps)
+        self.rng = np.random.default_rng(rng)
+        self.log_likelihood = np.zeros(world.n_tasks)
+        self.n_signals = 0
+        self._n_features: int | None = None
+        self._pending_target: int | None = None
+        self._planner = UncertaintyPlanner(
+            world, self.frame.label_distribution, self.config.discount
+        )
+
+    def observe(self, state: int, action: int, signal: np.ndarray) -> None:
+        """Take in the signal the user produced after ``action`` was taken in ``state``."""
+        raise NotImplementedError
+
+    def _scores(self) -> np.ndarray:
+        """Log scores of the tasks, shape (n_tasks,)."""
+        return self.log_likelihood
+
+    def _corrected_samples(self) -> np.ndarray | None:
+        """``q_t(e)`` of sampled past signals (n_tasks, n, K), or None before any model."""
+        raise NotImplementedError
+
+    def beliefs(self) -> Beliefs:
+        """The current beliefs over tasks."""
+        scores = self._scores()
+        confidence = pairwise_confidence(scores)
+        best = int(np.argmax(scores))
+        return Beliefs(
+            log_likelihood=self.log_likelihood.copy(),
+            scores=scores,
+            confidence=confidence,
+            best_task=best,
+            confident=bool(confidence[best] > self.config.beta),
+            n_signals=self.n_signals,
+        )
+
+    def propose(self, state: int) -> Proposal:
+        """The next action from ``state``.
+
+        Confident about task t: walk greedily to t and perform ``goal`` there (declaring a
+        target reached). Otherwise explore with the configured planner.
+        """
+        state = self._check_state(state)
+        beliefs = self.beliefs()
+        self._pending_target = None
+        if beliefs.confident:
+            action = greedy_action(self.world, state, beliefs.best_task, self.rng)
+            if action == GOAL:
+                self._pending_target = beliefs.best_task
+            return Proposal(action, action == GOAL)
+        return Proposal(self._explore(state, beliefs), False)
+
+    def _explore(self, state: int, beliefs: Beliefs) -> int:
+        planner = self.config.planner
+        if planner == "random" or self.n_signals < self.config.warmup_steps:
+            return random_action(self.world, self.rng)
+        if planner == "greedy":
+            return greedy_action(self.world, state, beliefs.best_task, self.rng)
+        corrected = self._corrected_samples()
+        if corrected is None:
+            return random_action(self.world, self.rng)
+        weights = beliefs.confidence / beliefs.confidence.sum()
+        return self._planner.action(state, corrected, weights, self.rng)
+
+    def _sample_indices(self, n_available: int) -> np.ndarray:
+        size = min(self.config.n_planning_signals, n_available)
+        return np.sort(self.rng.choice(n_available, size=size, replace=False))
+
+    def _take_target_reached(self, state: int, action: int) -> int | None:
+        """The declared target if this (state, action) performs it, and clear it."""
+        target, self._pending_target = self._pending_target, None
+        if target is not None and action == GOAL and state == target:
+            return target
+        return None
+
+    def _check_state(self, state: int) -> int:
+        if not 0 <= int(state) < self.world.n_states or int(state) != state:
+            raise ValueError(
+                f"state must be a cell index in [0, {self.world.n_states}); got {state!r}"
+            )
+        return int(state)
+
+    def _check_input(self, state: int, action: int, signal: np.ndarray) -> np.ndarray:
+        """Validate one observation; return the signal as float64 from its float32 value."""
+        self._check_state(state)
+        if not 0 <= int(action) < self.world.n_actions or int(action) != action:
+            raise ValueError(f"action must be in [0, {self.world.n_actions}); got {action!r}")
+        shape = (self._n_features,) if self._n_features is not None else (None,)
+        x = check_array("signal", signal, shape=shape, dtype=np.float32)
+        if x.shape[0] == 0:
+            raise ValueError("signal is empty")
+        self._n_features = x.shape[0]
+        return x.astype(np.float64)
+
+
+class CalibrationFreeLearner(TaskLearner):
+    """Learns the user's task and a signal decoder at once (method.md §2-§6).
+
+    Parameters
+    ----------
+    world : GridWorld
+    config : LearnerConfig, optional
+    rng : numpy Generator or seed, optional
+        Used by the planners (random choices, tie breaks, sampled signals).
+
+    Examples
+    --------
+    >>> learner = CalibrationFreeLearner(GridWorld(5))
+    >>> proposal = learner.propose(state=12)
+    >>> learner.observe(12, proposal.action, signal)  # doctest: +SKIP
+    """
+
+    def __init__(
+        self,
+        world: GridWorld,
+        config: LearnerConfig | None = None,
+        rng: np.random.Generator | int | None = None,
+    ) -> None:
+        super().__init__(world, config, rng)
+        self._history: TaskHistory | None = None
+        self._models: TaskModels | None = None
+        self._power_sums = np.zeros((world.n_tasks, self.frame.n_classes))
+        self._power_weights = np.zeros((world.n_tasks, self.frame.n_classes))
+
+    @property
+    def uses_power_prior(self) -> bool:
+        return self.config.power_prior and self.frame.kind == "feedback"
+
+    def _fit(self, statistics: ClassStatistics):
+        if self.config.decoder == "student_t":
+            return fit_student_t(statistics, self.config.shrinkage)
+        return fit_lda(statistics, self.config.shrinkage)
+
+    def observe(self, state: int, action: int, signal: np.ndarray) -> None:
+        """Update every task's likelihood with the signal, then its decoder and confusion."""
+        x = self._check_input(state, action, signal)
+        if self._history is None:
+            self._history = TaskHistory(
+                self.world.n_tasks, self.frame.n_classes, x.shape[0], self.config.n_folds
+            )
+        expected = self.frame.label_distribution[:, state, action]
+        if self._models is not None:
+            corrected = self._models.corrected_proba(x[None])[:, 0]
+            self.log_likelihood += np.log(match(expected, corrected))
+        self._history.add(x, self.frame.label_weights[:, state, action])
+        self._power_sums += expected * float(x @ x)
+        self._power_weights += expected
+        self.n_signals += 1
+        target = self._take_target_reached(state, action)
+        if target is not None:
+            self._switch_task(target)
+        self._models = TaskModels.fit(self._history, self._fit, self.config.confusion_smoothing)
+
+    def _switch_task(self, task: int) -> None:
+        """Adopt ``task``'s labels for the whole history and start the next task afresh."""
+        assert self._history is not None
+        self._history.relabel(task)
+        self._power_sums[:] = self._power_sums[task]
+        self._power_weights[:] = self._power_weights[task]
+        self.log_likelihood[:] = 0.0
+
+    def _scores(self) -> np.ndarray:
+        if not self.uses_power_prior:
+            return self.log_likelihood.copy()
+        return self.log_likelihood + power_log_ratio(self._power_sums, self._power_weights)
+
+    def _corrected_samples(self) -> np.ndarray | None:
+        if self._models is None or self._history is None:
+            return None
+        signals = self._history.signals[self._sample_indices(self._history.n_signals)]
+        return self._models.corrected_proba(signals)

@@ -1,0 +1,81 @@
+"""The matching pseudo-likelihood of method.md §3: confusion correction, match, power prior."""
+
+from __future__ import annotations
+
+import numpy as np
+
+#: Pseudo-count added to every cell of a cross-validated confusion matrix before its columns
+#: are normalised: with little data the correction stays close to "trust nothing".
+DEFAULT_CONFUSION_SMOOTHING = 1.0
+
+
+def confusion_matrices(
+    label_weights: np.ndarray, cv_proba: np.ndarray, smoothing: float
+) -> np.ndarray:
+    """Soft cross-validated confusion matrices, columns normalised.
+
+    Parameters
+    ----------
+    label_weights : ndarray, shape (n_tasks, n_signals, n_classes)
+        Each task's (true) label of each signal, as class weights.
+    cv_proba : ndarray, shape (n_tasks, n_signals, n_classes)
+        Out-of-fold predicted class probabilities.
+    smoothing : float
+        Pseudo-count added to every cell.
+
+    Returns
+    -------
+    confusion : ndarray, shape (n_tasks, n_classes, n_classes)
+        ``confusion[t, i, j] = p(true label i | predicted j)``.
+    """
+    counts = np.einsum("tni,tnj->tij", label_weights, cv_proba) + smoothing
+    return counts / counts.sum(axis=1, keepdims=True)
+
+
+def corrected_proba(confusion: np.ndarray, proba: np.ndarray) -> np.ndarray:
+    """``q = C p``: label probabilities corrected by the confusion matrix.
+
+    ``confusion`` (n_tasks, K, K), ``proba`` (n_tasks, n_signals, K) -> (n_tasks, n_signals, K).
+    """
+    return np.einsum("tij,tnj->tni", confusion, proba)
+
+
+def match(label_distribution: np.ndarray, corrected: np.ndarray) -> np.ndarray:
+    """``m_t = sum_l p(l | s, a, t) q_t[l]`` for one signal: (n_tasks, K) x (n_tasks, K)."""
+    return np.einsum("tk,tk->t", label_distribution, corrected)
+
+
+def power_log_ratio(power_sums: np.ndarray, weight_sums: np.ndarray) -> np.ndarray:
+    """The power prior ``log(P_error / P_correct)`` of every task (feedback frame).
+
+    Parameters
+    ----------
+    power_sums : ndarray, shape (n_tasks, 2)
+        ``sum_i w_ik ||e_i||^2`` for k = correct, error.
+    weight_sums : ndarray, shape (n_tasks, 2)
+        ``sum_i w_ik``.
+
+    Returns
+    -------
+    ndarray, shape (n_tasks,)
+        0 for a task while either class has no weight yet.
+    """
+    defined = np.all(weight_sums > 0, axis=1) & np.all(power_sums > 0, axis=1)
+    safe_weights = np.where(weight_sums > 0, weight_sums, 1.0)
+    safe_power = np.where(power_sums > 0, power_sums, 1.0)
+    mean_power = safe_power / safe_weights
+    return np.where(defined, np.log(mean_power[:, 1] / mean_power[:, 0]), 0.0)
+
+
+def pairwise_confidence(scores: np.ndarray) -> np.ndarray:
+    """``W_t = min_{x != t} L_t / (L_t + L_x)`` from log scores, computed stably.
+
+    ``W_t`` is the logistic of the gap between ``scores[t]`` and the best other score.
+    ``scores`` (n_tasks,) -> (n_tasks,) in (0, 1).
+    """
+    order = np.argsort(scores)[::-1]
+    best, second = scores[order[0]], scores[order[1]]
+    best_other = np.full_like(scores, best)
+    best_other[order[0]] = second
+    gap = np.clip(scores - best_other, -700.0, 700.0)
+    return 1.0 / (1.0 + np.exp(-gap))

@@ -1,0 +1,142 @@
+"""The decoders of all task hypotheses, computed together from shared statistics.
+
+All T tasks see the same signals and differ only in their labels. :class:`TaskHistory`
+keeps, for every task, fold and class, the weighted count, sum and scatter of the signals,
+updated with one rank-one step per new signal. The full decoder of task t, and its k-fold
+decoders (trained on all folds but one), are then functions of these statistics
+(totals minus one fold), fitted for all tasks and folds in one batched solve: no task is
+ever refitted from its raw history. Fold ``f`` holds the signals ``i`` with
+``i % n_folds == f`` (0-based arrival order), so folds never move as the history grows.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from calibration_free.likelihood import confusion_matrices, corrected_proba
+from decoding.lda import LinearDecoders
+from decoding.statistics import ClassStatistics
+from decoding.student_t import StudentTDecoders
+
+Decoders = LinearDecoders | StudentTDecoders
+DecoderFit = Callable[[ClassStatistics], Decoders]
+DEFAULT_FOLDS = 10
+
+
+class TaskHistory:
+    """Signals seen so far and each task's labels and per-fold class statistics.
+
+    Parameters
+    ----------
+    n_tasks : int
+    n_classes : int
+    n_features : int
+    n_folds : int, default 10
+    """
+
+    def __init__(
+        self, n_tasks: int, n_classes: int, n_features: int, n_folds: int = DEFAULT_FOLDS
+    ) -> None:
+        if n_folds < 2:
+            raise ValueError(f"n_folds must be >= 2; got {n_folds}")
+        self.n_tasks, self.n_classes, self.n_features, self.n_folds = (
+            n_tasks,
+            n_classes,
+            n_features,
+            n_folds,
+        )
+        self._signals = np.empty((64, n_features))
+        self._weights = np.empty((n_tasks, 64, n_classes))
+        self.n_signals = 0
+        shape = (n_tasks, n_folds, n_classes)
+        self._counts = np.zeros(shape)
+        self._sums = np.zeros((*shape, n_features))
+        self._scatters = np.zeros((*shape, n_features, n_features))
+
+    @property
+    def signals(self) -> np.ndarray:
+        """Signals in arrival order, shape (n_signals, n_features), float64."""
+        return self._signals[: self.n_signals]
+
+    @property
+    def label_weights(self) -> np.ndarray:
+        """Each task's label weights, shape (n_tasks, n_signals, n_classes)."""
+        return self._weights[:, : self.n_signals]
+
+    def add(self, signal: np.ndarray, weights: np.ndarray) -> None:
+        """Append ``signal`` (n_features,) with every task's label weights (n_tasks, K)."""
+        if self.n_signals == len(self._signals):
+            self._signals = np.concatenate([self._signals, np.empty_like(self._signals)])
+            self._weights = np.concatenate([self._weights, np.empty_like(self._weights)], axis=1)
+        index = self.n_signals
+        self._signals[index] = signal
+        self._weights[:, index] = weights
+        fold = index % self.n_folds
+        self._counts[:, fold] += weights
+        self._sums[:, fold] += weights[:, :, None] * signal
+        self._scatters[:, fold] += weights[:, :, None, None] * np.outer(signal, signal)
+        self.n_signals += 1
+
+    def relabel(self, task: int) -> None:
+        """Give every task the labels of ``task`` on the whole history (method.md §5)."""
+        for array in (self._counts, self._sums, self._scatters):
+            array[:] = array[task]
+        self._weights[:, : self.n_signals] = self._weights[task, : self.n_signals]
+
+    def statistics(self) -> tuple[ClassStatistics, ClassStatistics]:
+        """Class statistics of the whole history (n_tasks, ...) and of each fold's
+        training set, i.e. all signals but that fold's (n_tasks, n_folds, ...)."""
+        totals = [a.sum(axis=1) for a in (self._counts, self._sums, self._scatters)]
+        training = [
+            total[:, None] - per_fold
+            for total, per_fold in zip(
+                totals, (self._counts, self._sums, self._scatters), strict=True
+            )
+        ]
+        return ClassStatistics(*totals), ClassStatistics(*training)
+
+    def cross_validated_proba(self, fold_decoders: Decoders) -> np.ndarray:
+        """Out-of-fold class probabilities, shape (n_tasks, n_signals, n_classes)."""
+        proba = np.empty((self.n_tasks, self.n_signals, self.n_classes))
+        for fold in range(min(self.n_folds, self.n_signals)):
+            signals = self._signals[fold : self.n_signals : self.n_folds]
+            decoders = fold_decoders.select((slice(None), fold))
+            proba[:, fold :: self.n_folds] = np.exp(decoders.log_proba(signals))
+        return proba
+
+
+@dataclass(frozen=True)
+class TaskModels:
+    """Every task's decoder on the whole history, with its cross-validated confusion.
+
+    Attributes
+    ----------
+    decoders : LinearDecoders or StudentTDecoders, batch shape (n_tasks,)
+    confusion : ndarray, shape (n_tasks, n_classes, n_classes)
+        ``p(true label i | predicted j)`` from k-fold cross-validation.
+    """
+
+    decoders: Decoders
+    confusion: np.ndarray
+
+    @classmethod
+    def fit(cls, history: TaskHistory, fit: DecoderFit, smoothing: float) -> TaskModels:
+        """Fit all tasks' decoders and their k-fold confusion matrices on ``history``."""
+        totals, training = history.statistics()
+        cv_proba = history.cross_validated_proba(fit(training))
+        confusion = confusion_matrices(history.label_weights, cv_proba, smoothing)
+        return cls(decoders=fit(totals), confusion=confusion)
+
+    @property
+    def informative(self) -> np.ndarray:
+        """Tasks whose decoder has enough data in every class, shape (n_tasks,), bool."""
+        return self.decoders.informative
+
+    def corrected_proba(self, signals: np.ndarray) -> np.ndarray:
+        """``q = C p`` for signals (n, d): (n_tasks, n, K); uniform for uninformative tasks."""
+        q = corrected_proba(self.confusion, np.exp(self.decoders.log_proba(signals)))
+        n_classes = q.shape[-1]
+        return np.where(self.informative[:, None, None], q, 1.0 / n_classes)

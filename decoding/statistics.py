@@ -1,0 +1,73 @@
+"""Per-class sufficient statistics: weighted counts, sums and scatter matrices.
+
+Every decoder of the project is a function of these statistics only, so the decoders of
+many label hypotheses over the same signals can share and update them incrementally.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class ClassStatistics:
+    """Weighted per-class statistics, with any leading batch shape ``B``.
+
+    Attributes
+    ----------
+    counts : ndarray, shape (*B, n_classes)
+        Sum of the class weights of the signals (the number of signals for hard labels).
+    sums : ndarray, shape (*B, n_classes, n_features)
+        Weighted sum of the signals of each class.
+    scatters : ndarray, shape (*B, n_classes, n_features, n_features)
+        Weighted sum of the outer products ``x x^T`` (not centred).
+    """
+
+    counts: np.ndarray
+    sums: np.ndarray
+    scatters: np.ndarray
+
+    @classmethod
+    def from_signals(cls, X: np.ndarray, weights: np.ndarray) -> ClassStatistics:
+        """Statistics of signals ``X`` (n, d) with class weights ``weights`` (n, K)."""
+        X = np.asarray(X, dtype=float)
+        weights = np.asarray(weights, dtype=float)
+        return cls(
+            counts=weights.sum(axis=0),
+            sums=weights.T @ X,
+            scatters=np.einsum("nk,ni,nj->kij", weights, X, X, optimize=True),
+        )
+
+    def class_moments(self) -> tuple[np.ndarray, np.ndarray]:
+        """Class means (*B, K, d) and biased class covariances (*B, K, d, d).
+
+        Classes with a zero count get zero mean and covariance (their decoder is marked
+        uninformative by the caller).
+        """
+        counts = np.maximum(self.counts, np.finfo(float).tiny)
+        means = self.sums / counts[..., None]
+        covariances = self.scatters / counts[..., None, None] - (
+            means[..., :, None] * means[..., None, :]
+        )
+        return means, covariances
+
+
+def one_hot(labels: np.ndarray, n_classes: int) -> np.ndarray:
+    """Hard labels (n,) in 0..n_classes-1 as weights (n, n_classes)."""
+    return np.eye(n_classes)[np.asarray(labels, dtype=np.intp)]
+
+
+def shrink_towards_identity(covariance: np.ndarray, shrinkage: float) -> np.ndarray:
+    """``(1 - shrinkage) * C + shrinkage * (trace(C) / d) * I`` over the last two axes.
+
+    scikit-learn's fixed-shrinkage covariance (``sklearn.covariance.shrunk_covariance``):
+    shrinkage towards the identity scaled to the mean variance.
+    """
+    n_features = covariance.shape[-1]
+    mean_variance = np.trace(covariance, axis1=-2, axis2=-1) / n_features
+    shrunk = (1.0 - shrinkage) * covariance
+    index = np.arange(n_features)
+    shrunk[..., index, index] += shrinkage * mean_variance[..., None]
+    return shrunk

@@ -1,0 +1,143 @@
+"""The thesis's Student-t decoder, batched over label hypotheses.
+
+Each class is a Gaussian with unknown mean and covariance under the non-informative
+(Jeffreys) prior. Integrating them out gives, for a class with ``n`` signals in ``d``
+dimensions, a multivariate Student-t predictive with ``nu = n - d`` degrees of freedom,
+location the class mean and scale ``S (n + 1) / (n nu)``, where ``S`` is the class scatter
+matrix (shrunk towards the identity scaled to its mean variance, as in the thesis's
+"shrink 0.5"). Class probabilities are the normalised predictive densities (equal priors).
+While some class has ``n <= d`` signals the predictive is improper: the decoder gives no
+information (uniform probabilities).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, fields
+
+import numpy as np
+from scipy.special import gammaln, log_softmax
+from sklearn.base import BaseEstimator, ClassifierMixin
+from sklearn.utils.validation import check_is_fitted, validate_data
+
+from decoding.lda import DEFAULT_SHRINKAGE
+from decoding.statistics import ClassStatistics, one_hot, shrink_towards_identity
+
+
+@dataclass(frozen=True)
+class StudentTDecoders:
+    """A batch of per-class Student-t predictive decoders.
+
+    Attributes
+    ----------
+    means : ndarray, shape (*B, n_classes, n_features)
+    precisions : ndarray, shape (*B, n_classes, n_features, n_features)
+        Inverse scale matrices.
+    log_norm : ndarray, shape (*B, n_classes)
+        Log normalising constant of each class density.
+    dof : ndarray, shape (*B, n_classes)
+        Degrees of freedom ``n - d``.
+    informative : ndarray, shape (*B,), bool
+    """
+
+    means: np.ndarray
+    precisions: np.ndarray
+    log_norm: np.ndarray
+    dof: np.ndarray
+    informative: np.ndarray
+
+    def log_proba(self, X: np.ndarray) -> np.ndarray:
+        """Log class probabilities of signals ``X`` (n, d) under every decoder: (*B, n, K)."""
+        centred = X[..., None, :, :] - self.means[..., :, None, :]
+        mahalanobis = np.einsum("...knd,...kde,...kne->...kn", centred, self.precisions, centred)
+        n_features = X.shape[-1]
+        dof = self.dof[..., None]
+        log_density = self.log_norm[..., None] - 0.5 * (dof + n_features) * np.log1p(
+            mahalanobis / dof
+        )
+        log_p = log_softmax(np.swapaxes(log_density, -1, -2), axis=-1)
+        uniform = -np.log(self.means.shape[-2])
+        return np.where(self.informative[..., None, None], log_p, uniform)
+
+    def select(self, index: object) -> StudentTDecoders:
+        """The decoders at ``index`` of the batch axes (numpy indexing)."""
+        return StudentTDecoders(*(getattr(self, f.name)[index] for f in fields(self)))
+
+
+def fit_student_t(
+    statistics: ClassStatistics, shrinkage: float = DEFAULT_SHRINKAGE
+) -> StudentTDecoders:
+    """Student-t predictive decoders from class statistics (batched over leading axes)."""
+    means, covariances = statistics.class_moments()
+    n_features = means.shape[-1]
+    counts = statistics.counts
+    informative = np.all(counts > n_features, axis=-1)
+    dof = np.maximum(counts - n_features, 1.0)
+    scatter = shrink_towards_identity(covariances * counts[..., None, None], shrinkage)
+    scale = scatter * ((counts + 1.0) / (np.maximum(counts, 1.0) * dof))[..., None, None]
+    scale = np.where(informative[..., None, None, None], scale, np.eye(n_features))
+    _, log_det = np.linalg.slogdet(scale)
+    log_norm = (
+        gammaln(0.5 * (dof + n_features))
+        - gammaln(0.5 * dof)
+        - 0.5 * n_features * np.log(np.pi * dof)
+        - 0.5 * log_det
+    )
+    return StudentTDecoders(
+        means=means,
+        precisions=np.linalg.inv(scale),
+        log_norm=log_norm,
+        dof=dof,
+        informative=informative,
+    )
+
+
+class StudentTClassifier(ClassifierMixin, BaseEstimator):
+    """Bayesian Gaussian classifier with a Student-t predictive per class (equal priors).
+
+    Parameters
+    ----------
+    shrinkage : float, default 0.5
+        Weight of the scaled-identity target in each class scatter matrix, in [0, 1].
+
+    Attributes
+    ----------
+    classes_ : ndarray, shape (n_classes,)
+    decoders_ : StudentTDecoders
+        The fitted class predictives (no batch axes).
+    """
+
+    def __init__(self, shrinkage: float = DEFAULT_SHRINKAGE) -> None:
+        self.shrinkage = shrinkage
+
+    def fit(self, X: np.ndarray, y: np.ndarray) -> StudentTClassifier:
+        """Fit on signals ``X`` (n_signals, n_features) with labels ``y`` (n_signals,).
+
+        Every class needs more signals than there are features.
+        """
+        if not 0.0 <= float(self.shrinkage) <= 1.0:
+            raise ValueError(f"shrinkage must be in [0, 1]; got {self.shrinkage!r}")
+        X, y = validate_data(self, X, y)
+        self.classes_, encoded = np.unique(y, return_inverse=True)
+        if len(self.classes_) < 2:
+            raise ValueError("StudentTClassifier needs at least 2 classes in y")
+        statistics = ClassStatistics.from_signals(X, one_hot(encoded, len(self.classes_)))
+        self.decoders_ = fit_student_t(statistics, float(self.shrinkage))
+        if not self.decoders_.informative:
+            raise ValueError(
+                f"every class needs more than n_features = {X.shape[1]} signals; "
+                f"got class counts {statistics.counts.astype(int).tolist()}"
+            )
+        return self
+
+    def predict_log_proba(self, X: np.ndarray) -> np.ndarray:
+        """Log class probabilities, shape (n_signals, n_classes)."""
+        check_is_fitted(self)
+        return self.decoders_.log_proba(validate_data(self, X, reset=False))
+
+    def predict_proba(self, X: np.ndarray) -> np.ndarray:
+        """Class probabilities, shape (n_signals, n_classes)."""
+        return np.exp(self.predict_log_proba(X))
+
+    def predict(self, X: np.ndarray) -> np.ndarray:
+        """Most probable class of each signal, shape (n_signals,)."""
+        return self.classes_[np.argmax(self.predict_log_proba(X), axis=1)]
