@@ -15,11 +15,8 @@ from calibration_free.config import LearnerConfig
 from calibration_free.frames import Frame
 from calibration_free.likelihood import match, pairwise_confidence, power_log_ratio
 from calibration_free.planning import UncertaintyPlanner, greedy_action, random_action
-from calibration_free.task_decoders import TaskHistory, TaskModels
+from calibration_free.task_decoders import TaskHistory, TaskModels, decoder_fit
 from calibration_free.world import GOAL, GridWorld
-from decoding.lda import fit_lda
-from decoding.statistics import ClassStatistics
-from decoding.student_t import fit_student_t
 from decoding.validation import check_array
 
 
@@ -87,6 +84,7 @@ class TaskLearner:
         self.n_signals = 0
         self._n_features: int | None = None
         self._pending_target: int | None = None
+        self._fit = decoder_fit(self.config.decoder, self.config.shrinkage)
         self._planner = UncertaintyPlanner(
             world, self.frame.label_distribution, self.config.discount
         )
@@ -208,11 +206,6 @@ class CalibrationFreeLearner(TaskLearner):
     @property
     def uses_power_prior(self) -> bool:
         return self.config.power_prior and self.frame.kind == "feedback"
-
-    def _fit(self, statistics: ClassStatistics):
-        if self.config.decoder == "student_t":
-            return fit_student_t(statistics, self.config.shrinkage)
-        return fit_lda(statistics, self.config.shrinkage)
 
     def observe(self, state: int, action: int, signal: np.ndarray) -> None:
         """Update every task's likelihood with the signal, then its decoder and confusion."""

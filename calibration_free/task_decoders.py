@@ -17,13 +17,19 @@ from dataclasses import dataclass
 import numpy as np
 
 from calibration_free.likelihood import confusion_matrices, corrected_proba
-from decoding.lda import LinearDecoders
+from decoding.lda import LinearDecoders, fit_lda
 from decoding.statistics import ClassStatistics
-from decoding.student_t import StudentTDecoders
+from decoding.student_t import StudentTDecoders, fit_student_t
 
 Decoders = LinearDecoders | StudentTDecoders
 DecoderFit = Callable[[ClassStatistics], Decoders]
 DEFAULT_FOLDS = 10
+
+
+def decoder_fit(decoder: str, shrinkage: float) -> DecoderFit:
+    """The function fitting decoders of kind ``decoder`` ("lda" or "student_t")."""
+    fit = fit_student_t if decoder == "student_t" else fit_lda
+    return lambda statistics: fit(statistics, shrinkage)
 
 
 class TaskHistory:

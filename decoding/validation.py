@@ -70,6 +70,6 @@ def check_array(
     if finite and array.dtype.kind in "fc" and not np.all(np.isfinite(array)):
         bad = np.argwhere(~np.isfinite(array))[0]
         raise ValueError(
-            f"{prefix}{name} holds NaN or infinite values (first at index {tuple(bad)})"
+            f"{prefix}{name} holds NaN or infinite values (first at index {tuple(bad.tolist())})"
         )
     return array
