@@ -28,7 +28,7 @@ def confusion_matrices(
     confusion : ndarray, shape (n_tasks, n_classes, n_classes)
         ``confusion[t, i, j] = p(true label i | predicted j)``.
     """
-    counts = np.einsum("tni,tnj->tij", label_weights, cv_proba) + smoothing
+    counts = np.swapaxes(label_weights, -1, -2) @ cv_proba + smoothing
     return counts / counts.sum(axis=1, keepdims=True)
 
 
@@ -37,7 +37,7 @@ def corrected_proba(confusion: np.ndarray, proba: np.ndarray) -> np.ndarray:
 
     ``confusion`` (n_tasks, K, K), ``proba`` (n_tasks, n_signals, K) -> (n_tasks, n_signals, K).
     """
-    return np.einsum("tij,tnj->tni", confusion, proba)
+    return proba @ np.swapaxes(confusion, -1, -2)
 
 
 def match(label_distribution: np.ndarray, corrected: np.ndarray) -> np.ndarray:

@@ -58,9 +58,15 @@ class TaskHistory:
         self._weights = np.empty((n_tasks, 64, n_classes))
         self.n_signals = 0
         shape = (n_tasks, n_folds, n_classes)
-        self._counts = np.zeros(shape)
-        self._sums = np.zeros((*shape, n_features))
-        self._scatters = np.zeros((*shape, n_features, n_features))
+        self._per_fold = ClassStatistics(
+            np.zeros(shape),
+            np.zeros((*shape, n_features)),
+            np.zeros((*shape, n_features, n_features)),
+        )
+        self._totals = ClassStatistics(
+            *(np.zeros((n_tasks, *a.shape[2:])) for a in self._per_fold.arrays())
+        )
+        self._training = ClassStatistics(*(np.empty_like(a) for a in self._per_fold.arrays()))
 
     @property
     def signals(self) -> np.ndarray:
@@ -81,28 +87,35 @@ class TaskHistory:
         self._signals[index] = signal
         self._weights[:, index] = weights
         fold = index % self.n_folds
-        self._counts[:, fold] += weights
-        self._sums[:, fold] += weights[:, :, None] * signal
-        self._scatters[:, fold] += weights[:, :, None, None] * np.outer(signal, signal)
+        increments = (
+            weights,
+            weights[:, :, None] * signal,
+            np.multiply.outer(weights, np.outer(signal, signal)),
+        )
+        for per_fold, total, increment in zip(
+            self._per_fold.arrays(), self._totals.arrays(), increments, strict=True
+        ):
+            per_fold[:, fold] += increment
+            total += increment
         self.n_signals += 1
 
     def relabel(self, task: int) -> None:
         """Give every task the labels of ``task`` on the whole history (method.md §5)."""
-        for array in (self._counts, self._sums, self._scatters):
+        for array in (*self._per_fold.arrays(), *self._totals.arrays()):
             array[:] = array[task]
         self._weights[:, : self.n_signals] = self._weights[task, : self.n_signals]
 
     def statistics(self) -> tuple[ClassStatistics, ClassStatistics]:
         """Class statistics of the whole history (n_tasks, ...) and of each fold's
-        training set, i.e. all signals but that fold's (n_tasks, n_folds, ...)."""
-        totals = [a.sum(axis=1) for a in (self._counts, self._sums, self._scatters)]
-        training = [
-            total[:, None] - per_fold
-            for total, per_fold in zip(
-                totals, (self._counts, self._sums, self._scatters), strict=True
-            )
-        ]
-        return ClassStatistics(*totals), ClassStatistics(*training)
+        training set, i.e. all signals but that fold's (n_tasks, n_folds, ...).
+
+        The training statistics live in a buffer reused (overwritten) at every call.
+        """
+        for total, per_fold, training in zip(
+            self._totals.arrays(), self._per_fold.arrays(), self._training.arrays(), strict=True
+        ):
+            np.subtract(total[:, None], per_fold, out=training)
+        return self._totals, self._training
 
     def cross_validated_proba(self, fold_decoders: Decoders) -> np.ndarray:
         """Out-of-fold class probabilities, shape (n_tasks, n_signals, n_classes)."""

@@ -15,11 +15,10 @@ from __future__ import annotations
 from dataclasses import dataclass, fields
 
 import numpy as np
-from scipy.special import log_softmax
 from sklearn.base import BaseEstimator, ClassifierMixin
 from sklearn.utils.validation import check_is_fitted, validate_data
 
-from decoding.statistics import ClassStatistics, one_hot, shrink_towards_identity
+from decoding.statistics import ClassStatistics, log_softmax, one_hot, shrink_towards_identity
 
 DEFAULT_SHRINKAGE = 0.5
 #: A class needs this much (weighted) data before a decoder that uses it is informative.
@@ -44,8 +43,7 @@ class LinearDecoders:
 
     def log_proba(self, X: np.ndarray) -> np.ndarray:
         """Log class probabilities of signals ``X`` (n, d) under every decoder: (*B, n, K)."""
-        scores = np.einsum("nd,...dk->...nk", X, self.coef) + self.intercept[..., None, :]
-        log_p = log_softmax(scores, axis=-1)
+        log_p = log_softmax(X @ self.coef + self.intercept[..., None, :])
         uniform = -np.log(self.coef.shape[-1])
         return np.where(self.informative[..., None, None], log_p, uniform)
 
@@ -56,13 +54,24 @@ class LinearDecoders:
 
 def fit_lda(statistics: ClassStatistics, shrinkage: float = DEFAULT_SHRINKAGE) -> LinearDecoders:
     """Shrinkage-LDA decoders from class statistics (batched over leading axes)."""
-    means, covariances = statistics.class_moments()
-    n_classes = means.shape[-2]
-    shared = shrink_towards_identity(covariances.mean(axis=-3), shrinkage)
-    informative = np.all(statistics.counts >= MIN_CLASS_COUNT, axis=-1)
+    counts = statistics.counts
+    n_classes = counts.shape[-1]
+    informative = np.all(counts >= MIN_CLASS_COUNT, axis=-1)
+    safe_counts = np.where(counts > 0, counts, 1.0)
+    means = statistics.sums / safe_counts[..., None]
+    # The equally weighted mean of the class covariances, without forming each of them:
+    # sum_k (scatter_k / n_k - mu_k mu_k^T) / K.
+    inverse_counts = 1.0 / (n_classes * safe_counts)
+    scatters = statistics.scatters
+    n_features = scatters.shape[-1]
+    flat = scatters.reshape(*scatters.shape[:-2], n_features * n_features)
+    shared = (inverse_counts[..., None, :] @ flat).reshape(
+        *scatters.shape[:-3], n_features, n_features
+    )
+    shared -= np.swapaxes(means, -1, -2) @ means / n_classes
+    shared = shrink_towards_identity(shared, shrinkage)
     # Uninformative decoders get a harmless identity system instead of a singular one.
-    eye = np.eye(shared.shape[-1])
-    shared = np.where(informative[..., None, None], shared, eye)
+    shared[~informative] = np.eye(shared.shape[-1])
     coef = np.linalg.solve(shared, np.swapaxes(means, -1, -2))
     intercept = -0.5 * np.einsum("...kd,...dk->...k", means, coef) - np.log(n_classes)
     return LinearDecoders(coef=coef, intercept=intercept, informative=informative)
@@ -115,7 +124,7 @@ class ShrinkageLDA(ClassifierMixin, BaseEstimator):
         """Log class probabilities, shape (n_signals, n_classes)."""
         check_is_fitted(self)
         X = validate_data(self, X, reset=False)
-        return log_softmax(X @ self.coef_ + self.intercept_, axis=-1)
+        return log_softmax(X @ self.coef_ + self.intercept_)
 
     def predict_proba(self, X: np.ndarray) -> np.ndarray:
         """Class probabilities, shape (n_signals, n_classes)."""

@@ -29,6 +29,10 @@ class ClassStatistics:
     sums: np.ndarray
     scatters: np.ndarray
 
+    def arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(counts, sums, scatters)."""
+        return self.counts, self.sums, self.scatters
+
     @classmethod
     def from_signals(cls, X: np.ndarray, weights: np.ndarray) -> ClassStatistics:
         """Statistics of signals ``X`` (n, d) with class weights ``weights`` (n, K)."""
@@ -63,11 +67,18 @@ def shrink_towards_identity(covariance: np.ndarray, shrinkage: float) -> np.ndar
     """``(1 - shrinkage) * C + shrinkage * (trace(C) / d) * I`` over the last two axes.
 
     scikit-learn's fixed-shrinkage covariance (``sklearn.covariance.shrunk_covariance``):
-    shrinkage towards the identity scaled to the mean variance.
+    shrinkage towards the identity scaled to the mean variance. Works in place on
+    ``covariance`` (callers pass a fresh array) and returns it.
     """
     n_features = covariance.shape[-1]
     mean_variance = np.trace(covariance, axis1=-2, axis2=-1) / n_features
-    shrunk = (1.0 - shrinkage) * covariance
+    covariance *= 1.0 - shrinkage
     index = np.arange(n_features)
-    shrunk[..., index, index] += shrinkage * mean_variance[..., None]
-    return shrunk
+    covariance[..., index, index] += shrinkage * mean_variance[..., None]
+    return covariance
+
+
+def log_softmax(scores: np.ndarray) -> np.ndarray:
+    """Log of the softmax over the last axis, computed stably."""
+    shifted = scores - scores.max(axis=-1, keepdims=True)
+    return shifted - np.log(np.exp(shifted).sum(axis=-1, keepdims=True))

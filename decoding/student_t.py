@@ -15,12 +15,12 @@ from __future__ import annotations
 from dataclasses import dataclass, fields
 
 import numpy as np
-from scipy.special import gammaln, log_softmax
+from scipy.special import gammaln
 from sklearn.base import BaseEstimator, ClassifierMixin
 from sklearn.utils.validation import check_is_fitted, validate_data
 
 from decoding.lda import DEFAULT_SHRINKAGE
-from decoding.statistics import ClassStatistics, one_hot, shrink_towards_identity
+from decoding.statistics import ClassStatistics, log_softmax, one_hot, shrink_towards_identity
 
 
 @dataclass(frozen=True)
@@ -54,7 +54,7 @@ class StudentTDecoders:
         log_density = self.log_norm[..., None] - 0.5 * (dof + n_features) * np.log1p(
             mahalanobis / dof
         )
-        log_p = log_softmax(np.swapaxes(log_density, -1, -2), axis=-1)
+        log_p = log_softmax(np.swapaxes(log_density, -1, -2))
         uniform = -np.log(self.means.shape[-2])
         return np.where(self.informative[..., None, None], log_p, uniform)
 

@@ -1,0 +1,173 @@
+"""Offline closed-loop sessions: the learner, a simulated user and a dataset, no network.
+
+A step is one device action (``goal`` included) answered by one signal. A target is
+reached when the device performs ``goal`` while confident, in the cell it is confident
+about; the user then picks a new target.
+
+Random streams: the session seed ``s`` is expanded with
+``numpy.random.SeedSequence(s).spawn(3)`` into, in order, the *data* stream (the
+synthetic generator's draws), the *user* stream (start cell, targets, labels, pool
+shuffles; see :mod:`acquisition.user`) and the *learner* stream (planner choices). Any
+process that spawns the same way reproduces the session exactly.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+import numpy as np
+
+from acquisition.labelled import LabelledFeatures
+from acquisition.user import SimulatedUser
+from calibration_free.baseline import DEFAULT_CALIBRATION_TRIALS, CalibratedBaseline
+from calibration_free.config import LearnerConfig
+from calibration_free.learner import CalibrationFreeLearner, TaskLearner
+from calibration_free.world import ACTIONS, GridWorld
+
+BASELINES: tuple[str, ...] = ("calibrated",)
+
+
+@dataclass(frozen=True)
+class SessionConfig:
+    """Everything that defines a simulated session but its seed and its data.
+
+    Attributes
+    ----------
+    steps : int
+        Device actions in the session.
+    grid : int
+        Side of the grid.
+    learner : LearnerConfig
+    baseline : str or None
+        None for the calibration-free learner, "calibrated" for the baseline.
+    calibration_trials : int
+        Calibration actions of the baseline.
+    user_error_rate : float
+        Probability that the simulated user gives the wrong label.
+    """
+
+    steps: int = 500
+    grid: int = 5
+    learner: LearnerConfig = field(default_factory=LearnerConfig)
+    baseline: str | None = None
+    calibration_trials: int = DEFAULT_CALIBRATION_TRIALS
+    user_error_rate: float = 0.0
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+
+@dataclass(frozen=True)
+class StepRecord:
+    """One step of a session, as written to a trace."""
+
+    seed: int
+    step: int
+    state: int
+    action: str
+    next_state: int
+    confident: bool
+    best_task: int
+    event: str | None
+
+
+@dataclass(frozen=True)
+class SessionResult:
+    """Figures of one session (steps are 1-based; None when it never happened)."""
+
+    seed: int
+    steps: int
+    first_target_step: int | None
+    first_correct_target_step: int | None
+    correct_targets: int
+    wrong_targets: int
+
+
+def session_streams(seed: int) -> tuple[np.random.Generator, ...]:
+    """The (data, user, learner) generators of a session seed."""
+    return tuple(np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(3))
+
+
+def make_learner(
+    config: SessionConfig, world: GridWorld, user: SimulatedUser, rng: np.random.Generator
+) -> TaskLearner:
+    """The calibration-free learner, or the calibrated baseline told the user's first target."""
+    if config.baseline is None:
+        return CalibrationFreeLearner(world, config.learner, rng)
+    return CalibratedBaseline(
+        world, user.target, config.calibration_trials, config.learner, rng
+    )
+
+
+def run_session(
+    seed: int,
+    config: SessionConfig,
+    data: LabelledFeatures | Callable[[np.random.Generator], LabelledFeatures],
+    on_step: Callable[[StepRecord], None] | None = None,
+) -> SessionResult:
+    """Run one closed-loop session.
+
+    Parameters
+    ----------
+    seed : int
+        Session seed (see the module docstring for how streams derive from it).
+    config : SessionConfig
+    data : LabelledFeatures, or a function of the data stream returning them
+        The signals the user answers with (synthetic data are generated per session).
+    on_step : callable, optional
+        Called with every :class:`StepRecord` (for traces and progress).
+    """
+    data_rng, user_rng, learner_rng = session_streams(seed)
+    dataset = data(data_rng) if callable(data) else data
+    signals = np.asarray(dataset.features, dtype=np.float32)
+    world = GridWorld(config.grid)
+    user = SimulatedUser(
+        world, config.learner.frame, dataset.labels, user_rng, config.user_error_rate
+    )
+    learner = make_learner(config, world, user, learner_rng)
+    state = user.start_state
+    first_target = first_correct = None
+    correct = wrong = 0
+    for step in range(1, config.steps + 1):
+        proposal = learner.propose(state)
+        index, _ = user.answer(state, proposal.action)
+        next_state = world.step(state, proposal.action)
+        event = None
+        if proposal.declares_target:
+            event = "correct_target" if state == user.target else "wrong_target"
+            first_target = first_target or step
+            if event == "correct_target":
+                correct += 1
+                first_correct = first_correct or step
+            else:
+                wrong += 1
+            user.new_target()
+        learner.observe(state, proposal.action, signals[index])
+        if isinstance(learner, CalibratedBaseline) and step == learner.n_calibration:
+            event = "calibration_done"
+            user.new_target()
+        if on_step is not None:
+            beliefs = learner.beliefs()
+            on_step(
+                StepRecord(
+                    seed, step, state, ACTIONS[proposal.action], next_state,
+                    beliefs.confident, beliefs.best_task, event,
+                )
+            )
+        state = next_state
+    return SessionResult(seed, config.steps, first_target, first_correct, correct, wrong)
+
+
+def summarise(results: list[SessionResult]) -> dict[str, float]:
+    """Median first target (none counts as steps + 1), mean targets, pooled wrong rate."""
+    firsts = [r.first_target_step or r.steps + 1 for r in results]
+    correct = sum(r.correct_targets for r in results)
+    wrong = sum(r.wrong_targets for r in results)
+    return {
+        "median_first_target_step": float(np.median(firsts)),
+        "mean_correct_targets": correct / len(results),
+        "mean_wrong_targets": wrong / len(results),
+        "wrong_target_rate": wrong / (correct + wrong) if correct + wrong else 0.0,
+    }

@@ -1,0 +1,152 @@
+"""Conformance of both learners to the small learner interface, and the learner's behaviour."""
+
+import inspect
+
+import numpy as np
+import pytest
+
+from calibration_free.baseline import CalibratedBaseline
+from calibration_free.config import LearnerConfig
+from calibration_free.learner import CalibrationFreeLearner, TaskLearner
+from calibration_free.world import ACTIONS, GOAL, GridWorld
+
+WORLD = GridWorld(4)
+
+
+def separated_signal(label: int, rng: np.random.Generator, n_features: int = 6) -> np.ndarray:
+    """Two well separated classes (means 4 standard deviations apart)."""
+    return (rng.normal(size=n_features) + 4.0 * label).astype(np.float32)
+
+
+def make_calibration_free(config=None, rng=0):
+    return CalibrationFreeLearner(WORLD, config, rng=rng)
+
+
+def make_baseline(config=None, rng=0):
+    return CalibratedBaseline(WORLD, calibration_target=5, n_calibration=40, config=config, rng=rng)
+
+
+LEARNERS = [make_calibration_free, make_baseline]
+
+
+def run(learner: TaskLearner, target: int, steps: int, seed: int = 0, start: int = 0):
+    """Drive a learner with a perfect feedback user; return the targets it declared.
+
+    The user aims at ``target``, after the calibration target while a baseline calibrates.
+    """
+    rng = np.random.default_rng(seed)
+    state, declared = start, []
+    final_target = target
+    for _ in range(steps):
+        calibrating = getattr(learner, "calibrating", False)
+        target = learner.calibration_target if calibrating else final_target
+        proposal = learner.propose(state)
+        label = 0 if WORLD.optimal[target, state, proposal.action] else 1
+        if proposal.declares_target:
+            declared.append(state)
+        learner.observe(state, proposal.action, separated_signal(label, rng))
+        state = WORLD.step(state, proposal.action)
+    return declared
+
+
+@pytest.mark.parametrize("make", LEARNERS)
+def test_interface_takes_no_labels(make):
+    learner = make()
+    assert list(inspect.signature(learner.observe).parameters) == ["state", "action", "signal"]
+    assert list(inspect.signature(learner.propose).parameters) == ["state"]
+    assert list(inspect.signature(learner.beliefs).parameters) == []
+    with pytest.raises(TypeError):
+        learner.observe(0, 0, np.zeros(6, np.float32), label=1)  # type: ignore[call-arg]
+
+
+@pytest.mark.parametrize("make", LEARNERS)
+def test_proposals_and_beliefs_are_well_formed(make):
+    learner = make()
+    rng = np.random.default_rng(0)
+    state = 0
+    for _ in range(50):
+        proposal = learner.propose(state)
+        assert 0 <= proposal.action < len(ACTIONS)
+        assert not proposal.declares_target or proposal.action == GOAL
+        learner.observe(state, proposal.action, separated_signal(int(rng.integers(2)), rng))
+        beliefs = learner.beliefs()
+        assert beliefs.scores.shape == beliefs.confidence.shape == (WORLD.n_tasks,)
+        assert np.all((beliefs.confidence > 0) & (beliefs.confidence < 1))
+        assert beliefs.confident == (beliefs.confidence[beliefs.best_task] > learner.config.beta)
+        state = WORLD.step(state, proposal.action)
+    assert learner.beliefs().n_signals == 50
+
+
+@pytest.mark.parametrize("make", LEARNERS)
+def test_same_seed_same_decisions(make):
+    assert run(make(rng=3), target=10, steps=120, seed=1) == run(make(rng=3), 10, 120, seed=1)
+
+
+@pytest.mark.parametrize("make", LEARNERS)
+@pytest.mark.parametrize(
+    ("signal", "message"),
+    [
+        (np.array([1.0, np.nan, 0, 0, 0, 0]), "NaN"),
+        (np.zeros((2, 3)), "dimensions"),
+        (np.array(["a"] * 6), "could not be read"),
+    ],
+)
+def test_bad_signals_are_rejected_and_change_nothing(make, signal, message):
+    learner = make()
+    learner.observe(0, 0, np.zeros(6, np.float32))
+    before = learner.beliefs()
+    with pytest.raises((ValueError, TypeError), match=message):
+        learner.observe(0, 1, signal)
+    after = learner.beliefs()
+    assert after.n_signals == before.n_signals
+    np.testing.assert_array_equal(after.scores, before.scores)
+
+
+@pytest.mark.parametrize("make", LEARNERS)
+def test_bad_state_action_or_signal_length_are_rejected(make):
+    learner = make()
+    learner.observe(0, 0, np.zeros(6, np.float32))
+    with pytest.raises(ValueError, match="state"):
+        learner.observe(WORLD.n_states, 0, np.zeros(6, np.float32))
+    with pytest.raises(ValueError, match="action"):
+        learner.observe(0, 7, np.zeros(6, np.float32))
+    with pytest.raises(ValueError, match="size 5 on axis 0; expected 6"):
+        learner.observe(0, 0, np.zeros(5, np.float32))
+
+
+@pytest.mark.parametrize("planner", ["uncertainty", "greedy", "random"])
+def test_learner_identifies_the_target_on_well_separated_signals(planner):
+    config = LearnerConfig(planner=planner)
+    for target in (0, 9, 15):
+        learner = make_calibration_free(config, rng=target)
+        declared = run(learner, target, steps=150, seed=target, start=(target + 7) % 16)
+        assert declared, f"no target declared for target {target} with the {planner} planner"
+        assert declared[0] == target
+
+
+def test_baseline_identifies_the_target_after_calibration():
+    learner = make_baseline()
+    declared = run(learner, target=12, steps=120, seed=2)
+    assert learner.n_signals == 120 and not learner.calibrating
+    assert declared and declared[0] == 12
+
+
+def test_the_second_target_comes_faster_than_the_first():
+    """After a target, the history is relabelled and the decoder is already trained."""
+    learner = make_calibration_free(rng=4)
+    rng = np.random.default_rng(4)
+    targets, reached_at, state, target = [3, 12, 9], [], 0, 3
+    for step in range(400):
+        proposal = learner.propose(state)
+        label = 0 if WORLD.optimal[target, state, proposal.action] else 1
+        learner.observe(state, proposal.action, separated_signal(label, rng))
+        if proposal.declares_target:
+            assert state == target
+            reached_at.append(step)
+            if len(reached_at) == len(targets):
+                break
+            target = targets[len(reached_at)]
+        state = WORLD.step(state, proposal.action)
+    assert len(reached_at) == 3
+    gaps = np.diff([0, *reached_at])
+    assert gaps[1:].max() < gaps[0]
