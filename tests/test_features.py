@@ -61,9 +61,7 @@ def test_channel_subset_follows_wanted_order() -> None:
 
 
 def test_custom_channel_list() -> None:
-    out = ErrPFeatures(SFREQ, TMIN, CH_NAMES, channels=("Pz", "Fz")).fit_transform(
-        random_epochs()
-    )
+    out = ErrPFeatures(SFREQ, TMIN, CH_NAMES, channels=("Pz", "Fz")).fit_transform(random_epochs())
     assert out.shape == (6, 38)
 
 

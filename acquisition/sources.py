@@ -1,0 +1,71 @@
+"""Where a session's signals come from: a dataset file, or the synthetic generator.
+
+Synthetic data are generated per session from the session's data stream, as raw epochs
+converted to float32 (the wire format) and then to ErrP features, so every path sees
+the same numbers.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+
+from acquisition.labelled import LabelledEpochs, LabelledFeatures
+from acquisition.loaders import features_from_epochs, load_labelled
+from acquisition.synthetic import generate_errp_epochs
+
+#: Epochs of each class in a synthetic session's pools (the user draws without
+#: replacement per class and reshuffles a pool when it runs out).
+SYNTHETIC_EPOCHS_PER_CLASS = 600
+DEFAULT_SYNTHETIC_ACCURACY = 0.78
+
+DataFactory = Callable[[np.random.Generator], LabelledFeatures]
+
+
+@dataclass(frozen=True)
+class DataSpec:
+    """A dataset file, or synthetic ErrP data of a given nominal balanced accuracy.
+
+    Attributes
+    ----------
+    path : Path or None
+        A dataset file (see :func:`acquisition.loaders.load_labelled`); None: synthetic.
+    synthetic_accuracy : float
+        Nominal balanced accuracy of the synthetic generator (ignored with a path).
+    """
+
+    path: Path | None = None
+    synthetic_accuracy: float = DEFAULT_SYNTHETIC_ACCURACY
+
+    def describe(self) -> str:
+        if self.path is not None:
+            return str(self.path)
+        return f"synthetic (nominal balanced accuracy {self.synthetic_accuracy:g})"
+
+    def resolve(self, frame: str) -> LabelledFeatures | DataFactory:
+        """Loaded features, or a function generating a session's synthetic features."""
+        if self.path is not None:
+            return load_labelled(self.path, frame=frame)
+        if frame != "feedback":
+            raise ValueError(
+                "the synthetic generator makes ErrP (correct/error) data for the feedback "
+                f"frame; the {frame} frame needs a 4-class dataset: pass --dataset PATH"
+            )
+        accuracy = self.synthetic_accuracy
+        return lambda rng: synthetic_features(accuracy, rng)
+
+
+def synthetic_epochs(accuracy: float, rng: np.random.Generator) -> LabelledEpochs:
+    """A session's synthetic epochs, as float32 microvolts."""
+    epochs = generate_errp_epochs(
+        SYNTHETIC_EPOCHS_PER_CLASS, SYNTHETIC_EPOCHS_PER_CLASS, accuracy=accuracy, seed=rng
+    )
+    return replace(epochs, epochs=epochs.epochs.astype(np.float32))
+
+
+def synthetic_features(accuracy: float, rng: np.random.Generator) -> LabelledFeatures:
+    """ErrP features of :func:`synthetic_epochs`."""
+    return features_from_epochs(synthetic_epochs(accuracy, rng))
