@@ -204,6 +204,13 @@ class CalibrationFreeLearner(TaskLearner):
         self._power_weights = np.zeros((world.n_tasks, self.frame.n_classes))
 
     @property
+    def history(self) -> TaskHistory:
+        """The signals seen and every task's labels of them (read-only use)."""
+        if self._history is None:
+            raise RuntimeError("the learner has not observed any signal yet")
+        return self._history
+
+    @property
     def uses_power_prior(self) -> bool:
         return self.config.power_prior and self.frame.kind == "feedback"
 

@@ -1,0 +1,156 @@
+"""The ``cfbci`` command line: ``simulate`` and ``bench update``."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from rich.console import Console
+
+from acquisition.sources import DEFAULT_SYNTHETIC_ACCURACY, DataSpec
+from acquisition.synthetic import ACCURACY_RANGE
+from calibration_free.baseline import DEFAULT_CALIBRATION_TRIALS
+from calibration_free.config import LearnerConfig
+from calibration_free.frames import FRAMES
+from calibration_free.planning import PLANNERS
+from cfbci.simulation import BASELINES, SessionConfig
+
+
+def parse_settings(pairs: Sequence[str]) -> dict[str, Any]:
+    """``key=value`` pairs (values parsed as JSON when they can be) into a dictionary."""
+    settings: dict[str, Any] = {}
+    for pair in pairs:
+        key, sep, raw = pair.partition("=")
+        if not sep or not key:
+            raise ValueError(f"--set expects key=value; got {pair!r}")
+        try:
+            settings[key] = json.loads(raw)
+        except json.JSONDecodeError:
+            settings[key] = raw
+    return settings
+
+
+def _add_simulate(commands: argparse._SubParsersAction) -> None:
+    p = commands.add_parser(
+        "simulate",
+        help="offline closed-loop sessions with a simulated user (no network)",
+        description="Run sessions of the calibration-free learner (or the calibrated "
+        "baseline) against a simulated user answering from a dataset, and summarise them.",
+    )
+    p.add_argument("--dataset", type=Path, help="dataset file (.mat or .npz); default synthetic")
+    p.add_argument(
+        "--synthetic-accuracy", type=float, default=DEFAULT_SYNTHETIC_ACCURACY,
+        help=f"synthetic difficulty as nominal balanced LDA accuracy, in {list(ACCURACY_RANGE)}",
+    )
+    p.add_argument("--seeds", type=int, default=20, help="number of sessions (default 20)")
+    p.add_argument("--first-seed", type=int, default=0, help="seed of the first session")
+    p.add_argument("--steps", type=int, default=500, help="actions per session (default 500)")
+    p.add_argument("--grid", type=int, default=5, help="grid side (default 5)")
+    p.add_argument("--frame", choices=FRAMES, default="feedback")
+    p.add_argument("--planner", choices=PLANNERS, default="uncertainty")
+    p.add_argument("--baseline", choices=BASELINES, help="run the calibrated baseline instead")
+    p.add_argument(
+        "--calibration-trials", type=int, default=DEFAULT_CALIBRATION_TRIALS,
+        help="calibration actions of the baseline (default 400)",
+    )
+    p.add_argument("--user-error-rate", type=float, default=0.0)
+    p.add_argument(
+        "--set", action="append", default=[], metavar="KEY=VALUE",
+        help="any other learner setting (see calibration_free.config.LearnerConfig)",
+    )
+    p.add_argument("--jobs", type=int, default=0, help="worker processes (default: all cores)")
+    p.add_argument("--json", type=Path, help="write the report as JSON")
+    p.add_argument("--trace", type=Path, help="write one JSON line per step")
+    p.set_defaults(run=_run_simulate)
+
+
+def _run_simulate(args: argparse.Namespace, console: Console) -> int:
+    from cfbci.simulate import print_report, simulate
+
+    if args.seeds < 1 or args.steps < 1:
+        raise ValueError("--seeds and --steps must be at least 1")
+    settings = {"frame": args.frame, "planner": args.planner, **parse_settings(args.set)}
+    config = SessionConfig(
+        steps=args.steps,
+        grid=args.grid,
+        learner=LearnerConfig.from_dict(settings),
+        baseline=args.baseline,
+        calibration_trials=args.calibration_trials,
+        user_error_rate=args.user_error_rate,
+    )
+    data = DataSpec(args.dataset, args.synthetic_accuracy)
+    seeds = list(range(args.first_seed, args.first_seed + args.seeds))
+    report = simulate(
+        config, data, seeds, jobs=_jobs(args.jobs), console=console, trace_path=args.trace
+    )
+    print_report(report, console)
+    if args.json:
+        args.json.write_text(json.dumps(report, indent=2) + "\n")
+    return 0
+
+
+def _add_bench(commands: argparse._SubParsersAction) -> None:
+    p = commands.add_parser("bench", help="benchmarks")
+    which = p.add_subparsers(dest="bench", required=True)
+    update = which.add_parser(
+        "update",
+        help="the learner's per-step cost against a naive scikit-learn reference",
+    )
+    update.add_argument("--grids", type=int, nargs="+", default=[5, 10, 20])
+    update.add_argument("--histories", type=int, nargs="+", default=[100, 500, 1000])
+    update.add_argument("--measured-steps", type=int, default=30)
+    update.add_argument("--naive-repeats", type=int, default=5)
+    update.add_argument("--seed", type=int, default=0)
+    update.add_argument("--json", type=Path, help="write the rows as JSON")
+    update.set_defaults(run=_run_bench_update)
+
+
+def _run_bench_update(args: argparse.Namespace, console: Console) -> int:
+    from dataclasses import asdict
+
+    from cfbci.bench import bench_update, print_rows
+
+    rows = bench_update(
+        tuple(args.grids), tuple(sorted(args.histories)),
+        measured_steps=args.measured_steps, naive_repeats=args.naive_repeats,
+        seed=args.seed, console=console,
+    )
+    print_rows(rows, console)
+    if args.json:
+        args.json.write_text(json.dumps({"rows": [asdict(r) for r in rows]}, indent=2) + "\n")
+    return 0
+
+
+def _jobs(requested: int) -> int:
+    import os
+
+    return requested if requested > 0 else (os.cpu_count() or 1)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="cfbci", description="Calibration-free brain-computer interface."
+    )
+    commands = parser.add_subparsers(dest="command", required=True)
+    _add_simulate(commands)
+    _add_bench(commands)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of the ``cfbci`` console script."""
+    args = build_parser().parse_args(argv)
+    console = Console(stderr=False)
+    try:
+        return args.run(args, console)
+    except (ValueError, FileNotFoundError) as error:
+        Console(stderr=True).print(f"[bold red]error:[/] {error}")
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,100 @@
+"""``cfbci simulate``: many offline sessions, in parallel, summarised."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import asdict, dataclass
+from functools import lru_cache
+from pathlib import Path
+from typing import Any
+
+from rich.console import Console
+from rich.table import Table
+
+from acquisition.sources import DataSpec
+from cfbci.parallel import run_parallel
+from cfbci.simulation import SessionConfig, SessionResult, StepRecord, run_session, summarise
+
+
+@dataclass(frozen=True)
+class SimulationJob:
+    """One session to run in a worker."""
+
+    seed: int
+    config: SessionConfig
+    data: DataSpec
+    keep_trace: bool
+
+
+@lru_cache(maxsize=4)
+def _resolved(data: DataSpec, frame: str):
+    return data.resolve(frame)
+
+
+def run_job(job: SimulationJob) -> tuple[SessionResult, list[StepRecord]]:
+    """Run one session (in a worker process); its trace if asked."""
+    trace: list[StepRecord] = []
+    result = run_session(
+        job.seed,
+        job.config,
+        _resolved(job.data, job.config.learner.frame),
+        trace.append if job.keep_trace else None,
+    )
+    return result, trace
+
+
+def simulate(
+    config: SessionConfig,
+    data: DataSpec,
+    seeds: list[int],
+    *,
+    jobs: int,
+    console: Console,
+    trace_path: Path | None = None,
+) -> dict[str, Any]:
+    """Run the sessions; write the trace; return the JSON report."""
+    data.resolve(config.learner.frame)  # fail early, in this process, on a bad dataset
+    work = [SimulationJob(seed, config, data, trace_path is not None) for seed in seeds]
+    outcomes = run_parallel(
+        run_job, work, workers=jobs, description="sessions", console=console
+    )
+    if trace_path is not None:
+        with trace_path.open("w") as stream:
+            for _, trace in outcomes:
+                for record in trace:
+                    stream.write(json.dumps(asdict(record)) + "\n")
+    results = [result for result, _ in outcomes]
+    return {
+        "config": {
+            "dataset": data.describe(),
+            "synthetic_accuracy": data.synthetic_accuracy if data.path is None else None,
+            "seeds": len(seeds),
+            "first_seed": seeds[0],
+            **config.to_dict(),
+        },
+        "sessions": [asdict(r) for r in results],
+        "summary": summarise(results),
+    }
+
+
+def print_report(report: dict[str, Any], console: Console) -> None:
+    """A readable table of the sessions and the summary."""
+    table = Table(title=f"cfbci simulate - {report['config']['dataset']}")
+    for column in ("seed", "first target", "first correct", "correct", "wrong"):
+        table.add_column(column, justify="right")
+    for session in report["sessions"]:
+        table.add_row(
+            str(session["seed"]),
+            str(session["first_target_step"] or "-"),
+            str(session["first_correct_target_step"] or "-"),
+            str(session["correct_targets"]),
+            str(session["wrong_targets"]),
+        )
+    console.print(table)
+    summary = report["summary"]
+    console.print(
+        f"median first target: {summary['median_first_target_step']:g} steps   "
+        f"mean correct targets: {summary['mean_correct_targets']:.2f}   "
+        f"mean wrong targets: {summary['mean_wrong_targets']:.2f}   "
+        f"wrong-target rate: {100 * summary['wrong_target_rate']:.1f} %"
+    )
