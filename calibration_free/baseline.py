@@ -89,7 +89,10 @@ class CalibratedBaseline(TaskLearner):
             self._history.add(x, weights[None])
             if not self.calibrating:
                 self._models = TaskModels.fit(
-                    self._history, self._fit, self.config.confusion_smoothing
+                    self._history,
+                    self._fit,
+                    self.config.confusion_smoothing,
+                    self.config.balanced_confusion,
                 )
             return
         corrected = self._models.corrected_proba(x[None])[0, 0]

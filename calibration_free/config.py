@@ -33,6 +33,10 @@ class LearnerConfig:
         Folds of the cross-validated confusion matrices.
     confusion_smoothing : float, default 1.0
         Pseudo-count added to every confusion-matrix cell.
+    balanced_confusion : bool, default True
+        Weigh every true class equally in the confusion matrices (see
+        :func:`calibration_free.likelihood.confusion_matrices`); False is method.md's
+        plain column normalisation.
     power_prior : bool, default True
         Add the ErrP power prior to the scores (feedback frame only).
     beta : float, default 0.9
@@ -52,6 +56,7 @@ class LearnerConfig:
     shrinkage: float = DEFAULT_SHRINKAGE
     n_folds: int = DEFAULT_FOLDS
     confusion_smoothing: float = DEFAULT_CONFUSION_SMOOTHING
+    balanced_confusion: bool = True
     power_prior: bool = True
     beta: float = 0.9
     planner: str = "uncertainty"

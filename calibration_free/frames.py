@@ -4,7 +4,9 @@ A frame gives, for every task ``t``, state ``s`` and action ``a``:
 
 * ``label_weights[t, s, a, k]`` — the frame's own label as a distribution over the
   ``n_classes`` classes (one-hot for the feedback frame; uniform over the optimal move
-  directions for the guidance frame). Decoders are trained with these weights.
+  directions for the guidance frame). Decoders are trained with these weights, except
+  where the label is uniform over all classes (guidance, at the task cell itself): those
+  signals teach nothing about any class and get weight 0.
 * ``label_distribution[t, s, a, k]`` — the label the learner *expects* from a user who
   errs with rate ``eps``: ``1 - eps`` on the frame's label(s), ``eps`` spread over the
   other classes. This is ``p(l | s, a, t)`` of the matching pseudo-likelihood.
@@ -73,6 +75,9 @@ class Frame:
         n_other = (~support).sum(axis=-1, keepdims=True)
         spread = np.where(~support, self.eps / np.maximum(n_other, 1), 0.0)
         distribution = np.where(n_other > 0, (1.0 - self.eps) * weights + spread, weights)
+        # A label uniform over every class says nothing about what any class looks like:
+        # such signals do not train the decoders (weight 0), though they are still matched.
+        weights = np.where(n_other > 0, weights, 0.0)
         object.__setattr__(self, "label_weights", weights)
         object.__setattr__(self, "label_distribution", distribution)
 

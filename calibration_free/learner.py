@@ -174,6 +174,20 @@ class TaskLearner:
         return x.astype(np.float64)
 
 
+def resolve_ambiguous_labels(weights: np.ndarray, corrected: np.ndarray) -> np.ndarray:
+    """Split a signal's ambiguous label among its allowed classes by the decoder's opinion.
+
+    When a task allows several labels for a signal (guidance: several optimal directions),
+    the signal is shared among them in proportion to the task's corrected probabilities
+    ``q`` of the signal, computed once, when it arrives, with the decoder trained before
+    it (an incremental, one-pass EM step). Unambiguous labels (feedback) are unchanged.
+    ``weights`` and ``corrected`` (n_tasks, K) -> (n_tasks, K).
+    """
+    shared = weights * corrected
+    total = shared.sum(axis=1, keepdims=True)
+    return np.where(total > 0, shared / np.where(total > 0, total, 1.0), weights)
+
+
 class CalibrationFreeLearner(TaskLearner):
     """Learns the user's task and a signal decoder at once (method.md §2-§6).
 
@@ -222,17 +236,24 @@ class CalibrationFreeLearner(TaskLearner):
                 self.world.n_tasks, self.frame.n_classes, x.shape[0], self.config.n_folds
             )
         expected = self.frame.label_distribution[:, state, action]
+        weights = self.frame.label_weights[:, state, action]
         if self._models is not None:
             corrected = self._models.corrected_proba(x[None])[:, 0]
             self.log_likelihood += np.log(match(expected, corrected))
-        self._history.add(x, self.frame.label_weights[:, state, action])
+            weights = resolve_ambiguous_labels(weights, corrected)
+        self._history.add(x, weights)
         self._power_sums += expected * float(x @ x)
         self._power_weights += expected
         self.n_signals += 1
         target = self._take_target_reached(state, action)
         if target is not None:
             self._switch_task(target)
-        self._models = TaskModels.fit(self._history, self._fit, self.config.confusion_smoothing)
+        self._models = TaskModels.fit(
+            self._history,
+            self._fit,
+            self.config.confusion_smoothing,
+            self.config.balanced_confusion,
+        )
 
     def _switch_task(self, task: int) -> None:
         """Adopt ``task``'s labels for the whole history and start the next task afresh."""

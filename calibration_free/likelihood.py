@@ -10,7 +10,11 @@ DEFAULT_CONFUSION_SMOOTHING = 1.0
 
 
 def confusion_matrices(
-    label_weights: np.ndarray, cv_proba: np.ndarray, smoothing: float
+    label_weights: np.ndarray,
+    cv_proba: np.ndarray,
+    present: np.ndarray,
+    smoothing: float,
+    balanced: bool = True,
 ) -> np.ndarray:
     """Soft cross-validated confusion matrices, columns normalised.
 
@@ -20,16 +24,27 @@ def confusion_matrices(
         Each task's (true) label of each signal, as class weights.
     cv_proba : ndarray, shape (n_tasks, n_signals, n_classes)
         Out-of-fold predicted class probabilities.
+    present : ndarray, shape (n_tasks, n_classes), bool
+        Classes each task's decoder knows; the matrix is restricted to them (other rows
+        and columns are 0).
     smoothing : float
         Pseudo-count added to every cell.
+    balanced : bool, default True
+        Weigh every true class equally before normalising the columns, as the decoders'
+        equal priors do. Without it, ``p(true | predicted)`` carries the task's own label
+        frequencies, and a task whose labels are mostly one class "matches" every signal
+        with that class whatever the signal looks like.
 
     Returns
     -------
     confusion : ndarray, shape (n_tasks, n_classes, n_classes)
         ``confusion[t, i, j] = p(true label i | predicted j)``.
     """
-    counts = np.swapaxes(label_weights, -1, -2) @ cv_proba + smoothing
-    return counts / counts.sum(axis=1, keepdims=True)
+    mask = present[:, :, None] & present[:, None, :]
+    counts = np.where(mask, np.swapaxes(label_weights, -1, -2) @ cv_proba + smoothing, 0.0)
+    if balanced:
+        counts = counts / np.maximum(counts.sum(axis=2, keepdims=True), np.finfo(float).tiny)
+    return counts / np.maximum(counts.sum(axis=1, keepdims=True), np.finfo(float).tiny)
 
 
 def corrected_proba(confusion: np.ndarray, proba: np.ndarray) -> np.ndarray:

@@ -142,12 +142,20 @@ class TaskModels:
     confusion: np.ndarray
 
     @classmethod
-    def fit(cls, history: TaskHistory, fit: DecoderFit, smoothing: float) -> TaskModels:
-        """Fit all tasks' decoders and their k-fold confusion matrices on ``history``."""
+    def fit(
+        cls, history: TaskHistory, fit: DecoderFit, smoothing: float, balanced: bool = True
+    ) -> TaskModels:
+        """Fit all tasks' decoders and their k-fold confusion matrices on ``history``.
+
+        ``smoothing`` and ``balanced``: see :func:`~calibration_free.likelihood.confusion_matrices`.
+        """
         totals, training = history.statistics()
+        decoders = fit(totals)
         cv_proba = history.cross_validated_proba(fit(training))
-        confusion = confusion_matrices(history.label_weights, cv_proba, smoothing)
-        return cls(decoders=fit(totals), confusion=confusion)
+        confusion = confusion_matrices(
+            history.label_weights, cv_proba, decoders.present, smoothing, balanced
+        )
+        return cls(decoders=decoders, confusion=confusion)
 
     @property
     def informative(self) -> np.ndarray:
@@ -155,7 +163,16 @@ class TaskModels:
         return self.decoders.informative
 
     def corrected_proba(self, signals: np.ndarray) -> np.ndarray:
-        """``q = C p`` for signals (n, d): (n_tasks, n, K); uniform for uninformative tasks."""
+        """``q = C p`` for signals (n, d): (n_tasks, n, K).
+
+        A task's decoder may not know every class yet (too few signals of it). Under equal
+        class priors a new signal belongs to a known class with probability
+        ``n_known / K``: the known classes share that mass as ``q`` says, and every unknown
+        class gets ``1 / K``. A decoder that cannot tell its classes apart thus gives 1/K
+        everywhere, like an uninformative one, whatever the number of classes it knows.
+        """
         q = corrected_proba(self.confusion, np.exp(self.decoders.log_proba(signals)))
         n_classes = q.shape[-1]
-        return np.where(self.informative[:, None, None], q, 1.0 / n_classes)
+        known = self.decoders.present & self.informative[:, None]
+        share = known.sum(axis=1)[:, None, None] / n_classes
+        return np.where(known[:, None, :], q * share, 1.0 / n_classes)

@@ -61,7 +61,10 @@ class SessionConfig:
 
 @dataclass(frozen=True)
 class StepRecord:
-    """One step of a session, as written to a trace."""
+    """One step of a session, as written to a trace.
+
+    ``confident`` and ``best_task`` are the learner's beliefs when it chose the action.
+    """
 
     seed: int
     step: int
@@ -131,6 +134,7 @@ def run_session(
     first_target = first_correct = None
     correct = wrong = 0
     for step in range(1, config.steps + 1):
+        beliefs = learner.beliefs()
         proposal = learner.propose(state)
         index, _ = user.answer(state, proposal.action)
         next_state = world.step(state, proposal.action)
@@ -149,7 +153,6 @@ def run_session(
             event = "calibration_done"
             user.new_target()
         if on_step is not None:
-            beliefs = learner.beliefs()
             on_step(
                 StepRecord(
                     seed, step, state, ACTIONS[proposal.action], next_state,

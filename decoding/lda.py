@@ -33,17 +33,24 @@ class LinearDecoders:
     ----------
     coef : ndarray, shape (*B, n_features, n_classes)
     intercept : ndarray, shape (*B, n_classes)
-    informative : ndarray, shape (*B,), bool
-        False where some class had too little data: that decoder predicts uniformly.
+    present : ndarray, shape (*B, n_classes), bool
+        Classes with enough data to take part; the others get probability 0. A decoder
+        with fewer than two present classes is uninformative and predicts uniformly.
     """
 
     coef: np.ndarray
     intercept: np.ndarray
-    informative: np.ndarray
+    present: np.ndarray
+
+    @property
+    def informative(self) -> np.ndarray:
+        """Decoders with at least two present classes, shape (*B,), bool."""
+        return self.present.sum(axis=-1) >= 2
 
     def log_proba(self, X: np.ndarray) -> np.ndarray:
         """Log class probabilities of signals ``X`` (n, d) under every decoder: (*B, n, K)."""
-        log_p = log_softmax(X @ self.coef + self.intercept[..., None, :])
+        with np.errstate(invalid="ignore"):  # rows of absent classes only: replaced below
+            log_p = log_softmax(X @ self.coef + self.intercept[..., None, :])
         uniform = -np.log(self.coef.shape[-1])
         return np.where(self.informative[..., None, None], log_p, uniform)
 
@@ -53,28 +60,36 @@ class LinearDecoders:
 
 
 def fit_lda(statistics: ClassStatistics, shrinkage: float = DEFAULT_SHRINKAGE) -> LinearDecoders:
-    """Shrinkage-LDA decoders from class statistics (batched over leading axes)."""
+    """Shrinkage-LDA decoders from class statistics (batched over leading axes).
+
+    Only the classes with at least ``MIN_CLASS_COUNT`` signals take part (equal priors
+    among them); the others get probability 0, as a scikit-learn model fitted on the
+    classes it has seen. A decoder with fewer than two such classes is uninformative.
+    """
     counts = statistics.counts
-    n_classes = counts.shape[-1]
-    informative = np.all(counts >= MIN_CLASS_COUNT, axis=-1)
-    safe_counts = np.where(counts > 0, counts, 1.0)
-    means = statistics.sums / safe_counts[..., None]
-    # The equally weighted mean of the class covariances, without forming each of them:
+    present = counts >= MIN_CLASS_COUNT
+    n_present = present.sum(axis=-1)
+    informative = n_present >= 2
+    safe_counts = np.where(present, counts, 1.0)
+    means = np.where(present[..., None], statistics.sums / safe_counts[..., None], 0.0)
+    # The equally weighted mean of the present classes' covariances, without forming each:
     # sum_k (scatter_k / n_k - mu_k mu_k^T) / K.
-    inverse_counts = 1.0 / (n_classes * safe_counts)
+    class_weights = np.where(present, 1.0 / np.maximum(n_present, 1)[..., None], 0.0)
     scatters = statistics.scatters
     n_features = scatters.shape[-1]
     flat = scatters.reshape(*scatters.shape[:-2], n_features * n_features)
-    shared = (inverse_counts[..., None, :] @ flat).reshape(
+    shared = ((class_weights / safe_counts)[..., None, :] @ flat).reshape(
         *scatters.shape[:-3], n_features, n_features
     )
-    shared -= np.swapaxes(means, -1, -2) @ means / n_classes
+    shared -= np.swapaxes(means * class_weights[..., None], -1, -2) @ means
     shared = shrink_towards_identity(shared, shrinkage)
     # Uninformative decoders get a harmless identity system instead of a singular one.
-    shared[~informative] = np.eye(shared.shape[-1])
+    shared[~informative] = np.eye(n_features)
     coef = np.linalg.solve(shared, np.swapaxes(means, -1, -2))
-    intercept = -0.5 * np.einsum("...kd,...dk->...k", means, coef) - np.log(n_classes)
-    return LinearDecoders(coef=coef, intercept=intercept, informative=informative)
+    with np.errstate(divide="ignore"):
+        log_priors = np.log(class_weights)
+    intercept = -0.5 * np.einsum("...kd,...dk->...k", means, coef) + log_priors
+    return LinearDecoders(coef=coef, intercept=intercept, present=present)
 
 
 class ShrinkageLDA(ClassifierMixin, BaseEstimator):
@@ -115,7 +130,7 @@ class ShrinkageLDA(ClassifierMixin, BaseEstimator):
             raise ValueError("ShrinkageLDA needs at least 2 classes in y")
         statistics = ClassStatistics.from_signals(X, one_hot(encoded, len(self.classes_)))
         decoders = fit_lda(statistics, float(self.shrinkage))
-        if not decoders.informative:
+        if np.any(statistics.counts < MIN_CLASS_COUNT):
             raise ValueError(f"every class needs at least {MIN_CLASS_COUNT:g} signals")
         self.coef_, self.intercept_ = decoders.coef, decoders.intercept
         return self

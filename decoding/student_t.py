@@ -6,8 +6,8 @@ dimensions, a multivariate Student-t predictive with ``nu = n - d`` degrees of f
 location the class mean and scale ``S (n + 1) / (n nu)``, where ``S`` is the class scatter
 matrix (shrunk towards the identity scaled to its mean variance, as in the thesis's
 "shrink 0.5"). Class probabilities are the normalised predictive densities (equal priors).
-While some class has ``n <= d`` signals the predictive is improper: the decoder gives no
-information (uniform probabilities).
+A class with ``n <= d`` signals has an improper predictive: it takes no part (probability
+0); while fewer than two classes take part the decoder gives no information (uniform).
 """
 
 from __future__ import annotations
@@ -36,14 +36,21 @@ class StudentTDecoders:
         Log normalising constant of each class density.
     dof : ndarray, shape (*B, n_classes)
         Degrees of freedom ``n - d``.
-    informative : ndarray, shape (*B,), bool
+    present : ndarray, shape (*B, n_classes), bool
+        Classes that take part (more signals than features); the others get probability
+        0. A decoder with fewer than two present classes is uninformative (uniform).
     """
 
     means: np.ndarray
     precisions: np.ndarray
     log_norm: np.ndarray
     dof: np.ndarray
-    informative: np.ndarray
+    present: np.ndarray
+
+    @property
+    def informative(self) -> np.ndarray:
+        """Decoders with at least two present classes, shape (*B,), bool."""
+        return self.present.sum(axis=-1) >= 2
 
     def log_proba(self, X: np.ndarray) -> np.ndarray:
         """Log class probabilities of signals ``X`` (n, d) under every decoder: (*B, n, K)."""
@@ -70,11 +77,11 @@ def fit_student_t(
     means, covariances = statistics.class_moments()
     n_features = means.shape[-1]
     counts = statistics.counts
-    informative = np.all(counts > n_features, axis=-1)
+    present = counts > n_features
     dof = np.maximum(counts - n_features, 1.0)
     scatter = shrink_towards_identity(covariances * counts[..., None, None], shrinkage)
     scale = scatter * ((counts + 1.0) / (np.maximum(counts, 1.0) * dof))[..., None, None]
-    scale = np.where(informative[..., None, None, None], scale, np.eye(n_features))
+    scale = np.where(present[..., None, None], scale, np.eye(n_features))
     _, log_det = np.linalg.slogdet(scale)
     log_norm = (
         gammaln(0.5 * (dof + n_features))
@@ -85,9 +92,9 @@ def fit_student_t(
     return StudentTDecoders(
         means=means,
         precisions=np.linalg.inv(scale),
-        log_norm=log_norm,
+        log_norm=np.where(present, log_norm, -np.inf),
         dof=dof,
-        informative=informative,
+        present=present,
     )
 
 
@@ -122,7 +129,7 @@ class StudentTClassifier(ClassifierMixin, BaseEstimator):
             raise ValueError("StudentTClassifier needs at least 2 classes in y")
         statistics = ClassStatistics.from_signals(X, one_hot(encoded, len(self.classes_)))
         self.decoders_ = fit_student_t(statistics, float(self.shrinkage))
-        if not self.decoders_.informative:
+        if np.any(statistics.counts <= X.shape[1]):
             raise ValueError(
                 f"every class needs more than n_features = {X.shape[1]} signals; "
                 f"got class counts {statistics.counts.astype(int).tolist()}"

@@ -27,6 +27,7 @@ def reference_log_match(
     shrinkage: float = 0.5,
     n_folds: int = 10,
     smoothing: float = 1.0,
+    balanced: bool = True,
 ) -> np.ndarray:
     """log m_t for every task.
 
@@ -46,6 +47,8 @@ def reference_log_match(
             method="predict_proba",
         )
         counts = np.eye(n_classes)[task_labels].T @ cv + smoothing
+        if balanced:
+            counts = counts / counts.sum(axis=1, keepdims=True)
         confusion = counts / counts.sum(axis=0, keepdims=True)
         out.append(np.log(task_expected @ (confusion @ p)))
     return np.array(out)

@@ -33,12 +33,14 @@ def test_batched_update_equals_sklearn_lda_with_kfold(
     tasks = TaskHistory(len(labels), n_classes, n_features)
     for i, x in enumerate(history):
         tasks.add(x, one_hot(labels[:, i], n_classes))
-    models = TaskModels.fit(tasks, decoder_fit("lda", shrinkage), smoothing=1.0)
-    fast = np.log(match(expected, models.corrected_proba(signal[None])[:, 0]))
-    reference = reference_log_match(
-        history, labels, signal, expected, n_classes=n_classes, shrinkage=shrinkage
-    )
-    np.testing.assert_allclose(fast, reference, rtol=0, atol=1e-8)
+    for balanced in (True, False):
+        models = TaskModels.fit(tasks, decoder_fit("lda", shrinkage), 1.0, balanced)
+        fast = np.log(match(expected, models.corrected_proba(signal[None])[:, 0]))
+        reference = reference_log_match(
+            history, labels, signal, expected, n_classes=n_classes, shrinkage=shrinkage,
+            balanced=balanced,
+        )
+        np.testing.assert_allclose(fast, reference, rtol=0, atol=1e-8)
 
 
 def test_learner_updates_equal_the_reference_along_a_session():

@@ -1,0 +1,156 @@
+"""Closed-loop sessions, the simulated user, and the ``cfbci simulate`` command."""
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from acquisition.labelled import LabelledFeatures
+from acquisition.sources import DataSpec
+from acquisition.user import SimulatedUser
+from calibration_free.config import LearnerConfig
+from calibration_free.world import ACTIONS, GOAL, MOVES, GridWorld
+from cfbci.cli import main
+from cfbci.simulation import SessionConfig, SessionResult, run_session, summarise
+
+SHARED = Path(__file__).resolve().parents[1].parent / "shared" / "datasets"
+
+
+def separated(n_per_class: int = 200, n_classes: int = 2, seed: int = 0) -> LabelledFeatures:
+    rng = np.random.default_rng(seed)
+    labels = np.repeat(np.arange(n_classes), n_per_class)
+    features = rng.normal(size=(len(labels), 5)) + 3.0 * np.eye(n_classes, 5)[labels]
+    return LabelledFeatures(features, labels, n_classes, "separated")
+
+
+def test_feedback_user_labels_follow_the_target_and_pools_cycle():
+    world = GridWorld(3)
+    labels = np.array([0, 0, 0, 1, 1])
+    user = SimulatedUser(world, "feedback", labels, np.random.default_rng(0))
+    user.target = 4
+    drawn = [user.answer(1, ACTIONS.index("down")) for _ in range(6)]  # 1 -> 4: correct
+    assert all(label == 0 for _, label in drawn)
+    # Without replacement within a pass over the pool, then reshuffled.
+    assert sorted(i for i, _ in drawn[:3]) == [0, 1, 2]
+    assert sorted(i for i, _ in drawn[3:]) == [0, 1, 2]
+    assert user.answer(1, ACTIONS.index("up"))[1] == 1
+    assert user.answer(4, GOAL)[1] == 0 and user.answer(3, GOAL)[1] == 1
+
+
+def test_guidance_user_answers_with_the_direction_to_the_target():
+    world = GridWorld(3)
+    labels = np.repeat(np.arange(4), 3)
+    user = SimulatedUser(world, "guidance", labels, np.random.default_rng(0))
+    user.target = 2  # top-right corner
+    seen = {user.answer(6, 0)[1] for _ in range(40)}  # from bottom-left: up or right
+    assert seen == {MOVES.index("up"), MOVES.index("right")}
+    assert {user.answer(2, GOAL)[1] for _ in range(60)} == {0, 1, 2, 3}
+
+
+def test_user_error_rate_flips_labels_at_that_rate():
+    world = GridWorld(3)
+    user = SimulatedUser(world, "feedback", np.array([0, 1] * 50), np.random.default_rng(1), 0.2)
+    user.target = 4
+    flipped = np.mean([user.answer(1, ACTIONS.index("down"))[1] for _ in range(4000)])
+    assert 0.18 < flipped < 0.22
+
+
+def test_new_target_is_always_another_cell():
+    user = SimulatedUser(GridWorld(3), "feedback", np.array([0, 1]), np.random.default_rng(2))
+    for _ in range(50):
+        old = user.target
+        assert user.new_target() != old
+
+
+def test_a_session_is_determined_by_its_seed_and_reaches_targets():
+    config = SessionConfig(steps=150, grid=4)
+    first, trace_a, trace_b = [], [], []
+    first = run_session(3, config, separated(), trace_a.append)
+    again = run_session(3, config, separated(), trace_b.append)
+    other = run_session(4, config, separated())
+    assert first == again and trace_a == trace_b
+    assert first != other
+    assert first.correct_targets >= 3 and first.wrong_targets == 0
+    events = [r for r in trace_a if r.event]
+    assert next(r.step for r in events if r.event == "correct_target") == first.first_target_step
+    assert all(r.action == "goal" and r.confident for r in events)
+
+
+def test_baseline_session_counts_calibration_steps():
+    config = SessionConfig(steps=120, grid=4, baseline="calibrated", calibration_trials=60)
+    trace = []
+    result = run_session(0, config, separated(), trace.append)
+    assert result.first_target_step is None or result.first_target_step > 60
+    assert next(r.event for r in trace if r.event) == "calibration_done"
+    assert result.correct_targets >= 1
+
+
+def test_summary_statistics():
+    results = [
+        SessionResult(0, 100, 10, 10, 3, 1),
+        SessionResult(1, 100, None, None, 0, 0),
+        SessionResult(2, 100, 30, 50, 5, 0),
+    ]
+    summary = summarise(results)
+    assert summary["median_first_target_step"] == 30  # the session with none counts as 101
+    assert summary["mean_correct_targets"] == pytest.approx(8 / 3)
+    assert summary["mean_wrong_targets"] == pytest.approx(1 / 3)
+    assert summary["wrong_target_rate"] == pytest.approx(1 / 9)
+
+
+def test_simulate_command_writes_report_and_trace(tmp_path, capsys):
+    report, trace = tmp_path / "r.json", tmp_path / "t.jsonl"
+    code = main([
+        "simulate", "--seeds", "2", "--first-seed", "5", "--steps", "60", "--grid", "3",
+        "--jobs", "1", "--json", str(report), "--trace", str(trace), "--set", "beta=0.95",
+    ])
+    assert code == 0
+    out = json.loads(report.read_text())
+    assert out["config"]["learner"]["beta"] == 0.95 and out["config"]["first_seed"] == 5
+    assert [s["seed"] for s in out["sessions"]] == [5, 6]
+    assert set(out["summary"]) == {
+        "median_first_target_step", "mean_correct_targets", "mean_wrong_targets",
+        "wrong_target_rate",
+    }
+    lines = [json.loads(line) for line in trace.read_text().splitlines()]
+    assert len(lines) == 120
+    assert set(lines[0]) == {
+        "seed", "step", "state", "action", "next_state", "confident", "best_task", "event"
+    }
+    assert "median first target" in capsys.readouterr().out
+
+
+def test_simulate_is_the_same_in_parallel_and_in_one_process(tmp_path):
+    outputs = []
+    for jobs in ("1", "2"):
+        path = tmp_path / f"{jobs}.json"
+        main(["simulate", "--seeds", "2", "--steps", "40", "--grid", "3", "--jobs", jobs,
+              "--json", str(path)])
+        outputs.append(json.loads(path.read_text())["sessions"])
+    assert outputs[0] == outputs[1]
+
+
+@pytest.mark.parametrize(
+    ("arguments", "message"),
+    [
+        (["--set", "colour=blue"], "unknown learner setting"),
+        (["--set", "beta=2"], "beta must be in"),
+        (["--frame", "guidance"], "needs a 4-class dataset"),
+        (["--synthetic-accuracy", "0.99"], "accuracy"),
+        (["--dataset", "/nonexistent/file.mat"], "file.mat"),
+    ],
+)
+def test_simulate_reports_bad_options_clearly(arguments, message, capsys):
+    code = main(["simulate", "--seeds", "1", "--steps", "5", "--jobs", "1", *arguments])
+    assert code == 2
+    assert message in capsys.readouterr().err
+
+
+@pytest.mark.skipif(not (SHARED / "finger-moves").is_dir(), reason="../shared/datasets absent")
+def test_guidance_on_real_finger_data_finds_targets():
+    config = SessionConfig(steps=150, learner=LearnerConfig(frame="guidance"))
+    data = DataSpec(SHARED / "finger-moves" / "move_finger.mat").resolve("guidance")
+    result = run_session(0, config, data)
+    assert result.first_target_step is not None and result.first_target_step <= 60
+    assert result.correct_targets >= 3 and result.wrong_targets == 0
