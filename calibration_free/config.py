@@ -13,6 +13,7 @@ from decoding.lda import DEFAULT_SHRINKAGE
 from decoding.validation import check_option, check_range
 
 DECODERS: tuple[str, ...] = ("lda", "student_t")
+PLANNING_WEIGHTS: tuple[str, ...] = ("posterior", "confidence")
 
 
 @dataclass(frozen=True)
@@ -42,6 +43,10 @@ class LearnerConfig:
     beta : float, default 0.9
         Confidence threshold on the pairwise-min confidence.
     planner : {"uncertainty", "greedy", "random"}, default "uncertainty"
+    planning_weights : {"posterior", "confidence"}, default "posterior"
+        How the uncertainty planner weighs the tasks: their posterior (softmax of the
+        scores), which focuses on the leading hypotheses, or their normalised pairwise
+        confidence W of method.md §6, which is flatter.
     n_planning_signals : int, default 20
         Past signals sampled per step by the uncertainty planner.
     discount : float, default 0.9
@@ -60,6 +65,7 @@ class LearnerConfig:
     power_prior: bool = True
     beta: float = 0.9
     planner: str = "uncertainty"
+    planning_weights: str = "posterior"
     n_planning_signals: int = 20
     discount: float = DEFAULT_DISCOUNT
     warmup_steps: int = 10
@@ -68,6 +74,7 @@ class LearnerConfig:
         check_option("frame", self.frame, FRAMES)
         check_option("decoder", self.decoder, DECODERS)
         check_option("planner", self.planner, PLANNERS)
+        check_option("planning_weights", self.planning_weights, PLANNING_WEIGHTS)
         check_range("eps", self.eps, 0.0, 0.5)
         check_range("shrinkage", self.shrinkage, 0.0, 1.0)
         check_range("beta", self.beta, 0.5, 1.0, inclusive=False)

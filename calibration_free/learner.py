@@ -140,7 +140,11 @@ class TaskLearner:
         corrected = self._corrected_samples()
         if corrected is None:
             return random_action(self.world, self.rng)
-        weights = beliefs.confidence / beliefs.confidence.sum()
+        if self.config.planning_weights == "posterior":
+            weights = np.exp(beliefs.scores - beliefs.scores.max())
+        else:
+            weights = beliefs.confidence.copy()
+        weights /= weights.sum()
         return self._planner.action(state, corrected, weights, self.rng)
 
     def _sample_indices(self, n_available: int) -> np.ndarray:

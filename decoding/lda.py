@@ -49,8 +49,7 @@ class LinearDecoders:
 
     def log_proba(self, X: np.ndarray) -> np.ndarray:
         """Log class probabilities of signals ``X`` (n, d) under every decoder: (*B, n, K)."""
-        with np.errstate(invalid="ignore"):  # rows of absent classes only: replaced below
-            log_p = log_softmax(X @ self.coef + self.intercept[..., None, :])
+        log_p = log_softmax(X @ self.coef + self.intercept[..., None, :])
         uniform = -np.log(self.coef.shape[-1])
         return np.where(self.informative[..., None, None], log_p, uniform)
 

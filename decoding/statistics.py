@@ -80,5 +80,7 @@ def shrink_towards_identity(covariance: np.ndarray, shrinkage: float) -> np.ndar
 
 def log_softmax(scores: np.ndarray) -> np.ndarray:
     """Log of the softmax over the last axis, computed stably."""
-    shifted = scores - scores.max(axis=-1, keepdims=True)
-    return shifted - np.log(np.exp(shifted).sum(axis=-1, keepdims=True))
+    top = scores.max(axis=-1, keepdims=True)
+    shifted = scores - np.where(np.isfinite(top), top, 0.0)
+    with np.errstate(divide="ignore", invalid="ignore"):  # an all -inf row (no class) is NaN
+        return shifted - np.log(np.exp(shifted).sum(axis=-1, keepdims=True))

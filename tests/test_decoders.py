@@ -1,0 +1,99 @@
+"""The decoders as estimators, and their batched forms."""
+
+import numpy as np
+import pytest
+from scipy.stats import multivariate_t
+from sklearn.base import clone
+from sklearn.model_selection import cross_val_score
+from sklearn.pipeline import make_pipeline
+
+from decoding.lda import ShrinkageLDA, fit_lda
+from decoding.statistics import ClassStatistics, one_hot
+from decoding.student_t import StudentTClassifier, fit_student_t
+
+ESTIMATORS = [ShrinkageLDA, StudentTClassifier]
+
+
+def two_blobs(n=80, d=4, seed=0):
+    rng = np.random.default_rng(seed)
+    y = np.arange(n) % 2
+    return rng.normal(size=(n, d)) + 1.5 * y[:, None], y
+
+
+@pytest.mark.parametrize("estimator", ESTIMATORS)
+def test_estimators_follow_the_scikit_learn_conventions(estimator):
+    X, y = two_blobs()
+    model = estimator(shrinkage=0.3)
+    assert model.get_params() == {"shrinkage": 0.3}
+    assert clone(model).get_params() == model.get_params()
+    assert not hasattr(model, "classes_")
+    assert model.fit(X, y) is model
+    proba = model.predict_proba(X)
+    assert proba.shape == (len(X), 2) and np.allclose(proba.sum(axis=1), 1.0)
+    assert (model.predict(X) == model.classes_[proba.argmax(axis=1)]).all()
+    scores = cross_val_score(make_pipeline(estimator()), X, y, cv=5)
+    assert scores.mean() > 0.8
+
+
+@pytest.mark.parametrize("estimator", ESTIMATORS)
+def test_estimators_reject_bad_input(estimator):
+    X, y = two_blobs()
+    with pytest.raises(ValueError, match="shrinkage"):
+        estimator(shrinkage=1.5).fit(X, y)
+    with pytest.raises(ValueError, match="2 classes"):
+        estimator().fit(X, np.zeros(len(X)))
+    with pytest.raises(ValueError, match=r"NaN|infinity"):
+        estimator().fit(np.where(np.eye(len(X), 4) > 0, np.nan, X), y)
+
+
+def test_student_t_equals_the_scipy_multivariate_t_predictive():
+    X, y = two_blobs(n=60, d=4, seed=1)
+    model = StudentTClassifier(shrinkage=0.0).fit(X, y)
+    log_density = []
+    for k in (0, 1):
+        Xk = X[y == k]
+        n, d = Xk.shape
+        centred = Xk - Xk.mean(axis=0)
+        shape = centred.T @ centred * (n + 1) / (n * (n - d))
+        log_density.append(multivariate_t(Xk.mean(axis=0), shape, df=n - d).logpdf(X))
+    log_density = np.array(log_density).T
+    expected = np.exp(log_density - np.logaddexp(log_density[:, :1], log_density[:, 1:]))
+    np.testing.assert_allclose(model.predict_proba(X), expected, atol=1e-10)
+
+
+def test_student_t_gives_no_information_while_classes_have_at_most_d_signals():
+    rng = np.random.default_rng(0)
+    X, y = rng.normal(size=(8, 5)), np.arange(8) % 2
+    decoders = fit_student_t(ClassStatistics.from_signals(X, one_hot(y, 2)))
+    assert not decoders.informative
+    np.testing.assert_allclose(np.exp(decoders.log_proba(X)), 0.5)
+    with pytest.raises(ValueError, match="more than n_features"):
+        StudentTClassifier().fit(X, y)
+
+
+@pytest.mark.parametrize("fit", [fit_lda, fit_student_t])
+def test_batched_fits_equal_one_at_a_time(fit):
+    rng = np.random.default_rng(3)
+    X = rng.normal(size=(50, 3))
+    labels = rng.integers(0, 3, size=(4, 50))
+    batch = ClassStatistics(
+        *(np.stack(arrays) for arrays in zip(
+            *(ClassStatistics.from_signals(X, one_hot(lab, 3)).arrays() for lab in labels),
+            strict=True,
+        ))
+    )
+    together = fit(batch).log_proba(X)
+    for task, lab in enumerate(labels):
+        alone = fit(ClassStatistics.from_signals(X, one_hot(lab, 3))).log_proba(X)
+        np.testing.assert_allclose(together[task], alone, atol=1e-12)
+
+
+def test_a_class_without_data_gets_probability_zero():
+    X, y = two_blobs()
+    weights = np.c_[one_hot(y, 2), np.zeros(len(y))]  # a third class never seen
+    decoders = fit_lda(ClassStatistics.from_signals(X, weights))
+    assert decoders.informative and decoders.present.tolist() == [True, True, False]
+    proba = np.exp(decoders.log_proba(X))
+    assert np.all(proba[:, 2] == 0) and np.allclose(proba.sum(axis=1), 1.0)
+    reference = ShrinkageLDA().fit(X, y).predict_proba(X)
+    np.testing.assert_allclose(proba[:, :2], reference, atol=1e-12)
