@@ -13,7 +13,7 @@ $(STAMP): pyproject.toml
 	touch $(STAMP)
 
 run: $(STAMP)
-	$(BIN)/cfbci simulate --seeds 8
+	$(BIN)/cfbci simulate
 
 lint: $(STAMP)
 	$(BIN)/ruff check .

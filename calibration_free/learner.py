@@ -192,6 +192,26 @@ def resolve_ambiguous_labels(weights: np.ndarray, corrected: np.ndarray) -> np.n
     return np.where(total > 0, shared / np.where(total > 0, total, 1.0), weights)
 
 
+def expect_the_chosen_label(
+    expected: np.ndarray, weights: np.ndarray, resolved: np.ndarray
+) -> np.ndarray:
+    """The expected label once the user's choice among several optimal labels is resolved.
+
+    Where a task allows some but not all classes (guidance: two optimal directions), the
+    user picked one of them; matching against the uniform split would cost the true task
+    ``log 2`` at every such step against any task that labels the same signals
+    unambiguously. The allowed classes' expected mass (``1 - eps``) is instead split as
+    the decoder resolved the choice (``resolved``, see :func:`resolve_ambiguous_labels`).
+    Labels allowing one class (feedback) or every class (the task's own cell) are kept.
+    All arrays (n_tasks, K).
+    """
+    support = weights > 0
+    n_allowed = support.sum(axis=1, keepdims=True)
+    partial = (n_allowed > 1) & (n_allowed < weights.shape[1])
+    allowed_mass = np.sum(expected * support, axis=1, keepdims=True)
+    return np.where(partial & support, resolved * allowed_mass, expected)
+
+
 class CalibrationFreeLearner(TaskLearner):
     """Learns the user's task and a signal decoder at once (method.md §2-§6).
 
@@ -243,8 +263,11 @@ class CalibrationFreeLearner(TaskLearner):
         weights = self.frame.label_weights[:, state, action]
         if self._models is not None:
             corrected = self._models.corrected_proba(x[None])[:, 0]
-            self.log_likelihood += np.log(match(expected, corrected))
             weights = resolve_ambiguous_labels(weights, corrected)
+            expected = expect_the_chosen_label(
+                expected, self.frame.label_weights[:, state, action], weights
+            )
+            self.log_likelihood += np.log(match(expected, corrected))
         self._history.add(x, weights)
         self._power_sums += expected * float(x @ x)
         self._power_weights += expected
