@@ -6,10 +6,11 @@ confidence, and the default ``uncertainty`` planner. Histories are built by runn
 learner (default settings) on synthetic data with the simulated user; each history size
 is measured over the steps that follow it (the history grows by one per measured step).
 
-The naive reference, for the smallest grid only, does per task what a straightforward
-implementation would: ``LinearDiscriminantAnalysis(solver="lsqr", shrinkage=<default>,
-priors=<equal>)`` refitted on the history for the new signal's probabilities, plus
-``cross_val_predict(..., cv=KFold(10), method="predict_proba")`` for its confusion matrix.
+The naive reference, for the smallest grid only (T = 25 by default), does per task
+what a straightforward implementation would: ``LinearDiscriminantAnalysis(
+solver="lsqr", shrinkage=<default>, priors=<equal>)`` refitted on the history for the
+new signal's probabilities, plus ``cross_val_predict(..., cv=KFold(10),
+method="predict_proba")`` for its confusion matrix.
 It leaves out planning, so the speed-up it gives is a lower bound.
 """
 
@@ -31,9 +32,6 @@ from calibration_free.config import LearnerConfig
 from calibration_free.learner import CalibrationFreeLearner
 from calibration_free.world import GridWorld
 from cfbci.simulation import session_streams
-
-DEFAULT_GRIDS = (5, 10, 20)
-DEFAULT_HISTORIES = (100, 500, 1000)
 
 
 @dataclass(frozen=True)
@@ -78,9 +76,11 @@ def bench_grid(
     measured_steps: int,
     naive_repeats: int,
     seed: int,
+    with_naive: bool,
     progress: Progress,
 ) -> list[BenchRow]:
-    """Run the learner on one grid and time it at each history size."""
+    """Run the learner on one grid and time it at each history size (and the naive
+    reference too, if ``with_naive``)."""
     world = GridWorld(grid)
     config = LearnerConfig()
     data_rng, user_rng, learner_rng = session_streams(seed)
@@ -99,7 +99,7 @@ def bench_grid(
         if proposal.declares_target:
             user.new_target()
         measuring = [h for h in histories if h <= n_seen < h + measured_steps]
-        if measuring and grid == min(DEFAULT_GRIDS) and len(naive[measuring[0]]) < naive_repeats:
+        if measuring and with_naive and len(naive[measuring[0]]) < naive_repeats:
             naive[measuring[0]].append(_time_naive(learner, signals[index], config.shrinkage))
         start = time.perf_counter()
         learner.observe(state, proposal.action, signals[index])
@@ -148,7 +148,8 @@ def bench_update(
             for grid in grids
             for row in bench_grid(
                 grid, histories, measured_steps=measured_steps,
-                naive_repeats=naive_repeats, seed=seed, progress=progress,
+                naive_repeats=naive_repeats, seed=seed, with_naive=grid == min(grids),
+                progress=progress,
             )
         ]
     return rows
