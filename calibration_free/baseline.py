@@ -79,6 +79,7 @@ class CalibratedBaseline(TaskLearner):
     def observe(self, state: int, action: int, signal: np.ndarray) -> None:
         """Store a calibration signal, or update the task filter with the fixed decoder."""
         x = self._check_input(state, action, signal)
+        self._visits[state] += 1
         self.n_signals += 1
         if self._models is None:
             if self._history is None:

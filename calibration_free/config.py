@@ -47,6 +47,9 @@ class LearnerConfig:
         How the uncertainty planner weighs the tasks: their posterior (softmax of the
         scores), which focuses on the leading hypotheses, or their normalised pairwise
         confidence W of method.md §6, which is flatter.
+    novelty_bonus : float, default 0.0
+        Exploration bonus ``c / sqrt(1 + visits(s))`` added to the uncertainty reward
+        (scaled to a maximum of 1): draws the agent to cells it has seen little.
     n_planning_signals : int, default 20
         Past signals sampled per step by the uncertainty planner.
     discount : float, default 0.9
@@ -66,6 +69,7 @@ class LearnerConfig:
     beta: float = 0.9
     planner: str = "uncertainty"
     planning_weights: str = "posterior"
+    novelty_bonus: float = 0.0
     n_planning_signals: int = 20
     discount: float = DEFAULT_DISCOUNT
     warmup_steps: int = 10
@@ -81,6 +85,7 @@ class LearnerConfig:
         check_range("discount", self.discount, 0.0, 1.0, inclusive=False)
         check_range("confusion_smoothing", self.confusion_smoothing, 0.0, 1e6)
         check_range("n_folds", self.n_folds, 2, 100)
+        check_range("novelty_bonus", self.novelty_bonus, 0.0, 1e6)
         check_range("n_planning_signals", self.n_planning_signals, 1, 10_000)
         check_range("warmup_steps", self.warmup_steps, 0, 1_000_000)
 

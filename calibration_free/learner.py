@@ -84,6 +84,7 @@ class TaskLearner:
         self.n_signals = 0
         self._n_features: int | None = None
         self._pending_target: int | None = None
+        self._visits = np.zeros(world.n_states)
         self._fit = decoder_fit(self.config.decoder, self.config.shrinkage)
         self._planner = UncertaintyPlanner(
             world, self.frame.label_distribution, self.config.discount
@@ -145,7 +146,10 @@ class TaskLearner:
         else:
             weights = beliefs.confidence.copy()
         weights /= weights.sum()
-        return self._planner.action(state, corrected, weights, self.rng)
+        novelty = None
+        if self.config.novelty_bonus > 0:
+            novelty = self.config.novelty_bonus / np.sqrt(1.0 + self._visits)
+        return self._planner.action(state, corrected, weights, self.rng, novelty)
 
     def _sample_indices(self, n_available: int) -> np.ndarray:
         size = min(self.config.n_planning_signals, n_available)
@@ -255,6 +259,7 @@ class CalibrationFreeLearner(TaskLearner):
     def observe(self, state: int, action: int, signal: np.ndarray) -> None:
         """Update every task's likelihood with the signal, then its decoder and confusion."""
         x = self._check_input(state, action, signal)
+        self._visits[state] += 1
         if self._history is None:
             self._history = TaskHistory(
                 self.world.n_tasks, self.frame.n_classes, x.shape[0], self.config.n_folds

@@ -81,10 +81,16 @@ class UncertaintyPlanner:
         corrected: np.ndarray,
         task_weights: np.ndarray,
         rng: np.random.Generator,
+        novelty: np.ndarray | None = None,
     ) -> int:
-        """The best action from ``state`` under the uncertainty reward, ties drawn at random."""
-        q = value_iteration(
-            self.rewards(corrected, task_weights), self.world.next_state, discount=self.discount
-        )[state]
+        """The best action from ``state`` under the uncertainty reward, ties drawn at random.
+
+        ``novelty`` (n_states,), optional, is added to the uncertainty reward scaled to a
+        maximum of 1, for every action taken in that state.
+        """
+        reward = self.rewards(corrected, task_weights)
+        if novelty is not None:
+            reward = reward / max(reward.max(), np.finfo(float).tiny) + novelty[:, None]
+        q = value_iteration(reward, self.world.next_state, discount=self.discount)[state]
         best = np.flatnonzero(q >= q.max() - 1e-12 * max(1.0, abs(q.max())))
         return int(rng.choice(best))
