@@ -82,6 +82,7 @@ class TaskLearner:
         self.rng = np.random.default_rng(rng)
         self.log_likelihood = np.zeros(world.n_tasks)
         self.n_signals = 0
+        self.n_targets = 0
         self._n_features: int | None = None
         self._pending_target: int | None = None
         self._visits = np.zeros(world.n_states)
@@ -147,7 +148,7 @@ class TaskLearner:
             weights = beliefs.confidence.copy()
         weights /= weights.sum()
         novelty = None
-        if self.config.novelty_bonus > 0:
+        if self.config.novelty_bonus > 0 and self.n_targets == 0:
             novelty = self.config.novelty_bonus / np.sqrt(1.0 + self._visits)
         return self._planner.action(state, corrected, weights, self.rng, novelty)
 
@@ -159,6 +160,7 @@ class TaskLearner:
         """The declared target if this (state, action) performs it, and clear it."""
         target, self._pending_target = self._pending_target, None
         if target is not None and action == GOAL and state == target:
+            self.n_targets += 1
             return target
         return None
 
