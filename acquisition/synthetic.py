@@ -218,29 +218,9 @@ def generate_errp_epochs_at_gain(
     accuracy. With a given seed every random draw is independent of ``gain``: the same
     seed at two gains gives the same background, jitters and labels.
 
-    Parameters
-    ----------
-    n_correct, n_error : int
-        Numbers of epochs after correct (label 0) and wrong (label 1) actions.
-    gain : float
-        Amplitude scale of the outcome responses (>= 0; 0 makes the classes differ only
-        by the induced theta power).
-    seed : int, SeedSequence or Generator, default 0
-        Seed of :func:`numpy.random.default_rng`.
-    sfreq : float, default 256.0
-        Sampling frequency in Hz.
-    tmin, tmax : float, default -0.2 and 1.0
-        Epoch limits relative to the action onset, in s, rounded to the nearest sample
-        (as MNE does) so that the onset falls on a sample.
-    ch_names : sequence of str, default ("Fz", "FCz", "Cz", "Pz")
-        Channels, 10-10 system names (e.g. "Fz", "FC1", "CPz", "T7"; case-insensitive).
-
-    Returns
-    -------
-    LabelledEpochs
-        ``epochs`` of shape (n_correct + n_error, n_channels, n_times), float64, µV, in
-        random order; ``labels`` 0 = correct, 1 = error; ``tmin`` the time of the first
-        sample.
+    ``gain`` (>= 0) scales the outcome responses (0 makes the classes differ only by the
+    induced theta power); the other parameters and the result are those of
+    :func:`generate_errp_epochs`.
     """
     n_correct = _check_count("n_correct", n_correct)
     n_error = _check_count("n_error", n_error)

@@ -17,12 +17,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from calibration_free.likelihood import confusion_matrices, corrected_proba
-from decoding.lda import LinearDecoders, fit_lda
-from decoding.statistics import ClassStatistics
-from decoding.student_t import StudentTDecoders, fit_student_t
+from decoding.lda import fit_lda
+from decoding.statistics import BatchedDecoders, ClassStatistics
+from decoding.student_t import fit_student_t
 
-Decoders = LinearDecoders | StudentTDecoders
-DecoderFit = Callable[[ClassStatistics], Decoders]
+DecoderFit = Callable[[ClassStatistics], BatchedDecoders]
 DEFAULT_FOLDS = 10
 
 
@@ -117,7 +116,7 @@ class TaskHistory:
             np.subtract(total[:, None], per_fold, out=training)
         return self._totals, self._training
 
-    def cross_validated_proba(self, fold_decoders: Decoders) -> np.ndarray:
+    def cross_validated_proba(self, fold_decoders: BatchedDecoders) -> np.ndarray:
         """Out-of-fold class probabilities, shape (n_tasks, n_signals, n_classes)."""
         proba = np.empty((self.n_tasks, self.n_signals, self.n_classes))
         for fold in range(min(self.n_folds, self.n_signals)):
@@ -133,12 +132,12 @@ class TaskModels:
 
     Attributes
     ----------
-    decoders : LinearDecoders or StudentTDecoders, batch shape (n_tasks,)
+    decoders : BatchedDecoders (LDA or Student-t), batch shape (n_tasks,)
     confusion : ndarray, shape (n_tasks, n_classes, n_classes)
         ``p(true label i | predicted j)`` from k-fold cross-validation.
     """
 
-    decoders: Decoders
+    decoders: BatchedDecoders
     confusion: np.ndarray
 
     @classmethod

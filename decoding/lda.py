@@ -12,13 +12,19 @@ batched linear solve.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 
 import numpy as np
 from sklearn.base import BaseEstimator, ClassifierMixin
 from sklearn.utils.validation import check_is_fitted, validate_data
 
-from decoding.statistics import ClassStatistics, log_softmax, one_hot, shrink_towards_identity
+from decoding.statistics import (
+    BatchedDecoders,
+    ClassStatistics,
+    log_softmax,
+    one_hot,
+    shrink_towards_identity,
+)
 
 DEFAULT_SHRINKAGE = 0.5
 #: A class needs this much (weighted) data before a decoder that uses it is informative.
@@ -26,7 +32,7 @@ MIN_CLASS_COUNT = 2.0
 
 
 @dataclass(frozen=True)
-class LinearDecoders:
+class LinearDecoders(BatchedDecoders):
     """A batch of linear decoders ``log p(k | x) = log_softmax(x W + b)``.
 
     Attributes
@@ -42,20 +48,8 @@ class LinearDecoders:
     intercept: np.ndarray
     present: np.ndarray
 
-    @property
-    def informative(self) -> np.ndarray:
-        """Decoders with at least two present classes, shape (*B,), bool."""
-        return self.present.sum(axis=-1) >= 2
-
-    def log_proba(self, X: np.ndarray) -> np.ndarray:
-        """Log class probabilities of signals ``X`` (n, d) under every decoder: (*B, n, K)."""
-        log_p = log_softmax(X @ self.coef + self.intercept[..., None, :])
-        uniform = -np.log(self.coef.shape[-1])
-        return np.where(self.informative[..., None, None], log_p, uniform)
-
-    def select(self, index: object) -> LinearDecoders:
-        """The decoders at ``index`` of the batch axes (numpy indexing)."""
-        return LinearDecoders(*(getattr(self, f.name)[index] for f in fields(self)))
+    def _known_log_proba(self, X: np.ndarray) -> np.ndarray:
+        return log_softmax(X @ self.coef + self.intercept[..., None, :])
 
 
 def fit_lda(statistics: ClassStatistics, shrinkage: float = DEFAULT_SHRINKAGE) -> LinearDecoders:

@@ -6,7 +6,8 @@ many label hypotheses over the same signals can share and update them incrementa
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
+from typing import Self
 
 import numpy as np
 
@@ -56,6 +57,33 @@ class ClassStatistics:
             means[..., :, None] * means[..., None, :]
         )
         return means, covariances
+
+
+class BatchedDecoders:
+    """What every batch of decoders shares (subclasses are dataclasses with a ``present``
+    field, shape (*B, n_classes), bool, and compute :meth:`_known_log_proba`)."""
+
+    present: np.ndarray
+
+    @property
+    def informative(self) -> np.ndarray:
+        """Decoders with at least two present classes, shape (*B,), bool."""
+        return self.present.sum(axis=-1) >= 2
+
+    def _known_log_proba(self, X: np.ndarray) -> np.ndarray:
+        raise NotImplementedError
+
+    def log_proba(self, X: np.ndarray) -> np.ndarray:
+        """Log class probabilities of signals ``X`` (n, d) under every decoder: (*B, n, K).
+
+        Absent classes get probability 0; uninformative decoders give uniform probabilities.
+        """
+        uniform = -np.log(self.present.shape[-1])
+        return np.where(self.informative[..., None, None], self._known_log_proba(X), uniform)
+
+    def select(self, index: object) -> Self:
+        """The decoders at ``index`` of the batch axes (numpy indexing)."""
+        return type(self)(*(getattr(self, f.name)[index] for f in fields(self)))
 
 
 def one_hot(labels: np.ndarray, n_classes: int) -> np.ndarray:

@@ -12,7 +12,7 @@ A class with ``n <= d`` signals has an improper predictive: it takes no part (pr
 
 from __future__ import annotations
 
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 
 import numpy as np
 from scipy.special import gammaln
@@ -20,11 +20,17 @@ from sklearn.base import BaseEstimator, ClassifierMixin
 from sklearn.utils.validation import check_is_fitted, validate_data
 
 from decoding.lda import DEFAULT_SHRINKAGE
-from decoding.statistics import ClassStatistics, log_softmax, one_hot, shrink_towards_identity
+from decoding.statistics import (
+    BatchedDecoders,
+    ClassStatistics,
+    log_softmax,
+    one_hot,
+    shrink_towards_identity,
+)
 
 
 @dataclass(frozen=True)
-class StudentTDecoders:
+class StudentTDecoders(BatchedDecoders):
     """A batch of per-class Student-t predictive decoders.
 
     Attributes
@@ -47,13 +53,7 @@ class StudentTDecoders:
     dof: np.ndarray
     present: np.ndarray
 
-    @property
-    def informative(self) -> np.ndarray:
-        """Decoders with at least two present classes, shape (*B,), bool."""
-        return self.present.sum(axis=-1) >= 2
-
-    def log_proba(self, X: np.ndarray) -> np.ndarray:
-        """Log class probabilities of signals ``X`` (n, d) under every decoder: (*B, n, K)."""
+    def _known_log_proba(self, X: np.ndarray) -> np.ndarray:
         centred = X[..., None, :, :] - self.means[..., :, None, :]
         mahalanobis = np.einsum("...knd,...kde,...kne->...kn", centred, self.precisions, centred)
         n_features = X.shape[-1]
@@ -61,13 +61,7 @@ class StudentTDecoders:
         log_density = self.log_norm[..., None] - 0.5 * (dof + n_features) * np.log1p(
             mahalanobis / dof
         )
-        log_p = log_softmax(np.swapaxes(log_density, -1, -2))
-        uniform = -np.log(self.means.shape[-2])
-        return np.where(self.informative[..., None, None], log_p, uniform)
-
-    def select(self, index: object) -> StudentTDecoders:
-        """The decoders at ``index`` of the batch axes (numpy indexing)."""
-        return StudentTDecoders(*(getattr(self, f.name)[index] for f in fields(self)))
+        return log_softmax(np.swapaxes(log_density, -1, -2))
 
 
 def fit_student_t(
