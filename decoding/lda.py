@@ -15,14 +15,12 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from sklearn.base import BaseEstimator, ClassifierMixin
-from sklearn.utils.validation import check_is_fitted, validate_data
 
+from decoding.estimator import StatisticsClassifier
 from decoding.statistics import (
     BatchedDecoders,
     ClassStatistics,
     log_softmax,
-    one_hot,
     shrink_towards_identity,
 )
 
@@ -85,7 +83,7 @@ def fit_lda(statistics: ClassStatistics, shrinkage: float = DEFAULT_SHRINKAGE) -
     return LinearDecoders(coef=coef, intercept=intercept, present=present)
 
 
-class ShrinkageLDA(ClassifierMixin, BaseEstimator):
+class ShrinkageLDA(StatisticsClassifier):
     """Shrinkage LDA with equal class priors, as used by every task hypothesis.
 
     Equivalent to ``LinearDiscriminantAnalysis(solver="lsqr", shrinkage=shrinkage,
@@ -94,13 +92,13 @@ class ShrinkageLDA(ClassifierMixin, BaseEstimator):
     Parameters
     ----------
     shrinkage : float, default 0.5
-        Weight of the diagonal target in the shared covariance, in [0, 1].
+        Weight of the scaled-identity target in the shared covariance, in [0, 1].
 
     Attributes
     ----------
     classes_ : ndarray, shape (n_classes,)
-    coef_ : ndarray, shape (n_features, n_classes)
-    intercept_ : ndarray, shape (n_classes,)
+    decoders_ : LinearDecoders
+        ``coef`` (n_features, n_classes) and ``intercept`` (n_classes,).
 
     Examples
     --------
@@ -110,34 +108,10 @@ class ShrinkageLDA(ClassifierMixin, BaseEstimator):
     array([1])
     """
 
+    _fit_statistics = staticmethod(fit_lda)
+
     def __init__(self, shrinkage: float = DEFAULT_SHRINKAGE) -> None:
-        self.shrinkage = shrinkage
+        super().__init__(shrinkage)
 
-    def fit(self, X: np.ndarray, y: np.ndarray) -> ShrinkageLDA:
-        """Fit on signals ``X`` (n_signals, n_features) with labels ``y`` (n_signals,)."""
-        if not 0.0 <= float(self.shrinkage) <= 1.0:
-            raise ValueError(f"shrinkage must be in [0, 1]; got {self.shrinkage!r}")
-        X, y = validate_data(self, X, y)
-        self.classes_, encoded = np.unique(y, return_inverse=True)
-        if len(self.classes_) < 2:
-            raise ValueError("ShrinkageLDA needs at least 2 classes in y")
-        statistics = ClassStatistics.from_signals(X, one_hot(encoded, len(self.classes_)))
-        decoders = fit_lda(statistics, float(self.shrinkage))
-        if np.any(statistics.counts < MIN_CLASS_COUNT):
-            raise ValueError(f"every class needs at least {MIN_CLASS_COUNT:g} signals")
-        self.coef_, self.intercept_ = decoders.coef, decoders.intercept
-        return self
-
-    def predict_log_proba(self, X: np.ndarray) -> np.ndarray:
-        """Log class probabilities, shape (n_signals, n_classes)."""
-        check_is_fitted(self)
-        X = validate_data(self, X, reset=False)
-        return log_softmax(X @ self.coef_ + self.intercept_)
-
-    def predict_proba(self, X: np.ndarray) -> np.ndarray:
-        """Class probabilities, shape (n_signals, n_classes)."""
-        return np.exp(self.predict_log_proba(X))
-
-    def predict(self, X: np.ndarray) -> np.ndarray:
-        """Most probable class of each signal, shape (n_signals,)."""
-        return self.classes_[np.argmax(self.predict_log_proba(X), axis=1)]
+    def _min_count(self, n_features: int) -> float:
+        return MIN_CLASS_COUNT

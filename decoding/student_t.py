@@ -16,15 +16,13 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy.special import gammaln
-from sklearn.base import BaseEstimator, ClassifierMixin
-from sklearn.utils.validation import check_is_fitted, validate_data
 
+from decoding.estimator import StatisticsClassifier
 from decoding.lda import DEFAULT_SHRINKAGE
 from decoding.statistics import (
     BatchedDecoders,
     ClassStatistics,
     log_softmax,
-    one_hot,
     shrink_towards_identity,
 )
 
@@ -92,7 +90,7 @@ def fit_student_t(
     )
 
 
-class StudentTClassifier(ClassifierMixin, BaseEstimator):
+class StudentTClassifier(StatisticsClassifier):
     """Bayesian Gaussian classifier with a Student-t predictive per class (equal priors).
 
     Parameters
@@ -107,38 +105,10 @@ class StudentTClassifier(ClassifierMixin, BaseEstimator):
         The fitted class predictives (no batch axes).
     """
 
+    _fit_statistics = staticmethod(fit_student_t)
+
     def __init__(self, shrinkage: float = DEFAULT_SHRINKAGE) -> None:
-        self.shrinkage = shrinkage
+        super().__init__(shrinkage)
 
-    def fit(self, X: np.ndarray, y: np.ndarray) -> StudentTClassifier:
-        """Fit on signals ``X`` (n_signals, n_features) with labels ``y`` (n_signals,).
-
-        Every class needs more signals than there are features.
-        """
-        if not 0.0 <= float(self.shrinkage) <= 1.0:
-            raise ValueError(f"shrinkage must be in [0, 1]; got {self.shrinkage!r}")
-        X, y = validate_data(self, X, y)
-        self.classes_, encoded = np.unique(y, return_inverse=True)
-        if len(self.classes_) < 2:
-            raise ValueError("StudentTClassifier needs at least 2 classes in y")
-        statistics = ClassStatistics.from_signals(X, one_hot(encoded, len(self.classes_)))
-        self.decoders_ = fit_student_t(statistics, float(self.shrinkage))
-        if np.any(statistics.counts <= X.shape[1]):
-            raise ValueError(
-                f"every class needs more than n_features = {X.shape[1]} signals; "
-                f"got class counts {statistics.counts.astype(int).tolist()}"
-            )
-        return self
-
-    def predict_log_proba(self, X: np.ndarray) -> np.ndarray:
-        """Log class probabilities, shape (n_signals, n_classes)."""
-        check_is_fitted(self)
-        return self.decoders_.log_proba(validate_data(self, X, reset=False))
-
-    def predict_proba(self, X: np.ndarray) -> np.ndarray:
-        """Class probabilities, shape (n_signals, n_classes)."""
-        return np.exp(self.predict_log_proba(X))
-
-    def predict(self, X: np.ndarray) -> np.ndarray:
-        """Most probable class of each signal, shape (n_signals,)."""
-        return self.classes_[np.argmax(self.predict_log_proba(X), axis=1)]
+    def _min_count(self, n_features: int) -> float:
+        return n_features + 1
