@@ -1,0 +1,295 @@
+"""Session recordings: round trips, the official mcap reader, schemas, cut files, SIGKILL."""
+
+from __future__ import annotations
+
+import base64
+import json
+import signal
+import subprocess
+import sys
+from collections import Counter
+from collections.abc import Callable
+from functools import partial
+from itertools import pairwise
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from mcap.reader import make_reader
+
+from replay.recording import (
+    CONFIG_METADATA,
+    SCHEMAS,
+    Recording,
+    SessionRecorder,
+    decode_array,
+    read_recording,
+    recover,
+)
+
+ROOT = Path(__file__).resolve().parents[1]
+CONFIG = {"grid": 3, "frame": "feedback", "learner": {"eps": 0.1, "decoder": "lda"}}
+T0 = 1_700_000_000_123_456_789  # ns
+_TYPES = {"object": dict, "array": list, "string": str, "integer": int, "number": (int, float)}
+
+
+def schema_errors(instance: Any, schema: dict[str, Any], where: str = "$") -> list[str]:
+    """The JSON Schema keywords SCHEMAS uses: type, required, properties, items, const,
+    oneOf, minimum, maximum (others, such as title or contentEncoding, are annotations)."""
+    kind = schema.get("type")
+    if kind and (isinstance(instance, bool) or not isinstance(instance, _TYPES[kind])):
+        return [f"{where} is not of type {kind}"]
+    errors = [f"{where} lacks {key}" for key in schema.get("required", ()) if key not in instance]
+    if "const" in schema and instance != schema["const"]:
+        errors.append(f"{where} is not {schema['const']!r}")
+    if "oneOf" in schema and sum(not schema_errors(instance, s) for s in schema["oneOf"]) != 1:
+        errors.append(f"{where} matches not exactly one of oneOf")
+    low, high = schema.get("minimum"), schema.get("maximum")
+    if (low is not None and instance < low) or (high is not None and instance > high):
+        errors.append(f"{where} is out of range")
+    for key, sub in schema.get("properties", {}).items():
+        if key in instance:
+            errors += schema_errors(instance[key], sub, f"{where}.{key}")
+    for i, item in enumerate(instance if "items" in schema else ()):
+        errors += schema_errors(item, schema["items"], f"{where}[{i}]")
+    return errors
+
+
+def write_session(path: Path) -> tuple[list[tuple[str, int, Any]], list[int]]:
+    """Record every topic; return what was recorded, ``(topic, log_time_ns, message or
+    (header, array))``, and the file size after each message (where its record ends)."""
+    rng = np.random.default_rng(0)
+    recorded: list[tuple[str, int, Any]] = []
+    with SessionRecorder(path, "s01", CONFIG) as recorder:
+        ends = [path.stat().st_size]  # the /config message
+        for seq in range(3):
+            epoch = rng.normal(scale=10.0, size=(4, 32)).astype(np.float32)
+            epoch[0, :5] = [np.nan, -0.0, np.inf, 1e-45, -np.inf]  # bits, not just values
+            header = {"seq": seq, "t_ns": seq, "units": "uV", "ch_names": ["Fz", "FCz", "Cz", "Pz"]}
+            features, stamp = rng.normal(size=7).astype(np.float32), {"seq": seq, "t_ns": seq}
+            confidence = rng.dirichlet(np.ones(9))
+            steps: list[tuple[str, Any, Callable[[int], None]]] = [
+                (
+                    "/epoch",
+                    (header, epoch),
+                    partial(recorder.record_array, "/epoch", header, epoch),
+                ),
+                (
+                    "/features",
+                    (stamp, features),
+                    partial(recorder.record_array, "/features", stamp, features),
+                ),
+                ("/belief", confidence, partial(recorder.record_belief, confidence, 3)),
+                ("/log", f"step {seq}", partial(recorder.record_log, 2, f"step {seq}")),
+            ]
+            for topic in ("/move", "/state", "/event", "/truth"):
+                message = {"seq": seq, "t_ns": seq, "topic": topic, "extra": [1, 2.5, None, "x"]}
+                steps.append((topic, message, partial(recorder.record, topic, message)))
+            for i, (topic, sent, call) in enumerate(steps):
+                log_time = T0 + seq * 500_000_000 + i
+                call(log_time)
+                recorded.append((topic, log_time, sent))
+                ends.append(path.stat().st_size)
+    return recorded, ends
+
+
+@pytest.fixture
+def session(tmp_path: Path) -> tuple[Path, list[tuple[str, int, Any]]]:
+    path = tmp_path / "session.mcap"
+    recorded, _ = write_session(path)
+    return path, recorded
+
+
+def bits(array: np.ndarray) -> np.ndarray:
+    return np.asarray(array, dtype=np.float32).view(np.uint32)
+
+
+def check_recorded(recording: Recording, recorded: list[tuple[str, int, Any]]) -> None:
+    """Every recorded message, in order per topic, with its log time; arrays bit-exact."""
+    assert recording.session == "s01"
+    assert recording.config == CONFIG
+    assert set(recording.messages) == set(SCHEMAS)
+    [(_, config)] = recording.messages["/config"]
+    assert config == {"session": "s01", "config": CONFIG}
+    counts = Counter(["/config", *(topic for topic, _, _ in recorded)])
+    assert counts == {topic: len(messages) for topic, messages in recording.messages.items()}
+    cursors = dict.fromkeys(SCHEMAS, 0)
+    for topic, log_time, sent in recorded:
+        got_time, got = recording.messages[topic][cursors[topic]]
+        cursors[topic] += 1
+        assert got_time == log_time
+        if topic in ("/epoch", "/features"):
+            header, array = sent
+            assert {k: v for k, v in got.items() if k not in ("data", "shape", "dtype")} == header
+            decoded = decode_array(got)
+            assert decoded.shape == array.shape and decoded.dtype == np.float32
+            np.testing.assert_array_equal(bits(decoded), bits(array))
+        elif topic == "/belief":
+            cells = np.frombuffer(base64.b64decode(got["data"]), dtype="<f4")
+            np.testing.assert_array_equal(bits(cells), bits(sent.astype(np.float32)))
+            assert got["timestamp"] == {"sec": log_time // 10**9, "nsec": log_time % 10**9}
+            assert (got["column_count"], got["row_stride"], got["cell_stride"]) == (3, 12, 4)
+            assert got["fields"] == [{"name": "confidence", "offset": 0, "type": 7}]
+        elif topic == "/log":
+            assert (got["level"], got["message"], got["name"]) == (2, sent, "cfbci")
+            assert got["file"] == __file__ and got["line"] > 0
+        else:
+            assert got == sent
+
+
+def test_round_trip_of_every_topic(session: tuple[Path, list[tuple[str, int, Any]]]) -> None:
+    path, recorded = session
+    recording = read_recording(path)
+    assert not recording.truncated and recording.warning is None
+    assert recording.end_offset < path.stat().st_size  # the summary and footer follow
+    assert recording.n_messages == 1 + len(recorded)
+    check_recorded(recording, recorded)
+
+
+def test_the_official_reader_reads_a_closed_recording(
+    session: tuple[Path, list[tuple[str, int, Any]]],
+) -> None:
+    path, recorded = session
+    with path.open("rb") as file:
+        reader = make_reader(file)
+        assert reader.get_header().library == "cfbci" and reader.get_header().profile == ""
+        summary = reader.get_summary()
+        assert summary is not None and summary.statistics.message_count == 1 + len(recorded)
+        topics = [channel.topic for _, channel, _ in reader.iter_messages(log_time_order=False)]
+        [metadata] = list(reader.iter_metadata())
+    assert topics[0] == "/config"
+    assert topics[1:] == [topic for topic, _, _ in recorded]
+    assert metadata.name == CONFIG_METADATA
+    assert metadata.metadata["session"] == "s01"
+    assert json.loads(metadata.metadata["config"]) == CONFIG
+
+
+def test_messages_validate_against_the_schemas_in_the_file(
+    session: tuple[Path, list[tuple[str, int, Any]]],
+) -> None:
+    path, _ = session
+    with path.open("rb") as file:
+        for schema, channel, message in make_reader(file).iter_messages():
+            assert schema is not None and schema.encoding == "jsonschema"
+            assert channel.message_encoding == "json"
+            stored = json.loads(schema.data)
+            assert stored == SCHEMAS[channel.topic] and schema.name == stored["title"]
+            assert schema_errors(json.loads(message.data), stored) == []
+    assert SCHEMAS["/belief"]["title"] == "foxglove.Grid"
+    assert SCHEMAS["/log"]["title"] == "foxglove.Log"
+
+
+@pytest.mark.parametrize(
+    ("topic", "message", "problem"),
+    [
+        ("/move", {"t_ns": 1}, "lacks seq"),
+        ("/move", {"seq": -1, "t_ns": 1}, "seq is out of range"),
+        ("/move", {"seq": True, "t_ns": 1}, "seq is not of type integer"),
+        ("/epoch", {"seq": 0, "t_ns": 1, "data": "", "shape": [2], "dtype": "<f8"}, "dtype"),
+        ("/log", {"level": 9}, "level matches not exactly one"),
+        ("/belief", {"fields": [{"type": 7.5}]}, "fields[0].type"),
+    ],
+)
+def test_the_validator_catches_bad_messages(
+    topic: str, message: dict[str, Any], problem: str
+) -> None:
+    assert any(problem in error for error in schema_errors(message, SCHEMAS[topic]))
+
+
+def test_the_recorder_rejects_bad_messages(tmp_path: Path) -> None:
+    with SessionRecorder(tmp_path / "bad.mcap", "bad", {}) as recorder:
+        with pytest.raises(ValueError, match="unknown topic"):
+            recorder.record("/nope", {"seq": 0, "t_ns": 0}, 0)
+        with pytest.raises(ValueError, match=r"needs the fields \['t_ns'\]"):
+            recorder.record("/move", {"seq": 0}, 0)
+        with pytest.raises(ValueError, match="arrays go to"):
+            recorder.record_array("/move", {"seq": 0, "t_ns": 0}, np.zeros(2), 0)
+        with pytest.raises(ValueError, match="shape"):
+            recorder.record_belief(np.zeros(8), 3, 0)
+        with pytest.raises(ValueError, match="log level"):
+            recorder.record_log(0, "x", 0)
+        with pytest.raises(ValueError, match="JSON compliant"):
+            recorder.record("/state", {"seq": 0, "t_ns": 0, "p": float("nan")}, 0)
+    assert read_recording(tmp_path / "bad.mcap").n_messages == 1  # the /config message
+
+
+def test_a_cut_file_gives_every_complete_message_before_the_cut(tmp_path: Path) -> None:
+    path = tmp_path / "session.mcap"
+    _, ends = write_session(path)
+    data = path.read_bytes()
+    closed = read_recording(path)
+    inside = [end - 1 for end in ends] + [(a + b) // 2 for a, b in pairwise(ends)]
+    cuts = sorted({0, 5, 8, 20, *ends, *inside, ends[-1] + 3})
+    cut = tmp_path / "cut.mcap"
+    for at in cuts:
+        cut.write_bytes(data[:at])
+        recording = read_recording(cut)
+        complete = sum(end <= at for end in ends)  # the writer's own record boundaries
+        assert recording.truncated
+        assert recording.n_messages == complete, at
+        if complete:
+            assert recording.end_offset == ends[complete - 1]
+        assert recording.end_offset <= at
+        assert f"byte {recording.end_offset}" in recording.warning
+        assert f"{complete} complete messages" in recording.warning
+        for topic, messages in recording.messages.items():
+            assert messages == closed.messages[topic][: len(messages)]
+
+
+def test_read_recording_rejects_a_file_that_is_not_mcap(tmp_path: Path) -> None:
+    path = tmp_path / "not.mcap"
+    path.write_bytes(b"PK\x03\x04 not an mcap file")
+    with pytest.raises(ValueError, match="not an MCAP file"):
+        read_recording(path)
+
+
+CHILD = """
+import itertools, sys
+import numpy as np
+from replay.recording import SessionRecorder
+
+recorder = SessionRecorder(sys.argv[1], "killed", {"grid": 5})
+epoch = np.arange(64 * 128, dtype=np.float32).reshape(64, 128)
+for seq in itertools.count():
+    if seq % 3 == 0:
+        recorder.record_array("/epoch", {"seq": seq, "t_ns": seq}, epoch + seq, seq)
+    else:
+        recorder.record("/move", {"seq": seq, "t_ns": seq, "action": "up"}, seq)
+    print(seq, flush=True)  # after record() returned
+"""
+
+
+def test_a_killed_writer_loses_at_most_the_message_being_written(tmp_path: Path) -> None:
+    path, clean = tmp_path / "killed.mcap", tmp_path / "recovered.mcap"
+    k = 300
+    child = subprocess.Popen(
+        [sys.executable, "-c", CHILD, str(path)], stdout=subprocess.PIPE, text=True, cwd=ROOT
+    )
+    try:
+        reported = [child.stdout.readline() for _ in range(k)]
+    finally:
+        child.kill()
+    reported += child.stdout.readlines()  # reports already in the pipe when it died
+    assert child.wait() == -signal.SIGKILL
+    assert [int(line) for line in reported] == list(range(len(reported))) and len(reported) >= k
+
+    recording = read_recording(path)
+    written = recording.n_messages - 1  # without /config
+    assert len(reported) <= written <= len(reported) + 1
+    assert recording.truncated and "the writer did not close it" in recording.warning
+    assert recording.config == {"grid": 5}
+    seqs = sorted(m["seq"] for topic in ("/epoch", "/move") for _, m in recording.messages[topic])
+    assert seqs == list(range(written))
+    for _, message in recording.messages["/epoch"]:
+        expected = np.arange(64 * 128, dtype=np.float32).reshape(64, 128) + message["seq"]
+        np.testing.assert_array_equal(decode_array(message), expected)
+
+    assert recover(path, clean) == recording.n_messages
+    with clean.open("rb") as file:
+        reader = make_reader(file)
+        assert reader.get_summary().chunk_indexes  # indexed: the seeking path, not a scan
+        assert sum(1 for _ in reader.iter_messages()) == recording.n_messages
+        assert [m.name for m in reader.iter_metadata()] == [CONFIG_METADATA]
+    recovered = read_recording(clean)
+    assert not recovered.truncated and recovered.messages == recording.messages
