@@ -22,6 +22,7 @@ from decoding.statistics import (
     ClassStatistics,
     log_softmax,
     shrink_towards_identity,
+    solve_spd,
 )
 
 DEFAULT_SHRINKAGE = 0.5
@@ -76,7 +77,7 @@ def fit_lda(statistics: ClassStatistics, shrinkage: float = DEFAULT_SHRINKAGE) -
     shared = shrink_towards_identity(shared, shrinkage)
     # Uninformative decoders get a harmless identity system instead of a singular one.
     shared[~informative] = np.eye(n_features)
-    coef = np.linalg.solve(shared, np.swapaxes(means, -1, -2))
+    coef = solve_spd(shared, np.swapaxes(means, -1, -2))
     with np.errstate(divide="ignore"):
         log_priors = np.log(class_weights)
     intercept = -0.5 * np.einsum("...kd,...dk->...k", means, coef) + log_priors
