@@ -47,12 +47,12 @@ class LearnerConfig:
         How the uncertainty planner weighs the tasks: their posterior (softmax of the
         scores), which focuses on the leading hypotheses, or their normalised pairwise
         confidence W of method.md §6, which is flatter.
-    novelty_bonus : float, default 2.0
-        Exploration bonus ``c / sqrt(1 + visits(s))`` added to the uncertainty reward
-        (scaled to a maximum of 1) until the first target is reached: while no decoder is
-        calibrated by use, it draws the agent to cells it has seen little, where the
-        hypotheses' labels can be told apart (guidance needs cells in the target's row or
-        column).
+    novelty_bonus : float, default 4.0
+        Exploration bonus ``c * 2 (1 - W_best) / sqrt(1 + visits(s))`` added to the
+        uncertainty reward (scaled to a maximum of 1) until the first target is reached:
+        while no decoder is calibrated by use, it draws the agent to cells it has seen
+        little, where the hypotheses' labels can be told apart (guidance needs cells in
+        the target's row or column), and fades as the best task's confidence W_best grows.
     n_planning_signals : int, default 20
         Past signals sampled per step by the uncertainty planner.
     discount : float, default 0.9
@@ -72,7 +72,7 @@ class LearnerConfig:
     beta: float = 0.9
     planner: str = "uncertainty"
     planning_weights: str = "posterior"
-    novelty_bonus: float = 2.0
+    novelty_bonus: float = 4.0
     n_planning_signals: int = 20
     discount: float = DEFAULT_DISCOUNT
     warmup_steps: int = 10

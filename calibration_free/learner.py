@@ -149,7 +149,8 @@ class TaskLearner:
         weights /= weights.sum()
         novelty = None
         if self.config.novelty_bonus > 0 and self.n_targets == 0:
-            novelty = self.config.novelty_bonus / np.sqrt(1.0 + self._visits)
+            fade = 2.0 * (1.0 - beliefs.confidence[beliefs.best_task])
+            novelty = fade * self.config.novelty_bonus / np.sqrt(1.0 + self._visits)
         return self._planner.action(state, corrected, weights, self.rng, novelty)
 
     def _sample_indices(self, n_available: int) -> np.ndarray:

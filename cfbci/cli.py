@@ -125,6 +125,142 @@ def _run_bench_update(args: argparse.Namespace, console: Console) -> int:
     return 0
 
 
+def _add_endpoints(p: argparse.ArgumentParser, listen_help: str, connect_help: str) -> None:
+    p.add_argument("--listen", action="append", default=[], metavar="EP", help=listen_help)
+    p.add_argument("--connect", action="append", default=[], metavar="EP", help=connect_help)
+
+
+def _add_serve(commands: argparse._SubParsersAction) -> None:
+    p = commands.add_parser(
+        "serve",
+        help="the pipeline service: runs the learner for sources over Zenoh",
+        description="Serve calibration-free sessions over Eclipse Zenoh (docs/protocol.md) "
+        "until SIGINT or SIGTERM.",
+    )
+    _add_endpoints(
+        p, "Zenoh endpoint to listen on, e.g. tcp/127.0.0.1:7447 (repeatable)",
+        "Zenoh endpoint to connect to (repeatable)",
+    )
+    p.add_argument("--record-dir", type=Path, help="write one <session>.mcap per session here")
+    p.set_defaults(run=_run_serve)
+
+
+def _run_serve(args: argparse.Namespace, console: Console) -> int:
+    from cfbci.service import serve
+
+    if not args.listen and not args.connect:
+        raise ValueError("give at least one --listen or --connect endpoint")
+    serve(args.listen, args.connect, args.record_dir)
+    return 0
+
+
+def _add_source_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--dataset", type=Path, help="dataset file (.mat or .npz); default synthetic")
+    p.add_argument(
+        "--synthetic-accuracy", type=float, default=DEFAULT_SYNTHETIC_ACCURACY,
+        help=f"synthetic difficulty as nominal balanced LDA accuracy, in {list(ACCURACY_RANGE)}",
+    )
+    p.add_argument("--seed", type=int, default=0, help="session seed (default 0)")
+    p.add_argument("--steps", type=int, default=500, help="actions in the session (default 500)")
+    p.add_argument("--grid", type=int, default=5, help="grid side (default 5)")
+    p.add_argument("--frame", choices=FRAMES, default="feedback")
+    p.add_argument(
+        "--set", action="append", default=[], metavar="KEY=VALUE",
+        help="a learner setting sent in the config (see calibration_free.config.LearnerConfig)",
+    )
+    p.add_argument(
+        "--interval", type=float, default=0.0,
+        help="seconds between a move and the user's epoch (default 0)",
+    )
+
+
+def _source_settings(args: argparse.Namespace, session: str) -> Any:
+    from acquisition.replay_source import SourceSettings
+
+    if args.steps < 1 or args.interval < 0:
+        raise ValueError("--steps must be at least 1 and --interval at least 0")
+    learner = parse_settings(args.set)
+    LearnerConfig.from_dict({"frame": args.frame, **learner})  # fail early on a bad setting
+    return SourceSettings(
+        session=session, data=DataSpec(args.dataset, args.synthetic_accuracy), seed=args.seed,
+        steps=args.steps, grid=args.grid, frame=args.frame, learner=learner,
+        interval=args.interval,
+    )
+
+
+def _add_source(commands: argparse._SubParsersAction) -> None:
+    p = commands.add_parser(
+        "source",
+        help="the replay source: a simulated user answering a running service",
+        description="Replay one session against a running `cfbci serve` over Zenoh.",
+    )
+    p.add_argument("--session", required=True, help="session id ([A-Za-z0-9_-], 1-64)")
+    _add_source_options(p)
+    _add_endpoints(
+        p, "Zenoh endpoint to listen on (repeatable)",
+        "Zenoh endpoint of the service, e.g. tcp/127.0.0.1:7447 (repeatable)",
+    )
+    p.set_defaults(run=_run_source)
+
+
+def _run_source(args: argparse.Namespace, console: Console) -> int:
+    from acquisition.replay_source import run_source
+
+    summary = run_source(_source_settings(args, args.session), args.listen, args.connect)
+    console.print(
+        f"session {summary.session!r}: {summary.steps} steps, first target "
+        f"{summary.first_target_step or '-'}, correct {summary.correct_targets}, "
+        f"wrong {summary.wrong_targets}"
+    )
+    return 0
+
+
+def _add_session(commands: argparse._SubParsersAction) -> None:
+    p = commands.add_parser(
+        "session",
+        help="a live session: service and replay source over an embedded Zenoh network",
+        description="Start the service and the replay source as separate processes on a "
+        "loopback Zenoh network, show the session live, record it and summarise it.",
+    )
+    _add_source_options(p)
+    p.add_argument(
+        "--record", type=Path, help="MCAP recording to write (default runs/<timestamp>.mcap)"
+    )
+    p.add_argument("--json", type=Path, help="write the summary as JSON")
+    _add_endpoints(
+        p, "endpoint the service listens on (default a free tcp/127.0.0.1 port; repeatable)",
+        "endpoint the service connects to (repeatable)",
+    )
+    p.set_defaults(run=_run_session)
+
+
+def _run_session(args: argparse.Namespace, console: Console) -> int:
+    import time
+
+    from cfbci.live import (
+        default_recording,
+        print_summary,
+        run_live_session,
+        session_id_for,
+        write_json,
+    )
+
+    record = args.record or default_recording()
+    settings = _source_settings(args, session_id_for(record))
+    start = time.monotonic()
+    try:
+        result = run_live_session(
+            settings, record, listen=args.listen, connect=args.connect, console=console
+        )
+    except (TimeoutError, RuntimeError) as error:
+        Console(stderr=True).print(f"[bold red]error:[/] {error}")
+        return 1
+    print_summary(result, console, time.monotonic() - start)
+    if args.json:
+        write_json(result, args.json)
+    return 0
+
+
 def _jobs(requested: int) -> int:
     import os
 
@@ -138,6 +274,9 @@ def build_parser() -> argparse.ArgumentParser:
     commands = parser.add_subparsers(dest="command", required=True)
     _add_simulate(commands)
     _add_bench(commands)
+    _add_serve(commands)
+    _add_source(commands)
+    _add_session(commands)
     return parser
 
 

@@ -1,0 +1,313 @@
+"""The replay source: a simulated user answering the live service's moves over Zenoh.
+
+It plays the part of :func:`cfbci.simulation.run_session`'s user against the pipeline
+service (docs/protocol.md): it publishes the session's ``config``, waits for
+``session_started``, then answers every ``move`` with the ``epoch`` of that step and the
+step's ``truth``, until ``session_ended``.
+
+The random streams are those of the simulation (:func:`cfbci.simulation.session_streams`):
+the data stream makes the synthetic epochs, the user stream drives
+:class:`acquisition.user.SimulatedUser` with the same draws in the same order (the answer
+to a move, then a new target if the move declared one), and the service derives the
+learner's stream and the start cell from the same seed. A live session therefore makes the
+decisions of ``cfbci simulate --first-seed S --seeds 1 --trace`` step for step.
+
+Synthetic data go out as raw float32 epochs (``signal`` "epochs"), which the service turns
+into ErrP features exactly as the simulation does; dataset files go out as their float32
+feature vectors (``signal`` "features").
+"""
+
+from __future__ import annotations
+
+import logging
+import queue
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import zenoh
+
+from acquisition.sources import DataSpec, synthetic_epochs
+from acquisition.user import SimulatedUser
+from calibration_free.world import ACTIONS, GridWorld
+from cfbci import protocol
+from cfbci.protocol import ProtocolError, SequenceTracker
+from cfbci.simulation import StepRecord, session_streams
+from cfbci.transport import Outbox, Pump, Received, wait_for_subscribers
+from cfbci.zenoh_config import peer_config
+
+log = logging.getLogger("cfbci.source")
+
+#: Seconds without any message from the service after which the source gives up.
+DEFAULT_TIMEOUT = 30.0
+
+
+@dataclass(frozen=True)
+class SourceSettings:
+    """One replayed session.
+
+    Attributes
+    ----------
+    session : str
+        Session id (``[A-Za-z0-9_-]{1,64}``).
+    data : DataSpec
+        A dataset file, or synthetic ErrP data.
+    seed : int
+        Session seed.
+    steps : int
+        Device actions in the session.
+    grid : int
+        Side of the grid.
+    frame : {"feedback", "guidance"}
+    learner : dict
+        Learner settings sent in the config (``LearnerConfig`` field: value).
+    interval : float
+        Seconds between receiving a move and answering it (the user's reaction).
+    timeout : float
+        Seconds without a message from the service before giving up (a failure guard).
+    """
+
+    session: str
+    data: DataSpec = field(default_factory=DataSpec)
+    seed: int = 0
+    steps: int = 500
+    grid: int = 5
+    frame: str = "feedback"
+    learner: dict[str, Any] = field(default_factory=dict)
+    interval: float = 0.0
+    timeout: float = DEFAULT_TIMEOUT
+
+
+@dataclass(frozen=True)
+class SourceSummary:
+    """What happened in a replayed session, from the truth and the moves.
+
+    Attributes
+    ----------
+    session : str
+    steps : int
+        Epochs sent.
+    first_target_step : int or None
+        Step of the first declared target (1-based), None if none.
+    correct_targets, wrong_targets : int
+        Declared targets that were (not) the user's target.
+    records : list of StepRecord
+        Every step as :func:`cfbci.simulation.run_session` traces it (``confident`` and
+        ``best_task`` from the ``state`` that accompanied the move).
+    """
+
+    session: str
+    steps: int
+    first_target_step: int | None
+    correct_targets: int
+    wrong_targets: int
+    records: list[StepRecord]
+
+
+class _Signals:
+    """The signals the user answers with, and the config fields describing them."""
+
+    def __init__(self, settings: SourceSettings, rng: np.random.Generator) -> None:
+        self.dataset: dict[str, Any] = {"description": settings.data.describe()}
+        if settings.data.path is None:
+            settings.data.resolve(settings.frame)  # rejects synthetic guidance data
+            epochs = synthetic_epochs(settings.data.synthetic_accuracy, rng)
+            self.values = epochs.epochs  # (n, n_channels, n_times) float32 uV
+            self.labels = epochs.labels
+            self.ch_names: list[str] | None = list(epochs.ch_names)
+            self.config: dict[str, Any] = {
+                "signal": "epochs", "sfreq": float(epochs.sfreq), "tmin": float(epochs.tmin),
+                "ch_names": self.ch_names,
+            }
+            self.dataset["synthetic_accuracy"] = settings.data.synthetic_accuracy
+        else:
+            features = settings.data.resolve(settings.frame)
+            assert not callable(features)  # a path resolves to loaded features
+            self.values = np.asarray(features.features, dtype=np.float32)  # (n, d) uV
+            self.labels = features.labels
+            self.ch_names = None
+            self.config = {"signal": "features"}
+            self.dataset["path"] = str(settings.data.path)
+
+    def epoch_fields(self, step: int) -> dict[str, Any]:
+        fields: dict[str, Any] = {"step": step, "signal": self.config["signal"]}
+        if self.ch_names is not None:
+            fields["ch_names"] = self.ch_names
+        return fields
+
+
+def run_source(
+    settings: SourceSettings,
+    listen: Sequence[str] = (),
+    connect: Sequence[str] = (),
+) -> SourceSummary:
+    """Open a Zenoh peer and replay one session (see :func:`replay_session`)."""
+    with zenoh.open(peer_config(listen, connect)) as session:
+        return replay_session(session, settings)
+
+
+def replay_session(
+    session: zenoh.Session,
+    settings: SourceSettings,
+    on_step: Callable[[StepRecord], None] | None = None,
+) -> SourceSummary:
+    """Run one session against the service reachable through ``session``.
+
+    Parameters
+    ----------
+    session : zenoh.Session
+    settings : SourceSettings
+    on_step : callable, optional
+        Called with each step's record once its move and state have arrived.
+
+    Raises
+    ------
+    TimeoutError
+        If no service subscribes to the config, or the service falls silent for
+        ``settings.timeout`` seconds.
+    RuntimeError
+        If the service rejects the config (an ``error`` event before ``session_started``).
+    """
+    data_rng, user_rng, _ = session_streams(settings.seed)
+    signals = _Signals(settings, data_rng)
+    world = GridWorld(settings.grid)
+    user = SimulatedUser(world, settings.frame, signals.labels, user_rng)
+    sid = settings.session
+    inbox: queue.SimpleQueue[Received] = queue.SimpleQueue()
+    pumps = [Pump(session, protocol.key(sid, kind), kind, inbox) for kind in ("move", "state",
+                                                                                "event")]
+    outbox = Outbox(session)
+    try:
+        if not wait_for_subscribers(outbox.publisher(protocol.key(sid, "config")),
+                                    settings.timeout):
+            raise TimeoutError(f"no service subscribed to {protocol.key(sid, 'config')} "
+                               f"within {settings.timeout} s")
+        outbox.send("config", sid, {
+            "seed": settings.seed, "grid": settings.grid, "frame": settings.frame,
+            "steps": settings.steps, "learner": settings.learner,
+            "dataset": signals.dataset, **signals.config,
+        })
+        replay = _Replay(settings, signals, world, user, outbox, on_step)
+        while not replay.done:
+            try:
+                received = inbox.get(timeout=settings.timeout)
+            except queue.Empty:
+                raise TimeoutError(
+                    f"session {sid!r}: no message from the service for {settings.timeout} s "
+                    f"(at step {replay.next_step})"
+                ) from None
+            replay.handle(received)
+        return replay.summary()
+    finally:
+        for pump in pumps:
+            pump.close()
+        outbox.close()
+
+
+class _Replay:
+    """The source's side of one session: answers moves, keeps the score."""
+
+    def __init__(
+        self,
+        settings: SourceSettings,
+        signals: _Signals,
+        world: GridWorld,
+        user: SimulatedUser,
+        outbox: Outbox,
+        on_step: Callable[[StepRecord], None] | None,
+    ) -> None:
+        self.settings, self.signals, self.world, self.user = settings, signals, world, user
+        self.outbox, self.on_step = outbox, on_step
+        self.trackers = {kind: SequenceTracker() for kind in ("move", "state", "event")}
+        self.started = self.ended = False
+        self.moves: dict[int, protocol.Message] = {}
+        self.states: list[protocol.Message] = []
+        self.records: list[StepRecord] = []
+        self.events: dict[int, str | None] = {}
+        self.next_step = 1  # the next move to answer
+        self.agent = user.start_state
+        self.first_target: int | None = None
+        self.correct = self.wrong = 0
+
+    @property
+    def done(self) -> bool:
+        return (
+            self.ended
+            and self.next_step > self.settings.steps
+            and len(self.records) == self.settings.steps
+        )
+
+    def handle(self, received: Received) -> None:
+        """Take one message of the service; answer the moves that are due."""
+        try:
+            message = protocol.decode(received.data, key_expr=received.key_expr)
+        except ProtocolError as error:
+            log.warning("dropped a message of the service: %s", error)
+            return
+        problem = self.trackers[message.kind].check(message.seq)
+        if problem is not None:
+            log.warning("%s %s", message.kind, problem)
+        if message.kind == "event":
+            self._on_event(message)
+        elif message.kind == "move":
+            self.moves[message.fields["step"]] = message
+        else:
+            self.states.append(message)
+        while self.started and self.next_step in self.moves:
+            self._answer(self.moves[self.next_step])
+            self.next_step += 1
+        self._complete_records()
+
+    def _on_event(self, message: protocol.Message) -> None:
+        event, text = message.fields["event"], message.fields["message"]
+        if event == "session_started":
+            self.started = True
+        elif event == "session_ended":
+            self.ended = True
+        elif event == "error" and not self.started:
+            raise RuntimeError(f"the service rejected the session: {text}")
+        else:
+            (log.warning if event == "error" else log.info)("%s: %s", event, text)
+
+    def _answer(self, move: protocol.Message) -> None:
+        fields = move.fields
+        step, state = fields["step"], fields["from_state"]
+        if state != self.agent:
+            log.warning("step %d: move from cell %d, the agent was in %d", step, state, self.agent)
+        action = ACTIONS.index(fields["action"])
+        if self.settings.interval > 0:
+            time.sleep(self.settings.interval)  # the user's reaction time
+        index, label = self.user.answer(state, action)
+        target = self.user.target
+        sid = self.settings.session
+        self.outbox.send("epoch", sid, self.signals.epoch_fields(step), self.signals.values[index])
+        self.outbox.send("truth", sid, {"step": step, "target": target, "label": label})
+        event = None
+        if fields["target_reached"]:
+            event = "correct_target" if state == target else "wrong_target"
+            self.first_target = self.first_target or step
+            self.correct += event == "correct_target"
+            self.wrong += event == "wrong_target"
+            self.user.new_target()
+        self.events[step] = event
+        self.agent = fields["to_state"]
+
+    def _complete_records(self) -> None:
+        """Records of the answered steps whose state has arrived, in step order."""
+        while (step := len(self.records) + 1) < self.next_step and len(self.states) >= step:
+            move, state = self.moves.pop(step).fields, self.states[step - 1].fields
+            record = StepRecord(
+                self.settings.seed, step, move["from_state"], move["action"], move["to_state"],
+                state["confident"], state["best_task"], self.events.pop(step),
+            )
+            self.records.append(record)
+            if self.on_step is not None:
+                self.on_step(record)
+
+    def summary(self) -> SourceSummary:
+        return SourceSummary(
+            self.settings.session, len(self.records), self.first_target, self.correct,
+            self.wrong, self.records,
+        )

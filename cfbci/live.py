@@ -1,0 +1,246 @@
+"""``cfbci session``: a live session on an embedded loopback Zenoh network.
+
+The service and the replay source run as separate processes (``spawn``), Zenoh peers on
+loopback TCP endpoints, multicast scouting off. This process, the display, listens on its
+own endpoint; the service listens on its own and connects to the display's; the source
+connects to both. The display shows the session as it goes
+(the session's moves, states, events and truth; not its config, whose only subscriber
+must be the service: the source waits for a subscriber to it before sending it).
+"""
+
+from __future__ import annotations
+
+import json
+import multiprocessing
+import queue
+import re
+import time
+from collections.abc import Sequence
+from concurrent.futures import Future, ProcessPoolExecutor
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import zenoh
+from rich.console import Console, Group
+from rich.live import Live
+from rich.table import Table
+from rich.text import Text
+
+from acquisition.replay_source import SourceSettings, SourceSummary, run_source
+from cfbci import protocol
+from cfbci.protocol import ProtocolError
+from cfbci.service import serve
+from cfbci.transport import Pump, Received
+from cfbci.zenoh_config import free_tcp_endpoint, peer_config
+
+#: Seconds the service may take to shut down (close its recordings) after SIGTERM.
+SHUTDOWN_TIMEOUT = 30.0
+#: Seconds between two refreshes of the display when nothing arrives.
+REFRESH = 0.1
+_SHADES = " .:-=+*#"
+
+
+def session_id_for(path: Path) -> str:
+    """A valid session id from a recording's file name (its stem, other characters -> '-')."""
+    return re.sub(r"[^A-Za-z0-9_-]", "-", path.stem)[:64] or "session"
+
+
+@dataclass
+class Progress:
+    """What the display knows of the session so far.
+
+    Attributes
+    ----------
+    grid : int
+    steps : int
+    step : int
+        Step of the latest move.
+    agent : int
+        The agent's cell after the latest move.
+    confidence : ndarray, shape (grid ** 2,)
+        Latest confidence of every target cell.
+    best_task : int
+    confident : bool
+    correct, wrong : int
+        Declared targets that were (not) the user's target (from the truth).
+    target : int or None
+        The user's target in the latest truth.
+    """
+
+    grid: int
+    steps: int
+    step: int = 0
+    agent: int = 0
+    confidence: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    best_task: int = 0
+    confident: bool = False
+    correct: int = 0
+    wrong: int = 0
+    target: int | None = None
+    _declared: dict[int, int] = field(default_factory=dict)  # step -> declared cell
+    _targets: dict[int, int] = field(default_factory=dict)  # step -> the user's target
+
+    def update(self, message: protocol.Message) -> None:
+        """Take in one message of the session (moves and truths in any relative order)."""
+        fields = message.fields
+        if message.kind == "move":
+            self.step, self.agent = fields["step"], fields["to_state"]
+            if fields["target_reached"]:
+                self._declared[fields["step"]] = fields["from_state"]
+        elif message.kind == "state":
+            assert message.payload is not None
+            self.confidence = message.payload
+            self.best_task, self.confident = fields["best_task"], fields["confident"]
+        elif message.kind == "truth":
+            self.target = fields["target"]
+            self._targets[fields["step"]] = fields["target"]
+        for step in [step for step in self._declared if step in self._targets]:
+            correct = self._declared.pop(step) == self._targets[step]
+            self.correct += correct
+            self.wrong += not correct
+        self._targets = {step: t for step, t in self._targets.items() if step >= self.step}
+
+    def render(self) -> Group:
+        """Step, score and a text grid: ``@`` the agent, ``T`` the target, shades the belief."""
+        best = float(self.confidence[self.best_task]) if len(self.confidence) else 0.0
+        head = Text(
+            f"step {self.step}/{self.steps}   targets correct {self.correct} wrong "
+            f"{self.wrong}   best cell {self.best_task} confidence {best:.3f}"
+            f"{' (confident)' if self.confident else ''}"
+        )
+        rows = []
+        for row in range(self.grid):
+            line = Text()
+            for col in range(self.grid):
+                cell = row * self.grid + col
+                conf = float(self.confidence[cell]) if len(self.confidence) else 0.0
+                char = _SHADES[min(int(conf * len(_SHADES)), len(_SHADES) - 1)]
+                char = "@" if cell == self.agent else "T" if cell == self.target else char
+                style = "bold green" if cell == self.best_task else ""
+                line.append(f"[{char}]", style=style)
+            rows.append(line)
+        return Group(head, *rows)
+
+
+def run_live_session(
+    settings: SourceSettings,
+    record: Path,
+    *,
+    listen: Sequence[str] = (),
+    connect: Sequence[str] = (),
+    console: Console,
+) -> dict[str, Any]:
+    """Run one live session with a display; return the JSON summary.
+
+    Parameters
+    ----------
+    settings : SourceSettings
+        The session (its ``session`` id names the recording before it is moved to
+        ``record``).
+    record : Path
+        The MCAP file to write.
+    listen : sequence of str
+        The service's listen endpoints (default: a free loopback port).
+    connect : sequence of str
+        Endpoints the service connects to.
+    console : Console
+
+    Returns
+    -------
+    dict
+        ``{"steps", "first_target_step", "correct_targets", "wrong_targets",
+        "recording"}``.
+    """
+    context = multiprocessing.get_context("spawn")
+    service_endpoints = list(listen) or [free_tcp_endpoint()]
+    display_endpoint = free_tcp_endpoint()
+    record.parent.mkdir(parents=True, exist_ok=True)
+    # The display listens before the others start, so they reach it at once and it misses
+    # nothing; the source reaches the service through the service's endpoints.
+    with zenoh.open(peer_config([display_endpoint], ())) as session:
+        service = context.Process(
+            target=serve,
+            args=(service_endpoints, [display_endpoint, *connect], record.parent),
+            name="cfbci-service",
+        )
+        service.start()
+        try:
+            with ProcessPoolExecutor(1, mp_context=context) as pool:
+                future = pool.submit(
+                    run_source, settings, [], [*service_endpoints, display_endpoint]
+                )
+                summary = _display(session, settings, future, console)
+        finally:
+            service.terminate()  # SIGTERM: the service closes its recordings and exits
+            service.join(SHUTDOWN_TIMEOUT)
+            if service.is_alive():
+                service.kill()
+                service.join()
+    written = record.parent / f"{settings.session}.mcap"
+    if written != record:
+        written.replace(record)
+    return {
+        "steps": summary.steps,
+        "first_target_step": summary.first_target_step,
+        "correct_targets": summary.correct_targets,
+        "wrong_targets": summary.wrong_targets,
+        "recording": str(record),
+    }
+
+
+def _display(
+    session: zenoh.Session,
+    settings: SourceSettings,
+    future: Future[SourceSummary],
+    console: Console,
+) -> SourceSummary:
+    """Show the session until the source is done; return its summary."""
+    progress = Progress(settings.grid, settings.steps)
+    inbox: queue.SimpleQueue[Received] = queue.SimpleQueue()
+    # Not cfbci/<session>/* : a subscriber to the config would tell the source that the
+    # service is listening before it is.
+    pumps = [
+        Pump(session, protocol.key(settings.session, kind), kind, inbox)
+        for kind in ("move", "state", "event", "truth")
+    ]
+    try:
+        with Live(progress.render(), console=console, transient=False) as live:
+            while not future.done() or not inbox.empty():
+                try:
+                    received = inbox.get(timeout=REFRESH)
+                except queue.Empty:
+                    continue
+                try:
+                    progress.update(protocol.decode(received.data, key_expr=received.key_expr))
+                except ProtocolError:
+                    continue  # the service reports bad messages; the display skips them
+                live.update(progress.render())
+    finally:
+        for pump in pumps:
+            pump.close()
+    return future.result()
+
+
+def print_summary(result: dict[str, Any], console: Console, elapsed: float) -> None:
+    """A one-table summary of a live session."""
+    table = Table(title="cfbci session")
+    for column in ("steps", "first target", "correct", "wrong", "recording", "time"):
+        table.add_column(column)
+    table.add_row(
+        str(result["steps"]), str(result["first_target_step"] or "-"),
+        str(result["correct_targets"]), str(result["wrong_targets"]), result["recording"],
+        f"{elapsed:.1f} s",
+    )
+    console.print(table)
+
+
+def write_json(result: dict[str, Any], path: Path) -> None:
+    """Write the summary as JSON."""
+    path.write_text(json.dumps(result, indent=2) + "\n")
+
+
+def default_recording(directory: Path = Path("runs")) -> Path:
+    """``runs/<YYYYmmdd-HHMMSS>.mcap``."""
+    return directory / f"{time.strftime('%Y%m%d-%H%M%S')}.mcap"

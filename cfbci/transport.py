@@ -1,0 +1,178 @@
+"""Zenoh plumbing shared by the service, the sources and the displays.
+
+Publications are RELIABLE with congestion control BLOCK: a slow receiver slows the
+sender down instead of losing messages. Subscriptions use a bounded FIFO channel that a
+thread of ours (a :class:`Pump`) empties into a Python queue; no Zenoh callback ever calls
+back into Zenoh or into the application.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from dataclasses import dataclass
+from queue import SimpleQueue
+from typing import Any
+
+import zenoh
+
+from cfbci import protocol
+
+#: Capacity of a subscriber's FIFO channel, in messages.
+CHANNEL_CAPACITY = 1024
+
+
+@dataclass(frozen=True)
+class Received:
+    """One sample as taken off a subscriber's channel.
+
+    Attributes
+    ----------
+    tag : str
+        Which subscription it came from (the :class:`Pump`'s tag).
+    key_expr : str
+        The key expression it was published on.
+    data : bytes
+        The payload.
+    t_ns : int
+        Receiver's ``time.monotonic_ns()`` when it was taken off the channel, ns.
+    """
+
+    tag: str
+    key_expr: str
+    data: bytes
+    t_ns: int
+
+
+def reliable_publisher(session: zenoh.Session, key_expr: str) -> zenoh.Publisher:
+    """A publisher with reliability RELIABLE and congestion control BLOCK (nothing dropped)."""
+    return session.declare_publisher(
+        key_expr,
+        reliability=zenoh.Reliability.RELIABLE,
+        congestion_control=zenoh.CongestionControl.BLOCK,
+    )
+
+
+def wait_for_subscribers(publisher: zenoh.Publisher, timeout: float) -> bool:
+    """Wait until some subscriber matches ``publisher``; False after ``timeout`` seconds.
+
+    The matching listener's callback only sets a :class:`threading.Event`.
+    """
+    matched = threading.Event()
+    listener = publisher.declare_matching_listener(
+        lambda status: matched.set() if status.matching else None
+    )
+    try:
+        return bool(publisher.matching_status.matching) or matched.wait(timeout)
+    finally:
+        listener.undeclare()
+
+
+class Pump:
+    """A subscriber whose samples a thread of ours moves into a queue, as :class:`Received`.
+
+    Parameters
+    ----------
+    session : zenoh.Session
+    key_expr : str
+        What to subscribe to (wildcards allowed).
+    tag : str
+        Put in every :class:`Received`, to tell subscriptions apart in a shared queue.
+    queue : SimpleQueue
+        Where samples go, in the order the subscriber received them.
+
+    The thread ends when the subscriber is undeclared or the session closed
+    (:meth:`close`).
+    """
+
+    def __init__(
+        self, session: zenoh.Session, key_expr: str, tag: str, queue: SimpleQueue[Any]
+    ) -> None:
+        self._subscriber = session.declare_subscriber(
+            key_expr, zenoh.handlers.FifoChannel(CHANNEL_CAPACITY)
+        )
+        self._handler = self._subscriber.handler
+        self._tag, self._queue = tag, queue
+        self._thread = threading.Thread(target=self._run, name=f"pump {key_expr}", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while True:
+            try:
+                sample = self._handler.recv()
+            except zenoh.ZError:  # the channel is closed: undeclared or session closed
+                return
+            self._queue.put(
+                Received(
+                    self._tag, str(sample.key_expr), sample.payload.to_bytes(), time.monotonic_ns()
+                )
+            )
+
+    def close(self) -> None:
+        """Undeclare the subscriber and wait for the thread to end."""
+        self._subscriber.undeclare()
+        self._thread.join()
+
+
+class Outbox:
+    """Publishes protocol messages, numbering them per key expression from 0.
+
+    Publishers are declared on first use and kept until :meth:`forget` or :meth:`close`;
+    sequence numbers are kept for the life of the outbox, so a key expression's ``seq``
+    never restarts.
+    """
+
+    def __init__(self, session: zenoh.Session) -> None:
+        self.session = session
+        self._publishers: dict[str, zenoh.Publisher] = {}
+        self._seq: dict[str, int] = {}
+
+    def publisher(self, key_expr: str) -> zenoh.Publisher:
+        """The (reliable, blocking) publisher of ``key_expr``, declared if needed."""
+        if key_expr not in self._publishers:
+            self._publishers[key_expr] = reliable_publisher(self.session, key_expr)
+        return self._publishers[key_expr]
+
+    def send(
+        self,
+        kind: str,
+        session: str,
+        fields: dict[str, Any],
+        payload: Any = None,
+    ) -> protocol.Message:
+        """Encode and publish one message on ``cfbci/<session>/<kind>``; return it.
+
+        Parameters
+        ----------
+        kind, session : str
+            See :func:`cfbci.protocol.key`.
+        fields : dict
+            The kind's header fields.
+        payload : ndarray or None
+            float32 payload (epoch ``(n_channels, n_times)`` or ``(n_features,)`` uV;
+            state ``(n_tasks,)``).
+
+        Raises
+        ------
+        ProtocolError
+            If the message breaks the protocol (nothing is published).
+        """
+        key_expr = protocol.key(session, kind)
+        seq = self._seq.get(key_expr, 0)
+        message = protocol.Message(kind, session, seq, time.monotonic_ns(), fields, payload)
+        data = protocol.encode(message)
+        self.publisher(key_expr).put(data)
+        self._seq[key_expr] = seq + 1
+        return message
+
+    def forget(self, session: str) -> None:
+        """Undeclare the publishers of a session's key expressions (not their numbering)."""
+        prefix = f"{protocol.PREFIX}/{session}/"
+        for key_expr in [k for k in self._publishers if k.startswith(prefix)]:
+            self._publishers.pop(key_expr).undeclare()
+
+    def close(self) -> None:
+        """Undeclare every publisher."""
+        for publisher in self._publishers.values():
+            publisher.undeclare()
+        self._publishers.clear()

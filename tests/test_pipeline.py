@@ -1,0 +1,219 @@
+"""The live pipeline over real Zenoh (loopback TCP, multicast off, spawned processes).
+
+Synchronisation is by messages only; every wait has a timeout that only guards against a
+hang.
+"""
+
+from __future__ import annotations
+
+import json
+import multiprocessing
+import queue
+from collections.abc import Callable, Iterator
+from concurrent.futures import Future, ProcessPoolExecutor
+from contextlib import contextmanager
+from pathlib import Path
+
+import numpy as np
+import zenoh
+
+from acquisition.replay_source import SourceSettings, SourceSummary, run_source
+from acquisition.sources import DataSpec
+from cfbci import protocol
+from cfbci.service import serve
+from cfbci.simulation import SessionConfig, StepRecord, run_session
+from cfbci.transport import Outbox, Pump, Received, reliable_publisher, wait_for_subscribers
+from cfbci.zenoh_config import free_tcp_endpoint, peer_config
+from replay.recording import decode_array, read_recording
+
+STEPS, GRID = 60, 3
+TIMEOUT = 60.0  # failure guard, seconds
+SPAWN = multiprocessing.get_context("spawn")
+
+
+def simulated(seed: int) -> tuple[list[StepRecord], object]:
+    trace: list[StepRecord] = []
+    result = run_session(
+        seed, SessionConfig(steps=STEPS, grid=GRID), DataSpec().resolve("feedback"), trace.append
+    )
+    return trace, result
+
+
+@contextmanager
+def service_process(
+    endpoint: str, record_dir: Path, connect: tuple[str, ...] = ()
+) -> Iterator[None]:
+    """The service in a spawned process; stopped with SIGTERM, which must exit cleanly."""
+    process = SPAWN.Process(target=serve, args=([endpoint], list(connect), record_dir))
+    process.start()
+    try:
+        yield
+    finally:
+        process.terminate()
+        process.join(TIMEOUT)
+        if process.is_alive():
+            process.kill()
+            process.join()
+    assert process.exitcode == 0
+
+
+@contextmanager
+def source_process(settings: SourceSettings, endpoint: str) -> Iterator[Future[SourceSummary]]:
+    with ProcessPoolExecutor(1, mp_context=SPAWN) as pool:
+        yield pool.submit(run_source, settings, [], [endpoint])
+
+
+def test_live_session_equals_simulation_and_is_recorded(tmp_path: Path) -> None:
+    seed = 3
+    endpoint = free_tcp_endpoint()
+    settings = SourceSettings("live-1", seed=seed, steps=STEPS, grid=GRID)
+    with service_process(endpoint, tmp_path), source_process(settings, endpoint) as future:
+        summary = future.result(TIMEOUT)
+    trace, result = simulated(seed)
+
+    assert summary.records == trace  # moves, confident flags, best tasks and target events
+    assert summary.steps == STEPS
+    assert summary.first_target_step == result.first_target_step
+    assert (summary.correct_targets, summary.wrong_targets) == (
+        result.correct_targets, result.wrong_targets,
+    )
+
+    recording = read_recording(tmp_path / "live-1.mcap")
+    assert not recording.truncated
+    assert recording.session == "live-1"
+    assert recording.config["seed"] == seed and recording.config["signal"] == "epochs"
+    counts = {topic: len(messages) for topic, messages in recording.messages.items()}
+    n_targets = result.correct_targets + result.wrong_targets
+    assert counts == {
+        "/config": 1, "/epoch": STEPS, "/features": STEPS, "/move": STEPS,
+        "/state": STEPS + 1, "/belief": STEPS + 1, "/truth": STEPS,
+        "/event": 2 + n_targets, "/log": 2 + n_targets,
+    }
+    moves = [m for _, m in recording.messages["/move"]]
+    assert [m["from_state"] for m in moves] == [r.state for r in trace]
+    assert [m["action"] for m in moves] == [r.action for r in trace]
+    states = [m for _, m in recording.messages["/state"]]
+    assert [s["n_signals"] for s in states] == list(range(STEPS + 1))
+    assert [s["confident"] for s in states[:-1]] == [r.confident for r in trace]
+    events = [m["event"] for _, m in recording.messages["/event"]]
+    assert events[0] == "session_started" and events[-1] == "session_ended"
+    assert [m["step"] for _, m in recording.messages["/truth"]] == list(range(1, STEPS + 1))
+    epoch = decode_array(recording.messages["/epoch"][0][1])
+    features = decode_array(recording.messages["/features"][0][1])
+    assert epoch.ndim == 2 and features.shape == (57,)
+
+
+def _message(kind: str, session: str, seq: int, fields: dict, payload=None) -> bytes:
+    return protocol.encode(protocol.Message(kind, session, seq, 1, fields, payload))
+
+
+def _raw(header: dict, payload: bytes = b"") -> bytes:
+    text = json.dumps(header).encode()
+    return len(text).to_bytes(4, "little") + text + payload
+
+
+def _epoch_header(session: str, seq: int, shape: list[int]) -> dict:
+    return {
+        "v": 1, "kind": "epoch", "session": session, "seq": seq, "t_ns": 1, "step": 1,
+        "signal": "features", "shape": shape, "dtype": "float32", "units": "uV",
+    }
+
+
+def _wait_event(inbox: queue.SimpleQueue[Received], match: Callable[[str, dict], bool]) -> dict:
+    """The next event (session, fields) that ``match``es; events before it are skipped."""
+    while True:
+        received = inbox.get(timeout=TIMEOUT)
+        message = protocol.decode(received.data, key_expr=received.key_expr)
+        if match(message.session, message.fields):
+            return message.fields
+
+
+def _error(session: str, *words: str) -> Callable[[str, dict], bool]:
+    return lambda s, f: s == session and f["event"] == "error" and all(
+        w in f["message"] for w in words
+    )
+
+
+def test_malformed_messages_yield_errors_and_the_session_finishes(tmp_path: Path) -> None:
+    seed = 5
+    endpoint = free_tcp_endpoint()
+    settings = SourceSettings("main", seed=seed, steps=STEPS, grid=GRID, interval=0.05)
+    inbox: queue.SimpleQueue[Received] = queue.SimpleQueue()
+    client_endpoint = free_tcp_endpoint()
+    # The client listens first and the service connects to it, so that the client is on
+    # the network (its event subscription known) before the source starts.
+    with (
+        zenoh.open(peer_config([client_endpoint], ())) as client,
+        service_process(endpoint, tmp_path, (client_endpoint,)),
+    ):
+        events = Pump(client, "cfbci/*/event", "event", inbox)
+        bad = {key: reliable_publisher(client, key) for key in (
+            "cfbci/main/epoch", "cfbci/nosuch/epoch", "cfbci/_/epoch",
+        )}
+        for publisher in bad.values():
+            assert wait_for_subscribers(publisher, TIMEOUT)  # the service is connected
+        with source_process(settings, endpoint) as future:
+            _wait_event(inbox, lambda s, f: s == "main" and f["event"] == "session_started")
+            main = bad["cfbci/main/epoch"]
+            header = _epoch_header("main", 0, [2])
+
+            main_errors = []
+            for data, expected in (
+                (_raw({**header, "v": 2}, np.zeros(2, "<f4").tobytes()), "protocol version 2"),
+                (_raw(header, np.array([1.0, np.nan], "<f4").tobytes()), "NaN"),
+                ((100).to_bytes(4, "little") + b'{"v":1', "truncated"),
+                (_raw(header, np.zeros(3, "<f4").tobytes()), "needs 8 payload bytes; got 12"),
+            ):
+                main.put(data)
+                main_errors.append(_wait_event(inbox, _error("main", expected))["message"])
+            fields = {"step": 1, "signal": "features"}
+            bad["cfbci/nosuch/epoch"].put(_message("epoch", "nosuch", 0, fields, np.zeros(2)))
+            _wait_event(inbox, _error("nosuch", "unknown session"))
+            bad["cfbci/_/epoch"].put(_raw({**header, "session": "_"}))
+            _wait_event(inbox, _error("_", "reserved"))
+
+            # A session of the client's own: session-level checks, deterministically.
+            own = Outbox(client)
+            assert wait_for_subscribers(own.publisher("cfbci/own/config"), TIMEOUT)
+            config = {
+                "seed": 0, "grid": GRID, "frame": "feedback", "steps": 5, "learner": {},
+                "dataset": {}, "signal": "features",
+            }
+            own.send("config", "own", config)
+            _wait_event(inbox, lambda s, f: s == "own" and f["event"] == "session_started")
+            epoch = own.publisher("cfbci/own/epoch")
+            epoch.put(_message("epoch", "own", 0, fields, np.ones(4)))  # accepted
+            epoch.put(_message("epoch", "own", 0, {**fields, "step": 2}, np.ones(4)))
+            _wait_event(inbox, _error("own", "duplicate: seq 0"))
+            epoch.put(_message("epoch", "own", 1, {**fields, "step": 7}, np.ones(4)))
+            _wait_event(inbox, _error("own", "epoch of step 7", "step 2"))
+            epoch.put(_message("epoch", "own", 2, {**fields, "step": 2}, np.ones(5)))
+            _wait_event(inbox, _error("own", "shape [5]", "[4]"))
+            epoch.put(_message("epoch", "own", 5, {**fields, "step": 2}, np.ones(4)))  # accepted
+            gap = _wait_event(inbox, lambda s, f: s == "own" and f["event"] == "info")
+            assert gap["message"] == "gap: expected 3, got 5 (2 messages lost)"
+            own.send("config", "own", config)
+            _wait_event(inbox, _error("own", "already running"))
+            bad_learner = {**config, "learner": {"eps": 0.9}}
+            own.send("config", "own2", bad_learner)
+            _wait_event(inbox, _error("own2", "bad config", "eps"))
+            own.close()
+
+            summary = future.result(TIMEOUT)
+        events.close()
+        for publisher in bad.values():
+            publisher.undeclare()
+
+    trace, _ = simulated(seed)
+    assert summary.records == trace  # the learner never saw a rejected message
+    recording = read_recording(tmp_path / "main.mcap")
+    errors = [m["message"] for _, m in recording.messages["/event"] if m["event"] == "error"]
+    assert set(errors) <= set(main_errors)  # those that came while the session ran
+    assert len(recording.messages["/move"]) == STEPS
+    # The client's session was running at SIGTERM: its recording was closed all the same,
+    # with the two accepted epochs observed and every rejected one left out of the learner.
+    own = read_recording(tmp_path / "own.mcap")
+    assert not own.truncated
+    assert len(own.messages["/epoch"]) == 4  # as received: accepted, step 7, shape, accepted
+    assert len(own.messages["/features"]) == 2
+    assert [m["n_signals"] for _, m in own.messages["/state"]] == [0, 1, 2]
