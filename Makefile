@@ -13,7 +13,7 @@ $(STAMP): pyproject.toml
 	touch $(STAMP)
 
 run: $(STAMP)
-	$(BIN)/cfbci simulate
+	$(BIN)/cfbci session
 
 lint: $(STAMP)
 	$(BIN)/ruff check .
