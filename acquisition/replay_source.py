@@ -96,6 +96,10 @@ class SourceSummary:
     records : list of StepRecord
         Every step as :func:`cfbci.simulation.run_session` traces it (``confident`` and
         ``best_task`` from the ``state`` that accompanied the move).
+    latency_ns : list of int
+        Round trip of each epoch but the last, in step order: from the epoch of step k
+        published to the move of step k + 1 taken off the source's subscriber, ns of the
+        source's monotonic clock (``steps - 1`` values).
     """
 
     session: str
@@ -104,6 +108,7 @@ class SourceSummary:
     correct_targets: int
     wrong_targets: int
     records: list[StepRecord]
+    latency_ns: list[int]
 
 
 class _Signals:
@@ -226,6 +231,8 @@ class _Replay:
         self.states: list[protocol.Message] = []
         self.records: list[StepRecord] = []
         self.events: dict[int, str | None] = {}
+        self.epoch_sent_ns: dict[int, int] = {}  # step -> its epoch's t_ns
+        self.latency_ns: dict[int, int] = {}  # step k -> epoch k published to move k + 1
         self.next_step = 1  # the next move to answer
         self.agent = user.start_state
         self.first_target: int | None = None
@@ -252,7 +259,10 @@ class _Replay:
         if message.kind == "event":
             self._on_event(message)
         elif message.kind == "move":
-            self.moves[message.fields["step"]] = message
+            step = message.fields["step"]
+            self.moves[step] = message
+            if step - 1 in self.epoch_sent_ns:
+                self.latency_ns[step - 1] = received.t_ns - self.epoch_sent_ns.pop(step - 1)
         else:
             self.states.append(message)
         while self.started and self.next_step in self.moves:
@@ -282,7 +292,9 @@ class _Replay:
         index, label = self.user.answer(state, action)
         target = self.user.target
         sid = self.settings.session
-        self.outbox.send("epoch", sid, self.signals.epoch_fields(step), self.signals.values[index])
+        epoch = self.signals.values[index]
+        sent = self.outbox.send("epoch", sid, self.signals.epoch_fields(step), epoch)
+        self.epoch_sent_ns[step] = sent.t_ns
         self.outbox.send("truth", sid, {"step": step, "target": target, "label": label})
         event = None
         if fields["target_reached"]:
@@ -309,5 +321,5 @@ class _Replay:
     def summary(self) -> SourceSummary:
         return SourceSummary(
             self.settings.session, len(self.records), self.first_target, self.correct,
-            self.wrong, self.records,
+            self.wrong, self.records, [self.latency_ns[step] for step in sorted(self.latency_ns)],
         )

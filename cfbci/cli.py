@@ -1,4 +1,5 @@
-"""The ``cfbci`` command line: ``simulate`` and ``bench update``."""
+"""The ``cfbci`` command line: ``simulate``, ``bench``, ``serve``, ``source``, ``session``,
+``recover``."""
 
 from __future__ import annotations
 
@@ -107,6 +108,20 @@ def _add_bench(commands: argparse._SubParsersAction) -> None:
     update.add_argument("--seed", type=int, default=0)
     update.add_argument("--json", type=Path, help="write the rows as JSON")
     update.set_defaults(run=_run_bench_update)
+    latency = which.add_parser(
+        "latency",
+        help="end-to-end latency over Zenoh (source to service and back) and the learner's share",
+        description="One live session at T = 25 (5 x 5 grid, synthetic data, feedback frame, "
+        "default learner), the service in its own process, as fast as possible: epoch "
+        "published to next move received, the learner's update inside the service, and "
+        "the difference (transport and the rest).",
+    )
+    latency.add_argument(
+        "--steps", type=int, default=1000, help="measured epochs (default 1000)"
+    )
+    latency.add_argument("--seed", type=int, default=0, help="session seed (default 0)")
+    latency.add_argument("--json", type=Path, help="write the figures (ms) as JSON")
+    latency.set_defaults(run=_run_bench_latency)
 
 
 def _run_bench_update(args: argparse.Namespace, console: Console) -> int:
@@ -122,6 +137,16 @@ def _run_bench_update(args: argparse.Namespace, console: Console) -> int:
     print_rows(rows, console)
     if args.json:
         args.json.write_text(json.dumps({"rows": [asdict(r) for r in rows]}, indent=2) + "\n")
+    return 0
+
+
+def _run_bench_latency(args: argparse.Namespace, console: Console) -> int:
+    from cfbci.latency import bench_latency, print_latency
+
+    report = bench_latency(args.steps, args.seed)
+    print_latency(report, console)
+    if args.json:
+        args.json.write_text(json.dumps(report, indent=2) + "\n")
     return 0
 
 
@@ -261,6 +286,40 @@ def _run_session(args: argparse.Namespace, console: Console) -> int:
     return 0
 
 
+def _add_recover(commands: argparse._SubParsersAction) -> None:
+    p = commands.add_parser(
+        "recover",
+        help="rewrite a (possibly truncated) recording as a clean, indexed MCAP file",
+        description="Read every complete message of a session recording, even one whose "
+        "writer was killed, and write them to a clean, indexed MCAP file.",
+    )
+    p.add_argument("file", type=Path, help="the recording (.mcap) to recover")
+    p.add_argument(
+        "--out", type=Path, help="the clean copy to write (default <stem>.recovered.mcap)"
+    )
+    p.set_defaults(run=_run_recover)
+
+
+def _run_recover(args: argparse.Namespace, console: Console) -> int:
+    from replay.recording import read_recording, recover
+
+    source: Path = args.file
+    if not source.is_file():
+        raise FileNotFoundError(f"{source}: no such file")
+    out: Path = args.out or source.with_name(f"{source.stem}.recovered.mcap")
+    if out.resolve() == source.resolve():
+        raise ValueError(f"--out {out} is the input file; give another path")
+    recording = read_recording(source)  # ValueError naming the file if it is not MCAP
+    n_messages = recover(source, out)
+    console.print(f"recovered {n_messages} messages of session {recording.session!r} into {out}")
+    if recording.truncated:
+        console.print(f"input truncated: {recording.warning}", soft_wrap=True)
+    else:
+        console.print(f"input complete: closed by its writer (data ends at byte "
+                      f"{recording.end_offset})")
+    return 0
+
+
 def _jobs(requested: int) -> int:
     import os
 
@@ -277,6 +336,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_serve(commands)
     _add_source(commands)
     _add_session(commands)
+    _add_recover(commands)
     return parser
 
 

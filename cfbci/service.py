@@ -21,7 +21,8 @@ from __future__ import annotations
 
 import logging
 import signal
-from collections.abc import Sequence
+import time
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from queue import SimpleQueue
@@ -32,6 +33,7 @@ import zenoh
 
 from calibration_free.config import LearnerConfig
 from calibration_free.learner import CalibrationFreeLearner
+from calibration_free.task_decoders import decoder_fit
 from calibration_free.world import ACTIONS, GridWorld
 from cfbci import protocol
 from cfbci.protocol import NO_SESSION, ProtocolError, SequenceTracker
@@ -39,6 +41,7 @@ from cfbci.simulation import session_streams
 from cfbci.transport import Outbox, Pump, Received, wait_for_subscribers
 from cfbci.zenoh_config import peer_config
 from decoding.features import ErrPFeatures
+from decoding.statistics import ClassStatistics
 from replay.recording import SessionRecorder
 
 log = logging.getLogger("cfbci.service")
@@ -82,6 +85,44 @@ def learner_settings(values: dict[str, Any], frame: str) -> LearnerConfig:
             f"learner frame {values['frame']!r} differs from the config's frame {frame!r}"
         )
     return LearnerConfig.from_dict({**values, "frame": frame})
+
+
+def balanced_accuracy(learner: CalibrationFreeLearner, task: int) -> float | None:
+    """Cross-validated balanced accuracy of ``task``'s decoder on the learner's history.
+
+    The decoders of the learner's k folds for ``task`` (each trained on the other folds,
+    :meth:`TaskHistory.statistics`) predict the class of every signal out of fold (argmax
+    of :meth:`TaskHistory.cross_validated_proba`, ties to the lower class); a class's
+    recall is the weight of its signals predicted as it over its total weight (labels are
+    ``task``'s, possibly soft); the balanced accuracy is the mean recall over the classes
+    that have signals. A fold decoder that knows fewer than two classes predicts class 0.
+
+    Parameters
+    ----------
+    learner : CalibrationFreeLearner
+        A learner that has observed at least one signal.
+    task : int
+        The task (target cell) whose labels and decoders are scored.
+
+    Returns
+    -------
+    float or None
+        In [0, 1] (1 / n_classes is chance); None while fewer than two classes have signals.
+    """
+    history = learner.history
+    weights = history.label_weights[task]  # (n_signals, n_classes)
+    totals = weights.sum(axis=0)
+    present = totals > 0
+    if present.sum() < 2:
+        return None
+    _, training = history.statistics()  # (n_tasks, n_folds, ...): this task's slice only
+    fit = decoder_fit(learner.config.decoder, learner.config.shrinkage)
+    folds = fit(ClassStatistics(*(a[task : task + 1] for a in training.arrays())))
+    # Fold decoders of batch (1, n_folds): every task row of the result is this task's.
+    predicted = history.cross_validated_proba(folds)[0].argmax(axis=1)
+    hits = weights[np.arange(len(predicted)), predicted]  # weight of the predicted class
+    correct = np.bincount(predicted, weights=hits, minlength=len(totals))
+    return float(np.mean(correct[present] / totals[present]))
 
 
 def start_cell(seed: int, n_states: int) -> int:
@@ -192,6 +233,9 @@ class _Session:
         Fitted on the first raw epoch (``signal`` "epochs").
     shape : tuple of int or None
         Payload shape of the session's first accepted epoch.
+    update_ns : list of int
+        The learner's time per epoch, ns: ``observe`` of the epoch plus ``propose`` of the
+        next move (:data:`time.perf_counter_ns` differences; none for the last epoch).
     """
 
     id: str
@@ -205,6 +249,11 @@ class _Session:
     epochs: SequenceTracker = field(default_factory=SequenceTracker)
     extractor: ErrPFeatures | None = None
     shape: tuple[int, ...] | None = None
+    update_ns: list[int] = field(default_factory=list)
+
+
+#: Called with a session's id and its :attr:`_Session.update_ns` when the session ends.
+SessionEndHook = Callable[[str, list[int]], None]
 
 
 class PipelineService:
@@ -218,6 +267,9 @@ class PipelineService:
         Directory of the recordings, ``<session>.mcap``; None: no recording.
     subscriber_timeout : float
         Seconds to wait for a new session's source to subscribe before starting it.
+    on_end : callable or None
+        Called with ``(session id, update_ns)`` when a session ends normally: the learner's
+        time per epoch in ns, as :attr:`_Session.update_ns` (``cfbci bench latency``).
 
     Use :meth:`run` to serve until :meth:`stop`; :meth:`handle` processes one message.
     """
@@ -227,10 +279,12 @@ class PipelineService:
         session: zenoh.Session,
         record_dir: Path | None = None,
         subscriber_timeout: float = SUBSCRIBER_TIMEOUT,
+        on_end: SessionEndHook | None = None,
     ) -> None:
         self.queue: SimpleQueue[Received | None] = SimpleQueue()
         self.recordings = Recordings(record_dir)
         self.subscriber_timeout = subscriber_timeout
+        self.on_end = on_end
         self._outbox = Outbox(session)
         self._sessions: dict[str, _Session] = {}
         self._config_seq: dict[str, SequenceTracker] = {}
@@ -342,10 +396,11 @@ class PipelineService:
         if session.recorder is not None:
             header = {"seq": message.seq, "t_ns": message.t_ns, "step": session.step}
             session.recorder.record_array("/features", header, signal_, received.t_ns)
+        started_ns = time.perf_counter_ns()
         session.learner.observe(session.state, session.action, signal_)
         session.state = session.world.step(session.state, session.action)
         if session.step < session.config["steps"]:
-            self._next_move(session)
+            self._next_move(session, started_ns)
             return
         self._send_state(session)
         self._event(session.id, "session_ended", f"session {session.id!r} ended after "
@@ -403,9 +458,16 @@ class PipelineService:
         session.shape = payload.shape
         return signal_
 
-    def _next_move(self, session: _Session) -> None:
-        """Choose, publish and record the move of the next step, then its state."""
+    def _next_move(self, session: _Session, started_ns: int | None = None) -> None:
+        """Choose, publish and record the move of the next step, then its state.
+
+        ``started_ns``: :func:`time.perf_counter_ns` before the learner observed the epoch
+        that led here (None for the first move); the learner's time is then appended to
+        :attr:`_Session.update_ns`.
+        """
         proposal = session.learner.propose(session.state)
+        if started_ns is not None:
+            session.update_ns.append(time.perf_counter_ns() - started_ns)
         session.step += 1
         session.action = proposal.action
         fields = {
@@ -436,7 +498,11 @@ class PipelineService:
             "confident": beliefs.confident,
             "n_signals": beliefs.n_signals,
             "class_counts": [float(c) for c in counts],
-            "balanced_accuracy": None,
+            "balanced_accuracy": (
+                balanced_accuracy(session.learner, beliefs.best_task)
+                if beliefs.n_signals
+                else None
+            ),
         }
         confidence = beliefs.confidence.astype(np.float32)
         message = self._send(session, "state", fields, confidence)
@@ -455,6 +521,8 @@ class PipelineService:
         return message
 
     def _end(self, session: _Session) -> None:
+        if self.on_end is not None:
+            self.on_end(session.id, session.update_ns)
         del self._sessions[session.id]
         self._config_seq.pop(protocol.key(session.id, "config"), None)
         self.recordings.end(session.id, session.step)
@@ -484,6 +552,7 @@ def serve(
     listen: Sequence[str] = (),
     connect: Sequence[str] = (),
     record_dir: Path | None = None,
+    on_end: SessionEndHook | None = None,
 ) -> None:
     """Run a :class:`PipelineService` until SIGINT or SIGTERM, then shut down cleanly.
 
@@ -496,10 +565,12 @@ def serve(
         Zenoh endpoints (see :func:`cfbci.zenoh_config.peer_config`).
     record_dir : Path or None
         Directory of the recordings (``<session>.mcap``); None records nothing.
+    on_end : callable or None
+        See :class:`PipelineService`.
     """
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
     with zenoh.open(peer_config(listen, connect)) as session:
-        service = PipelineService(session, record_dir)
+        service = PipelineService(session, record_dir, on_end=on_end)
         for signum in (signal.SIGINT, signal.SIGTERM):
             signal.signal(signum, lambda *_: service.stop())
         log.info("serving on listen=%s connect=%s", list(listen), list(connect))

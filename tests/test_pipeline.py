@@ -9,17 +9,21 @@ from __future__ import annotations
 import json
 import multiprocessing
 import queue
+import signal
+from collections import Counter
 from collections.abc import Callable, Iterator
 from concurrent.futures import Future, ProcessPoolExecutor
 from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
+import pytest
 import zenoh
 
 from acquisition.replay_source import SourceSettings, SourceSummary, run_source
 from acquisition.sources import DataSpec
 from cfbci import protocol
+from cfbci.cli import main
 from cfbci.service import serve
 from cfbci.simulation import SessionConfig, StepRecord, run_session
 from cfbci.transport import Outbox, Pump, Received, reliable_publisher, wait_for_subscribers
@@ -94,6 +98,9 @@ def test_live_session_equals_simulation_and_is_recorded(tmp_path: Path) -> None:
     assert [m["action"] for m in moves] == [r.action for r in trace]
     states = [m for _, m in recording.messages["/state"]]
     assert [s["n_signals"] for s in states] == list(range(STEPS + 1))
+    accuracies = [s["balanced_accuracy"] for s in states]
+    assert accuracies[0] is None  # no signal yet
+    assert all(0 <= a <= 1 for a in accuracies[-10:])  # both classes long present
     assert [s["confident"] for s in states[:-1]] == [r.confident for r in trace]
     events = [m["event"] for _, m in recording.messages["/event"]]
     assert events[0] == "session_started" and events[-1] == "session_ended"
@@ -217,3 +224,112 @@ def test_malformed_messages_yield_errors_and_the_session_finishes(tmp_path: Path
     assert len(own.messages["/epoch"]) == 4  # as received: accepted, step 7, shape, accepted
     assert len(own.messages["/features"]) == 2
     assert [m["n_signals"] for _, m in own.messages["/state"]] == [0, 1, 2]
+
+
+def test_two_sessions_at_once_each_equal_their_simulation(tmp_path: Path) -> None:
+    endpoint = free_tcp_endpoint()
+    seeds = {"twin-a": 7, "twin-b": 11}
+    with service_process(endpoint, tmp_path), ProcessPoolExecutor(2, mp_context=SPAWN) as pool:
+        futures = {
+            sid: pool.submit(
+                run_source, SourceSettings(sid, seed=seed, steps=STEPS, grid=GRID), [], [endpoint]
+            )
+            for sid, seed in seeds.items()
+        }
+        summaries = {sid: future.result(TIMEOUT) for sid, future in futures.items()}
+    for sid, seed in seeds.items():
+        assert summaries[sid].records == simulated(seed)[0], sid
+        recording = read_recording(tmp_path / f"{sid}.mcap")
+        assert recording.config["seed"] == seed
+        assert len(recording.messages["/move"]) == STEPS
+
+
+KILLED = "killed"
+KILL_AFTER = 20  # moves seen before the kill (then the first move declaring no target)
+
+
+def test_a_killed_service_leaves_a_recording_with_all_it_sent(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """The test is the source (feature vectors): it stops answering after move k and its
+    state, waits for every event it knows is due, and SIGKILLs the service mid-session."""
+    endpoint, client_endpoint = free_tcp_endpoint(), free_tcp_endpoint()
+    inbox: queue.SimpleQueue[Received] = queue.SimpleQueue()
+    rng = np.random.default_rng(0)
+    seen: Counter[str] = Counter()
+    moves: dict[int, dict] = {}
+    with zenoh.open(peer_config([client_endpoint], ())) as client:
+        pumps = [
+            Pump(client, protocol.key(KILLED, kind), kind, inbox)
+            for kind in ("move", "state", "event")
+        ]
+        outbox = Outbox(client)
+        service = SPAWN.Process(target=serve, args=([endpoint], [client_endpoint], tmp_path))
+        service.start()
+        try:
+            assert wait_for_subscribers(outbox.publisher(protocol.key(KILLED, "config")), TIMEOUT)
+            outbox.send("config", KILLED, {
+                "seed": 0, "grid": GRID, "frame": "feedback", "steps": STEPS, "learner": {},
+                "dataset": {}, "signal": "features",
+            })
+            answered = 0
+            while True:
+                received = inbox.get(timeout=TIMEOUT)
+                message = protocol.decode(received.data, key_expr=received.key_expr)
+                seen[message.kind] += 1
+                if message.kind == "move":
+                    moves[message.fields["step"]] = message.fields
+                step = answered + 1  # the move to answer once it and its state are in
+                if step not in moves or seen["state"] < step:
+                    continue
+                declared = sum(move["target_reached"] for move in moves.values())
+                if step >= KILL_AFTER and not moves[step]["target_reached"]:
+                    if seen["event"] == 1 + declared:  # session_started, target_reached's
+                        break
+                    continue
+                fields = {"step": step, "signal": "features"}
+                outbox.send("epoch", KILLED, fields, rng.normal(size=4).astype(np.float32))
+                answered = step
+        finally:
+            service.kill()
+            service.join()
+            for pump in pumps:
+                pump.close()
+            outbox.close()
+    assert service.exitcode == -signal.SIGKILL
+    k = len(moves)
+    assert seen["move"] == k >= KILL_AFTER and seen["state"] == k
+
+    path = tmp_path / f"{KILLED}.mcap"
+    recording = read_recording(path)
+    assert recording.truncated and recording.session == KILLED
+    counts = {topic: len(messages) for topic, messages in recording.messages.items()}
+    # Recorded right after being sent, and before the service sent state k: all of them.
+    assert counts["/move"] == k
+    assert counts["/epoch"] == counts["/features"] == k - 1  # every epoch answered by a move
+    assert counts["/event"] == counts["/log"] == seen["event"]
+    # The last message the service sent is state k; the kill may have cut its records.
+    assert k - 1 <= counts["/state"] <= k
+    assert counts["/state"] - 1 <= counts["/belief"] <= counts["/state"]
+    assert counts["/truth"] == 0 and counts["/config"] == 1
+    states = [m for _, m in recording.messages["/state"]]
+    assert [m["n_signals"] for m in states] == list(range(len(states)))
+
+    clean = tmp_path / f"{KILLED}.recovered.mcap"  # the default output
+    assert main(["recover", str(path)]) == 0
+    out = capsys.readouterr().out
+    assert f"recovered {recording.n_messages} messages" in out and "truncated" in out
+    recovered = read_recording(clean)
+    assert not recovered.truncated and recovered.messages == recording.messages
+
+
+def test_recover_names_a_missing_or_non_mcap_file(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    assert main(["recover", str(tmp_path / "nope.mcap")]) == 2
+    assert "no such file" in capsys.readouterr().err
+    text = tmp_path / "text.mcap"
+    text.write_text("not a recording")
+    assert main(["recover", str(text), "--out", str(tmp_path / "out.mcap")]) == 2
+    assert "not an MCAP file" in capsys.readouterr().err
+    assert not (tmp_path / "out.mcap").exists()
