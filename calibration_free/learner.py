@@ -255,6 +255,13 @@ class CalibrationFreeLearner(TaskLearner):
             raise RuntimeError("the learner has not observed any signal yet")
         return self._history
 
+    def balanced_accuracy(self, task: int) -> float | None:
+        """Cross-validated balanced accuracy of ``task``'s decoder on the history so far
+        (see :meth:`TaskModels.balanced_accuracy`); None before two classes have signals."""
+        if self._models is None or self._history is None:
+            return None
+        return self._models.balanced_accuracy(task, self._history.label_weights[task])
+
     @property
     def uses_power_prior(self) -> bool:
         return self.config.power_prior and self.frame.kind == "feedback"

@@ -135,10 +135,13 @@ class TaskModels:
     decoders : BatchedDecoders (LDA or Student-t), batch shape (n_tasks,)
     confusion : ndarray, shape (n_tasks, n_classes, n_classes)
         ``p(true label i | predicted j)`` from k-fold cross-validation.
+    cv_proba : ndarray, shape (n_tasks, n_signals, n_classes)
+        The out-of-fold class probabilities the confusion matrices were built from.
     """
 
     decoders: BatchedDecoders
     confusion: np.ndarray
+    cv_proba: np.ndarray
 
     @classmethod
     def fit(
@@ -154,7 +157,25 @@ class TaskModels:
         confusion = confusion_matrices(
             history.label_weights, cv_proba, decoders.present, smoothing, balanced
         )
-        return cls(decoders=decoders, confusion=confusion)
+        return cls(decoders=decoders, confusion=confusion, cv_proba=cv_proba)
+
+    def balanced_accuracy(self, task: int, label_weights: np.ndarray) -> float | None:
+        """Cross-validated balanced accuracy of ``task``'s decoder.
+
+        Every signal's predicted class is the argmax of its out-of-fold probabilities (ties
+        to the lower class); a class's recall is the weight of its signals predicted as it
+        over its total weight (``label_weights`` (n_signals, K) are the task's, possibly
+        soft); the result is the mean recall over the classes that have signals, or None
+        while fewer than two have.
+        """
+        totals = label_weights.sum(axis=0)
+        present = totals > 0
+        if present.sum() < 2:
+            return None
+        predicted = self.cv_proba[task].argmax(axis=1)
+        hits = label_weights[np.arange(len(predicted)), predicted]
+        correct = np.bincount(predicted, weights=hits, minlength=len(totals))
+        return float(np.mean(correct[present] / totals[present]))
 
     @property
     def informative(self) -> np.ndarray:

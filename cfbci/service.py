@@ -33,7 +33,6 @@ import zenoh
 
 from calibration_free.config import LearnerConfig
 from calibration_free.learner import CalibrationFreeLearner
-from calibration_free.task_decoders import decoder_fit
 from calibration_free.world import ACTIONS, GridWorld
 from cfbci import protocol
 from cfbci.protocol import NO_SESSION, ProtocolError, SequenceTracker
@@ -41,7 +40,6 @@ from cfbci.simulation import session_streams
 from cfbci.transport import Outbox, Pump, Received, wait_for_subscribers
 from cfbci.zenoh_config import peer_config
 from decoding.features import ErrPFeatures
-from decoding.statistics import ClassStatistics
 from replay.recording import SessionRecorder
 
 log = logging.getLogger("cfbci.service")
@@ -85,44 +83,6 @@ def learner_settings(values: dict[str, Any], frame: str) -> LearnerConfig:
             f"learner frame {values['frame']!r} differs from the config's frame {frame!r}"
         )
     return LearnerConfig.from_dict({**values, "frame": frame})
-
-
-def balanced_accuracy(learner: CalibrationFreeLearner, task: int) -> float | None:
-    """Cross-validated balanced accuracy of ``task``'s decoder on the learner's history.
-
-    The decoders of the learner's k folds for ``task`` (each trained on the other folds,
-    :meth:`TaskHistory.statistics`) predict the class of every signal out of fold (argmax
-    of :meth:`TaskHistory.cross_validated_proba`, ties to the lower class); a class's
-    recall is the weight of its signals predicted as it over its total weight (labels are
-    ``task``'s, possibly soft); the balanced accuracy is the mean recall over the classes
-    that have signals. A fold decoder that knows fewer than two classes predicts class 0.
-
-    Parameters
-    ----------
-    learner : CalibrationFreeLearner
-        A learner that has observed at least one signal.
-    task : int
-        The task (target cell) whose labels and decoders are scored.
-
-    Returns
-    -------
-    float or None
-        In [0, 1] (1 / n_classes is chance); None while fewer than two classes have signals.
-    """
-    history = learner.history
-    weights = history.label_weights[task]  # (n_signals, n_classes)
-    totals = weights.sum(axis=0)
-    present = totals > 0
-    if present.sum() < 2:
-        return None
-    _, training = history.statistics()  # (n_tasks, n_folds, ...): this task's slice only
-    fit = decoder_fit(learner.config.decoder, learner.config.shrinkage)
-    folds = fit(ClassStatistics(*(a[task : task + 1] for a in training.arrays())))
-    # Fold decoders of batch (1, n_folds): every task row of the result is this task's.
-    predicted = history.cross_validated_proba(folds)[0].argmax(axis=1)
-    hits = weights[np.arange(len(predicted)), predicted]  # weight of the predicted class
-    correct = np.bincount(predicted, weights=hits, minlength=len(totals))
-    return float(np.mean(correct[present] / totals[present]))
 
 
 def start_cell(seed: int, n_states: int) -> int:
@@ -499,7 +459,7 @@ class PipelineService:
             "n_signals": beliefs.n_signals,
             "class_counts": [float(c) for c in counts],
             "balanced_accuracy": (
-                balanced_accuracy(session.learner, beliefs.best_task)
+                session.learner.balanced_accuracy(beliefs.best_task)
                 if beliefs.n_signals
                 else None
             ),

@@ -115,3 +115,26 @@ def test_shrinkage_lda_estimator_equals_sklearn(n_classes):
     theirs = lda(n_classes, 0.3).fit(X, y)
     np.testing.assert_allclose(ours.predict_proba(X), theirs.predict_proba(X), atol=1e-12)
     assert (ours.predict(X) == theirs.predict(X)).all()
+
+
+def test_balanced_accuracy_equals_sklearn_cross_validation():
+    from sklearn.metrics import balanced_accuracy_score
+    from sklearn.model_selection import KFold, cross_val_predict
+
+    rng = np.random.default_rng(7)
+    history, labels, _, _ = random_problem(rng, 90, 4, 3, 2)
+    tasks = TaskHistory(len(labels), 2, 4)
+    for i, x in enumerate(history):
+        tasks.add(x, one_hot(labels[:, i], 2))
+    models = TaskModels.fit(tasks, decoder_fit("lda", 0.5), 1.0)
+    order = np.lexsort((np.arange(90), np.arange(90) % 10))
+    for task in range(len(labels)):
+        predicted = np.empty(90, dtype=int)
+        predicted[order] = cross_val_predict(
+            lda(2, 0.5), history[order], labels[task][order], cv=KFold(10)
+        )
+        expected = balanced_accuracy_score(labels[task], predicted)
+        assert models.balanced_accuracy(task, tasks.label_weights[task]) == pytest.approx(
+            expected, abs=1e-12
+        )
+    assert models.balanced_accuracy(0, np.c_[np.ones(90), np.zeros(90)]) is None
