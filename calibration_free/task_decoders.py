@@ -18,10 +18,10 @@ import numpy as np
 
 from calibration_free.likelihood import confusion_matrices, corrected_proba
 from decoding.lda import fit_lda
-from decoding.statistics import BatchedDecoders, ClassStatistics
+from decoding.statistics import BatchedDecoders, ClassStatistics, HeldOutStatistics, Statistics
 from decoding.student_t import fit_student_t
 
-DecoderFit = Callable[[ClassStatistics], BatchedDecoders]
+DecoderFit = Callable[[Statistics], BatchedDecoders]
 DEFAULT_FOLDS = 10
 
 
@@ -65,7 +65,6 @@ class TaskHistory:
         self._totals = ClassStatistics(
             *(np.zeros((n_tasks, *a.shape[2:])) for a in self._per_fold.arrays())
         )
-        self._training = ClassStatistics(*(np.empty_like(a) for a in self._per_fold.arrays()))
 
     @property
     def signals(self) -> np.ndarray:
@@ -104,17 +103,10 @@ class TaskHistory:
             array[:] = array[task]
         self._weights[:, : self.n_signals] = self._weights[task, : self.n_signals]
 
-    def statistics(self) -> tuple[ClassStatistics, ClassStatistics]:
+    def statistics(self) -> tuple[ClassStatistics, HeldOutStatistics]:
         """Class statistics of the whole history (n_tasks, ...) and of each fold's
-        training set, i.e. all signals but that fold's (n_tasks, n_folds, ...).
-
-        The training statistics live in a buffer reused (overwritten) at every call.
-        """
-        for total, per_fold, training in zip(
-            self._totals.arrays(), self._per_fold.arrays(), self._training.arrays(), strict=True
-        ):
-            np.subtract(total[:, None], per_fold, out=training)
-        return self._totals, self._training
+        training set, i.e. all signals but that fold's (n_tasks, n_folds, ...)."""
+        return self._totals, HeldOutStatistics(self._totals, self._per_fold)
 
     def cross_validated_proba(self, fold_decoders: BatchedDecoders) -> np.ndarray:
         """Out-of-fold class probabilities, shape (n_tasks, n_signals, n_classes)."""

@@ -19,7 +19,7 @@ import numpy as np
 from decoding.estimator import StatisticsClassifier
 from decoding.statistics import (
     BatchedDecoders,
-    ClassStatistics,
+    Statistics,
     log_softmax,
     shrink_towards_identity,
     solve_spd,
@@ -51,7 +51,7 @@ class LinearDecoders(BatchedDecoders):
         return log_softmax(X @ self.coef + self.intercept[..., None, :])
 
 
-def fit_lda(statistics: ClassStatistics, shrinkage: float = DEFAULT_SHRINKAGE) -> LinearDecoders:
+def fit_lda(statistics: Statistics, shrinkage: float = DEFAULT_SHRINKAGE) -> LinearDecoders:
     """Shrinkage-LDA decoders from class statistics (batched over leading axes).
 
     Only the classes with at least ``MIN_CLASS_COUNT`` signals take part (equal priors
@@ -67,12 +67,8 @@ def fit_lda(statistics: ClassStatistics, shrinkage: float = DEFAULT_SHRINKAGE) -
     # The equally weighted mean of the present classes' covariances, without forming each:
     # sum_k (scatter_k / n_k - mu_k mu_k^T) / K.
     class_weights = np.where(present, 1.0 / np.maximum(n_present, 1)[..., None], 0.0)
-    scatters = statistics.scatters
-    n_features = scatters.shape[-1]
-    flat = scatters.reshape(*scatters.shape[:-2], n_features * n_features)
-    shared = ((class_weights / safe_counts)[..., None, :] @ flat).reshape(
-        *scatters.shape[:-3], n_features, n_features
-    )
+    n_features = means.shape[-1]
+    shared = statistics.weighted_scatter(class_weights / safe_counts)
     shared -= np.swapaxes(means * class_weights[..., None], -1, -2) @ means
     shared = shrink_towards_identity(shared, shrinkage)
     # Uninformative decoders get a harmless identity system instead of a singular one.

@@ -46,6 +46,12 @@ class ClassStatistics:
             scatters=np.einsum("nk,ni,nj->kij", weights, X, X, optimize=True),
         )
 
+    def weighted_scatter(self, weights: np.ndarray) -> np.ndarray:
+        """``sum_k weights[..., k] * scatters[..., k, :, :]``: (*B, K) -> (*B, d, d)."""
+        n_features = self.scatters.shape[-1]
+        flat = self.scatters.reshape(*self.scatters.shape[:-2], n_features * n_features)
+        return (weights[..., None, :] @ flat).reshape(*weights.shape[:-1], n_features, n_features)
+
     def class_moments(self) -> tuple[np.ndarray, np.ndarray]:
         """Class means (*B, K, d) and biased class covariances (*B, K, d, d).
 
@@ -58,6 +64,51 @@ class ClassStatistics:
             means[..., :, None] * means[..., None, :]
         )
         return means, covariances
+
+
+@dataclass(frozen=True)
+class HeldOutStatistics:
+    """The statistics of a whole minus each of its parts, in turn (k-fold training sets).
+
+    ``whole`` has batch shape ``B`` and ``parts`` ``(*B, n_parts)``; the result behaves as
+    :class:`ClassStatistics` of batch shape ``(*B, n_parts)``. :meth:`weighted_scatter`,
+    all a shrinkage LDA needs of the scatters, is computed from ``whole`` and ``parts``
+    without forming the held-out scatter matrices (one pass less over the largest array).
+    """
+
+    whole: ClassStatistics
+    parts: ClassStatistics
+
+    def _held_out(self, whole: np.ndarray, parts: np.ndarray) -> np.ndarray:
+        return np.expand_dims(whole, self.whole.counts.ndim - 1) - parts
+
+    @property
+    def counts(self) -> np.ndarray:
+        return self._held_out(self.whole.counts, self.parts.counts)
+
+    @property
+    def sums(self) -> np.ndarray:
+        return self._held_out(self.whole.sums, self.parts.sums)
+
+    @property
+    def scatters(self) -> np.ndarray:
+        return self._held_out(self.whole.scatters, self.parts.scatters)
+
+    def weighted_scatter(self, weights: np.ndarray) -> np.ndarray:
+        """As :meth:`ClassStatistics.weighted_scatter`, with ``weights`` (*B, n_parts, K)."""
+        whole = ClassStatistics(
+            np.expand_dims(self.whole.counts, -2),
+            np.expand_dims(self.whole.sums, -3),
+            np.expand_dims(self.whole.scatters, -4),
+        )
+        return whole.weighted_scatter(weights) - self.parts.weighted_scatter(weights)
+
+    def class_moments(self) -> tuple[np.ndarray, np.ndarray]:
+        """As :meth:`ClassStatistics.class_moments` (forms the held-out scatters)."""
+        return ClassStatistics(self.counts, self.sums, self.scatters).class_moments()
+
+
+Statistics = ClassStatistics | HeldOutStatistics
 
 
 class BatchedDecoders:
