@@ -320,6 +320,32 @@ def _run_recover(args: argparse.Namespace, console: Console) -> int:
     return 0
 
 
+def _add_replay(commands: argparse._SubParsersAction) -> None:
+    p = commands.add_parser(
+        "replay",
+        help="re-run the learner over a recording and check every recorded decision",
+        description="Rebuild the learner from a recording's configuration and seeds, feed it "
+        "the recorded epochs, and compare every move, state and target event with the "
+        "recording. Exit 0 when identical, 1 at the first divergence.",
+    )
+    p.add_argument("file", type=Path, help="the recording (.mcap)")
+    p.set_defaults(run=_run_replay)
+
+
+def _run_replay(args: argparse.Namespace, console: Console) -> int:
+    from cfbci.rerun import replay_check
+
+    if not args.file.is_file():
+        raise FileNotFoundError(f"{args.file}: no such file")
+    result = replay_check(args.file)
+    if result.divergence is not None:
+        console.print(result.divergence.describe(), soft_wrap=True)
+        return 1
+    console.print(f"identical: {result.moves} moves, {result.states} states, "
+                  f"{result.events} events")
+    return 0
+
+
 def _jobs(requested: int) -> int:
     import os
 
@@ -337,6 +363,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_source(commands)
     _add_session(commands)
     _add_recover(commands)
+    _add_replay(commands)
     return parser
 
 

@@ -24,11 +24,12 @@ from acquisition.replay_source import SourceSettings, SourceSummary, run_source
 from acquisition.sources import DataSpec
 from cfbci import protocol
 from cfbci.cli import main
+from cfbci.rerun import replay_check
 from cfbci.service import serve
 from cfbci.simulation import SessionConfig, StepRecord, run_session
 from cfbci.transport import Outbox, Pump, Received, reliable_publisher, wait_for_subscribers
 from cfbci.zenoh_config import free_tcp_endpoint, peer_config
-from replay.recording import decode_array, read_recording
+from replay.recording import Recording, SessionRecorder, decode_array, read_recording
 
 STEPS, GRID = 60, 3
 TIMEOUT = 60.0  # failure guard, seconds
@@ -108,6 +109,30 @@ def test_live_session_equals_simulation_and_is_recorded(tmp_path: Path) -> None:
     epoch = decode_array(recording.messages["/epoch"][0][1])
     features = decode_array(recording.messages["/features"][0][1])
     assert epoch.ndim == 2 and features.shape == (57,)
+
+    # Offline replay of the recording reproduces every decision ...
+    path = tmp_path / "live-1.mcap"
+    result = replay_check(path)
+    assert result.divergence is None
+    assert (result.moves, result.states, result.events) == (STEPS, STEPS + 1, n_targets)
+    # ... and a recording altered at one move is caught at that very step.
+    altered = tmp_path / "altered.mcap"
+    moves[24]["action"] = "goal" if moves[24]["action"] != "goal" else "up"
+    rewrite(recording, altered)
+    divergence = replay_check(altered).divergence
+    assert divergence is not None
+    assert (divergence.topic, divergence.step, divergence.field) == ("/move", 25, "action")
+    assert main(["replay", str(altered)]) == 1 and main(["replay", str(path)]) == 0
+
+
+def rewrite(recording: Recording, path: Path) -> None:
+    """Write a recording's messages (as they are now in memory) to a new file."""
+    with SessionRecorder(path, recording.session, recording.config) as recorder:
+        for topic, messages in recording.messages.items():
+            if topic in ("/config", "/belief", "/log"):
+                continue
+            for log_time_ns, message in messages:
+                recorder.record(topic, message, log_time_ns)
 
 
 def _message(kind: str, session: str, seq: int, fields: dict, payload=None) -> bytes:

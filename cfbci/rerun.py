@@ -1,0 +1,173 @@
+"""``cfbci replay FILE.mcap``: re-run the learner over a recording and check every decision.
+
+The learner is rebuilt from the recorded configuration exactly as the service built it
+(same settings, same seed-derived streams and start cell), fed the recorded epochs in
+order (raw epochs go through the ErrP feature extractor again), and every move, state
+and target event it produces is compared with the recording: discrete fields exactly,
+floating-point fields (confidences, balanced accuracy, class counts) exactly too, since
+the computation is deterministic; timing fields are not compared.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from calibration_free.learner import CalibrationFreeLearner
+from calibration_free.world import ACTIONS, GridWorld
+from cfbci.service import learner_settings, start_cell
+from cfbci.simulation import session_streams
+from decoding.features import ErrPFeatures
+from replay.recording import Recording, decode_array, read_recording
+
+MOVE_FIELDS = ("step", "from_state", "action", "to_state", "target_reached")
+STATE_FIELDS = ("best_task", "confident", "n_signals", "class_counts", "balanced_accuracy")
+
+
+@dataclass(frozen=True)
+class Divergence:
+    """The first place where the re-run differs from the recording."""
+
+    topic: str
+    index: int
+    step: int
+    field: str
+    recorded: Any
+    recomputed: Any
+
+    def describe(self) -> str:
+        return (
+            f"first divergence at step {self.step} ({self.topic} #{self.index + 1}), field "
+            f"{self.field!r}: recorded {self.recorded!r} vs recomputed {self.recomputed!r}"
+        )
+
+
+@dataclass(frozen=True)
+class ReplayResult:
+    """Counts of compared messages, and the first divergence (None when identical)."""
+
+    moves: int
+    states: int
+    events: int
+    divergence: Divergence | None
+
+
+def _signals(recording: Recording) -> list[np.ndarray]:
+    """The learner's inputs, float32, from the recorded epochs (raw or features)."""
+    config = recording.config
+    epochs = [decode_array(message) for _, message in recording.messages.get("/epoch", [])]
+    if config.get("signal") != "epochs":
+        return [np.asarray(e, dtype=np.float32) for e in epochs]
+    if not epochs:
+        return []
+    extractor = ErrPFeatures(config["sfreq"], config["tmin"], config["ch_names"])
+    extractor.fit(epochs[0][None])
+    return [extractor.transform(e[None])[0].astype(np.float32) for e in epochs]
+
+
+def recompute(recording: Recording) -> tuple[list[dict], list[dict], list[str]]:
+    """The moves, states (with ``confidence``) and target events of the re-run."""
+    config = recording.config
+    world = GridWorld(config["grid"])
+    learner = CalibrationFreeLearner(
+        world,
+        learner_settings(config["learner"], config["frame"]),
+        session_streams(config["seed"])[2],
+    )
+    state = start_cell(config["seed"], world.n_states)
+    signals = _signals(recording)
+    moves: list[dict] = []
+    states: list[dict] = []
+    events: list[str] = []
+
+    def record_state() -> None:
+        beliefs = learner.beliefs()
+        counts = (
+            learner.history.label_weights[beliefs.best_task].sum(axis=0)
+            if beliefs.n_signals
+            else np.zeros(learner.frame.n_classes)
+        )
+        states.append({
+            "best_task": beliefs.best_task,
+            "confident": beliefs.confident,
+            "n_signals": beliefs.n_signals,
+            "class_counts": [float(c) for c in counts],
+            "balanced_accuracy": (
+                learner.balanced_accuracy(beliefs.best_task) if beliefs.n_signals else None
+            ),
+            "confidence": [float(x) for x in beliefs.confidence.astype(np.float32)],
+        })
+
+    def move() -> int:
+        proposal = learner.propose(state)
+        step = len(moves) + 1
+        moves.append({
+            "step": step,
+            "from_state": state,
+            "action": ACTIONS[proposal.action],
+            "to_state": world.step(state, proposal.action),
+            "target_reached": proposal.declares_target,
+        })
+        record_state()
+        if proposal.declares_target:
+            events.append(f"step {step}: target reached in cell {state}")
+        return proposal.action
+
+    action = move()
+    for index, signal in enumerate(signals):
+        learner.observe(state, action, signal)
+        state = world.step(state, action)
+        if index + 1 < config["steps"]:
+            action = move()
+        else:
+            record_state()
+    return moves, states, events
+
+
+def replay_check(path: str | Path) -> ReplayResult:
+    """Re-run the learner over a recording and compare (see the module docstring)."""
+    recording = read_recording(path)
+    if not recording.config:
+        raise ValueError(f"{path}: the recording holds no session configuration")
+    moves, states, events = recompute(recording)
+    recorded_moves = [m for _, m in recording.messages.get("/move", [])]
+    recorded_states = [m for _, m in recording.messages.get("/state", [])]
+    recorded_events = [
+        m["message"] for _, m in recording.messages.get("/event", [])
+        if m.get("event") == "target_reached"
+    ]
+    divergence = (
+        _first_difference("/move", recorded_moves, moves, MOVE_FIELDS, moves)
+        or _first_difference(
+            "/state", recorded_states, states, (*STATE_FIELDS, "confidence"), moves
+        )
+        or _first_difference(
+            "/event", [{"message": e} for e in recorded_events],
+            [{"message": e} for e in events], ("message",), moves,
+        )
+    )
+    return ReplayResult(len(moves), len(states), len(events), divergence)
+
+
+def _first_difference(
+    topic: str,
+    recorded: list[dict],
+    recomputed: list[dict],
+    fields: tuple[str, ...],
+    moves: list[dict],
+) -> Divergence | None:
+    for index, (old, new) in enumerate(zip(recorded, recomputed, strict=False)):
+        step = min(index + 1, len(moves)) if topic != "/event" else 0
+        for name in fields:
+            if old.get(name) != new.get(name):
+                return Divergence(topic, index, step, name, old.get(name), new.get(name))
+    if len(recorded) != len(recomputed):
+        step = min(len(recorded), len(recomputed)) + 1
+        return Divergence(
+            topic, min(len(recorded), len(recomputed)), step, "count",
+            len(recorded), len(recomputed),
+        )
+    return None
