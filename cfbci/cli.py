@@ -18,6 +18,7 @@ from calibration_free.baseline import DEFAULT_CALIBRATION_TRIALS
 from calibration_free.config import LearnerConfig
 from calibration_free.frames import FRAMES
 from calibration_free.planning import PLANNERS
+from cfbci.memory import keep_freed_memory
 from cfbci.simulation import BASELINES, SessionConfig
 
 
@@ -370,6 +371,7 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``cfbci`` console script."""
     args = build_parser().parse_args(argv)
+    keep_freed_memory()
     console = Console(stderr=False)
     try:
         return args.run(args, console)

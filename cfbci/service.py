@@ -35,6 +35,7 @@ from calibration_free.config import LearnerConfig
 from calibration_free.learner import CalibrationFreeLearner
 from calibration_free.world import ACTIONS, GridWorld
 from cfbci import protocol
+from cfbci.memory import keep_freed_memory
 from cfbci.protocol import NO_SESSION, ProtocolError, SequenceTracker
 from cfbci.simulation import session_streams
 from cfbci.transport import Outbox, Pump, Received, wait_for_subscribers
@@ -529,6 +530,7 @@ def serve(
         See :class:`PipelineService`.
     """
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
+    keep_freed_memory()
     with zenoh.open(peer_config(listen, connect)) as session:
         service = PipelineService(session, record_dir, on_end=on_end)
         for signum in (signal.SIGINT, signal.SIGTERM):

@@ -12,6 +12,7 @@ from rich.console import Console
 from rich.table import Table
 
 from acquisition.sources import DataSpec
+from cfbci.memory import keep_freed_memory
 from cfbci.parallel import run_parallel
 from cfbci.simulation import SessionConfig, SessionResult, StepRecord, run_session, summarise
 
@@ -33,6 +34,7 @@ def _resolved(data: DataSpec, frame: str):
 
 def run_job(job: SimulationJob) -> tuple[SessionResult, list[StepRecord]]:
     """Run one session (in a worker process); its trace if asked."""
+    keep_freed_memory()
     trace: list[StepRecord] = []
     result = run_session(
         job.seed,

@@ -24,3 +24,14 @@ def test_bench_update_reports_rows_with_the_naive_reference(tmp_path, capsys):
     assert all(r["naive_median_ms"] > 0 and r["speedup"] > 0 for r in smallest)
     assert all(r["naive_median_ms"] is None for r in rows if r["tasks"] == 16)
     assert "speed-up" in capsys.readouterr().out
+
+
+def test_allocator_tuning_is_safe_to_repeat():
+    import sys
+
+    from cfbci.memory import keep_freed_memory
+
+    first, again = keep_freed_memory(), keep_freed_memory()
+    assert first == again and isinstance(first, bool)
+    if sys.platform.startswith("linux"):  # glibc: every mallopt call must be accepted
+        assert first is True
