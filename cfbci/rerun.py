@@ -17,8 +17,8 @@ from typing import Any
 import numpy as np
 
 from calibration_free.learner import CalibrationFreeLearner
-from calibration_free.world import ACTIONS, GridWorld
-from cfbci.service import learner_settings, start_cell
+from calibration_free.world import GridWorld
+from cfbci.service import learner_settings, move_fields, start_cell, state_fields
 from cfbci.simulation import session_streams
 from decoding.features import ErrPFeatures
 from replay.recording import Recording, decode_array, read_recording
@@ -84,33 +84,13 @@ def recompute(recording: Recording) -> tuple[list[dict], list[dict], list[str]]:
     events: list[str] = []
 
     def record_state() -> None:
-        beliefs = learner.beliefs()
-        counts = (
-            learner.history.label_weights[beliefs.best_task].sum(axis=0)
-            if beliefs.n_signals
-            else np.zeros(learner.frame.n_classes)
-        )
-        states.append({
-            "best_task": beliefs.best_task,
-            "confident": beliefs.confident,
-            "n_signals": beliefs.n_signals,
-            "class_counts": [float(c) for c in counts],
-            "balanced_accuracy": (
-                learner.balanced_accuracy(beliefs.best_task) if beliefs.n_signals else None
-            ),
-            "confidence": [float(x) for x in beliefs.confidence.astype(np.float32)],
-        })
+        fields, confidence = state_fields(learner)
+        states.append({**fields, "confidence": [float(x) for x in confidence]})
 
     def move() -> int:
         proposal = learner.propose(state)
         step = len(moves) + 1
-        moves.append({
-            "step": step,
-            "from_state": state,
-            "action": ACTIONS[proposal.action],
-            "to_state": world.step(state, proposal.action),
-            "target_reached": proposal.declares_target,
-        })
+        moves.append(move_fields(world, step, state, proposal))
         record_state()
         if proposal.declares_target:
             events.append(f"step {step}: target reached in cell {state}")
@@ -136,7 +116,8 @@ def replay_check(path: str | Path) -> ReplayResult:
     recorded_moves = [m for _, m in recording.messages.get("/move", [])]
     recorded_states = [m for _, m in recording.messages.get("/state", [])]
     recorded_events = [
-        m["message"] for _, m in recording.messages.get("/event", [])
+        m["message"]
+        for _, m in recording.messages.get("/event", [])
         if m.get("event") == "target_reached"
     ]
     divergence = (
@@ -145,8 +126,11 @@ def replay_check(path: str | Path) -> ReplayResult:
             "/state", recorded_states, states, (*STATE_FIELDS, "confidence"), moves
         )
         or _first_difference(
-            "/event", [{"message": e} for e in recorded_events],
-            [{"message": e} for e in events], ("message",), moves,
+            "/event",
+            [{"message": e} for e in recorded_events],
+            [{"message": e} for e in events],
+            ("message",),
+            moves,
         )
     )
     return ReplayResult(len(moves), len(states), len(events), divergence)
@@ -167,7 +151,11 @@ def _first_difference(
     if len(recorded) != len(recomputed):
         step = min(len(recorded), len(recomputed)) + 1
         return Divergence(
-            topic, min(len(recorded), len(recomputed)), step, "count",
-            len(recorded), len(recomputed),
+            topic,
+            min(len(recorded), len(recomputed)),
+            step,
+            "count",
+            len(recorded),
+            len(recomputed),
         )
     return None

@@ -32,7 +32,7 @@ import numpy as np
 import zenoh
 
 from calibration_free.config import LearnerConfig
-from calibration_free.learner import CalibrationFreeLearner
+from calibration_free.learner import CalibrationFreeLearner, Proposal
 from calibration_free.world import ACTIONS, GridWorld
 from cfbci import protocol
 from cfbci.memory import keep_freed_memory
@@ -97,6 +97,38 @@ def start_cell(seed: int, n_states: int) -> int:
         Cells of the grid (``grid ** 2``).
     """
     return int(session_streams(seed)[1].integers(n_states))
+
+
+def move_fields(world: GridWorld, step: int, state: int, proposal: Proposal) -> dict[str, Any]:
+    """The fields of the ``move`` message of ``proposal`` taken in ``state`` at ``step``."""
+    return {
+        "step": step,
+        "from_state": state,
+        "action": ACTIONS[proposal.action],
+        "to_state": world.step(state, proposal.action),
+        "target_reached": proposal.declares_target,
+    }
+
+
+def state_fields(learner: CalibrationFreeLearner) -> tuple[dict[str, Any], np.ndarray]:
+    """The fields of a ``state`` message, and its payload: the confidence of every task
+    (float32, shape (n_tasks,))."""
+    beliefs = learner.beliefs()
+    counts = (
+        learner.history.label_weights[beliefs.best_task].sum(axis=0)
+        if beliefs.n_signals
+        else np.zeros(learner.frame.n_classes)
+    )
+    fields = {
+        "best_task": beliefs.best_task,
+        "confident": beliefs.confident,
+        "n_signals": beliefs.n_signals,
+        "class_counts": [float(c) for c in counts],
+        "balanced_accuracy": (
+            learner.balanced_accuracy(beliefs.best_task) if beliefs.n_signals else None
+        ),
+    }
+    return fields, beliefs.confidence.astype(np.float32)
 
 
 class Recordings:
@@ -333,7 +365,8 @@ class PipelineService:
         if gap is not None:
             self._event(session.id, "info", gap)
         self._event(
-            session.id, "session_started",
+            session.id,
+            "session_started",
             f"session {session.id!r}: {config['steps']} steps on a {config['grid']} x "
             f"{config['grid']} grid, {config['frame']} frame, {config['signal']}",
         )
@@ -344,8 +377,9 @@ class PipelineService:
         where = {"session": message.session, "seq": message.seq}
         session = self._sessions.get(message.session)
         if session is None:
-            raise ProtocolError("epoch for an unknown session (no running session has this id)",
-                                **where)
+            raise ProtocolError(
+                "epoch for an unknown session (no running session has this id)", **where
+            )
         gap = self._check_seq(session.epochs, where)
         if gap is not None:
             self._event(session.id, "info", gap)
@@ -364,8 +398,9 @@ class PipelineService:
             self._next_move(session, started_ns)
             return
         self._send_state(session)
-        self._event(session.id, "session_ended", f"session {session.id!r} ended after "
-                    f"{session.step} steps")
+        self._event(
+            session.id, "session_ended", f"session {session.id!r} ended after {session.step} steps"
+        )
         self._end(session)
 
     def _check_seq(self, tracker: SequenceTracker, where: dict[str, Any]) -> str | None:
@@ -410,7 +445,8 @@ class PipelineService:
             try:
                 if session.extractor is None:
                     session.extractor = ErrPFeatures(
-                        session.config["sfreq"], session.config["tmin"],
+                        session.config["sfreq"],
+                        session.config["tmin"],
                         session.config["ch_names"],
                     ).fit(payload[None])
                 signal_ = session.extractor.transform(payload[None])[0].astype(np.float32)
@@ -431,41 +467,19 @@ class PipelineService:
             session.update_ns.append(time.perf_counter_ns() - started_ns)
         session.step += 1
         session.action = proposal.action
-        fields = {
-            "step": session.step,
-            "from_state": session.state,
-            "action": ACTIONS[proposal.action],
-            "to_state": session.world.step(session.state, proposal.action),
-            "target_reached": proposal.declares_target,
-        }
-        self._send(session, "move", fields)
+        self._send(
+            session, "move", move_fields(session.world, session.step, session.state, proposal)
+        )
         self._send_state(session)
         if proposal.declares_target:
             self._event(
-                session.id, "target_reached",
+                session.id,
+                "target_reached",
                 f"step {session.step}: target reached in cell {session.state}",
             )
 
     def _send_state(self, session: _Session) -> None:
-        beliefs = session.learner.beliefs()
-        n_classes = session.learner.frame.n_classes
-        counts = (
-            session.learner.history.label_weights[beliefs.best_task].sum(axis=0)
-            if beliefs.n_signals
-            else np.zeros(n_classes)
-        )
-        fields = {
-            "best_task": beliefs.best_task,
-            "confident": beliefs.confident,
-            "n_signals": beliefs.n_signals,
-            "class_counts": [float(c) for c in counts],
-            "balanced_accuracy": (
-                session.learner.balanced_accuracy(beliefs.best_task)
-                if beliefs.n_signals
-                else None
-            ),
-        }
-        confidence = beliefs.confidence.astype(np.float32)
+        fields, confidence = state_fields(session.learner)
         message = self._send(session, "state", fields, confidence)
         if session.recorder is not None:
             session.recorder.record_belief(confidence, session.config["grid"], message.t_ns)
