@@ -11,7 +11,8 @@ from typing import Any
 from rich.console import Console
 from rich.table import Table
 
-from acquisition.sources import DataSpec
+from acquisition.labelled import LabelledFeatures
+from acquisition.sources import DataFactory, DataSpec
 from cfbci.memory import keep_freed_memory
 from cfbci.parallel import run_parallel
 from cfbci.simulation import SessionConfig, SessionResult, StepRecord, run_session, summarise
@@ -28,7 +29,8 @@ class SimulationJob:
 
 
 @lru_cache(maxsize=4)
-def _resolved(data: DataSpec, frame: str):
+def _resolved(data: DataSpec, frame: str) -> LabelledFeatures | DataFactory:
+    """The dataset of a job, loaded (or its generator built) once per worker process."""
     return data.resolve(frame)
 
 
