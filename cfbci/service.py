@@ -463,13 +463,14 @@ class PipelineService:
         :attr:`_Session.update_ns`.
         """
         proposal = session.learner.propose(session.state)
+        timing = {}
         if started_ns is not None:
             session.update_ns.append(time.perf_counter_ns() - started_ns)
+            timing["update_ms"] = session.update_ns[-1] / 1e6
         session.step += 1
         session.action = proposal.action
-        self._send(
-            session, "move", move_fields(session.world, session.step, session.state, proposal)
-        )
+        fields = move_fields(session.world, session.step, session.state, proposal)
+        self._send(session, "move", fields, recorded_only=timing)
         self._send_state(session)
         if proposal.declares_target:
             self._event(
@@ -485,11 +486,17 @@ class PipelineService:
             session.recorder.record_belief(confidence, session.config["grid"], message.t_ns)
 
     def _send(
-        self, session: _Session, kind: str, fields: dict[str, Any], payload: Any = None
+        self,
+        session: _Session,
+        kind: str,
+        fields: dict[str, Any],
+        payload: Any = None,
+        recorded_only: dict[str, Any] | None = None,
     ) -> protocol.Message:
+        """Publish a message of the session; record it with ``recorded_only`` fields added."""
         message = self._outbox.send(kind, session.id, fields, payload)
         if session.recorder is not None:
-            record = {"seq": message.seq, "t_ns": message.t_ns, **fields}
+            record = {"seq": message.seq, "t_ns": message.t_ns, **fields, **(recorded_only or {})}
             if payload is not None:
                 record["confidence"] = [float(x) for x in payload]
             session.recorder.record(f"/{kind}", record, message.t_ns)

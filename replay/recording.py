@@ -96,7 +96,11 @@ SCHEMAS: dict[str, dict[str, Any]] = {
     },
     "/epoch": _stamped("cfbci.Epoch", "An epoch as received, little-endian float32", True),
     "/features": _stamped("cfbci.Features", "A feature vector, little-endian float32", True),
-    "/move": _stamped("cfbci.Move", "A move of the cursor"),
+    "/move": _stamped(
+        "cfbci.Move",
+        "A move of the cursor; update_ms (recording only): the learner's time, ms, from the "
+        "epoch that led to it (observe) to this move (propose)",
+    ),
     "/state": _stamped("cfbci.State", "A state of the session"),
     "/event": _stamped("cfbci.Event", "A session event"),
     "/truth": _stamped("cfbci.Truth", "Ground truth, never shown to the learner"),
