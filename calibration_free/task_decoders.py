@@ -109,13 +109,23 @@ class TaskHistory:
         return self._totals, HeldOutStatistics(self._totals, self._per_fold)
 
     def cross_validated_proba(self, fold_decoders: BatchedDecoders) -> np.ndarray:
-        """Out-of-fold class probabilities, shape (n_tasks, n_signals, n_classes)."""
-        proba = np.empty((self.n_tasks, self.n_signals, self.n_classes))
-        for fold in range(min(self.n_folds, self.n_signals)):
-            signals = self._signals[fold : self.n_signals : self.n_folds]
-            decoders = fold_decoders.select((slice(None), fold))
-            proba[:, fold :: self.n_folds] = np.exp(decoders.log_proba(signals))
-        return proba
+        """Out-of-fold class probabilities, shape (n_tasks, n_signals, n_classes).
+
+        ``fold_decoders`` has batch shape (n_tasks, n_folds). Signal ``i`` is in fold
+        ``i % n_folds`` at position ``i // n_folds``, so the signals, zero-padded to a
+        multiple of ``n_folds``, reshape to (n_folds, per_fold, n_features) and every
+        fold's decoders score their own fold in one batched call.
+        """
+        n_signals, n_folds = self.n_signals, self.n_folds
+        per_fold = -(-n_signals // n_folds)
+        padded = np.zeros((per_fold * n_folds, self.n_features))
+        padded[:n_signals] = self._signals[:n_signals]
+        by_fold = np.ascontiguousarray(
+            padded.reshape(per_fold, n_folds, self.n_features).swapaxes(0, 1)
+        )
+        log_proba = fold_decoders.log_proba(by_fold)  # (n_tasks, n_folds, per_fold, K)
+        in_order = log_proba.swapaxes(1, 2).reshape(self.n_tasks, -1, self.n_classes)
+        return np.exp(in_order[:, :n_signals])
 
 
 @dataclass(frozen=True)
