@@ -65,6 +65,8 @@ class SourceSettings:
         Learner settings sent in the config (``LearnerConfig`` field: value).
     interval : float
         Seconds between receiving a move and answering it (the user's reaction).
+    user_error_rate : float
+        Probability that the user's label is wrong (see :class:`SimulatedUser`).
     timeout : float
         Seconds without a message from the service before giving up (a failure guard).
     """
@@ -77,6 +79,7 @@ class SourceSettings:
     frame: str = "feedback"
     learner: dict[str, Any] = field(default_factory=dict)
     interval: float = 0.0
+    user_error_rate: float = 0.0
     timeout: float = DEFAULT_TIMEOUT
 
 
@@ -178,7 +181,9 @@ def replay_session(
     data_rng, user_rng, _ = session_streams(settings.seed)
     signals = _Signals(settings, data_rng)
     world = GridWorld(settings.grid)
-    user = SimulatedUser(world, settings.frame, signals.labels, user_rng)
+    user = SimulatedUser(
+        world, settings.frame, signals.labels, user_rng, settings.user_error_rate
+    )
     sid = settings.session
     inbox: queue.SimpleQueue[Received] = queue.SimpleQueue()
     pumps = [Pump(session, protocol.key(sid, kind), kind, inbox) for kind in ("move", "state",

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import multiprocessing
+import os
 import queue
 import signal
 from collections import Counter
@@ -19,9 +20,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 import zenoh
+from mcap.reader import make_reader
 
 from acquisition.replay_source import SourceSettings, SourceSummary, run_source
 from acquisition.sources import DataSpec
+from calibration_free.world import ACTIONS, GridWorld
 from cfbci import protocol
 from cfbci.cli import main
 from cfbci.rerun import replay_check
@@ -36,11 +39,10 @@ TIMEOUT = 60.0  # failure guard, seconds
 SPAWN = multiprocessing.get_context("spawn")
 
 
-def simulated(seed: int) -> tuple[list[StepRecord], object]:
+def simulated(seed: int, user_error_rate: float = 0.0) -> tuple[list[StepRecord], object]:
     trace: list[StepRecord] = []
-    result = run_session(
-        seed, SessionConfig(steps=STEPS, grid=GRID), DataSpec().resolve("feedback"), trace.append
-    )
+    config = SessionConfig(steps=STEPS, grid=GRID, user_error_rate=user_error_rate)
+    result = run_session(seed, config, DataSpec().resolve("feedback"), trace.append)
     return trace, result
 
 
@@ -252,32 +254,55 @@ def test_malformed_messages_yield_errors_and_the_session_finishes(tmp_path: Path
 
 
 def test_two_sessions_at_once_each_equal_their_simulation(tmp_path: Path) -> None:
+    """Two sessions, one of them with a user who gives the wrong label 20 % of the time."""
     endpoint = free_tcp_endpoint()
-    seeds = {"twin-a": 7, "twin-b": 11}
+    sessions = {"twin-a": (7, 0.0), "twin-b": (11, 0.2)}
     with service_process(endpoint, tmp_path), ProcessPoolExecutor(2, mp_context=SPAWN) as pool:
         futures = {
             sid: pool.submit(
-                run_source, SourceSettings(sid, seed=seed, steps=STEPS, grid=GRID), [], [endpoint]
+                run_source,
+                SourceSettings(sid, seed=seed, steps=STEPS, grid=GRID, user_error_rate=rate),
+                [],
+                [endpoint],
             )
-            for sid, seed in seeds.items()
+            for sid, (seed, rate) in sessions.items()
         }
         summaries = {sid: future.result(TIMEOUT) for sid, future in futures.items()}
-    for sid, seed in seeds.items():
-        assert summaries[sid].records == simulated(seed)[0], sid
+    for sid, (seed, rate) in sessions.items():
+        assert summaries[sid].records == simulated(seed, rate)[0], sid
         recording = read_recording(tmp_path / f"{sid}.mcap")
         assert recording.config["seed"] == seed
         assert len(recording.messages["/move"]) == STEPS
+    # Recorded truth: the error-free user's labels are the frame's, the other's are wrong
+    # about 20 % of the time (60 steps: 12 expected, binomial sd 3.1).
+    world = GridWorld(GRID)
+    wrong = {}
+    for sid in sessions:
+        recording = read_recording(tmp_path / f"{sid}.mcap")
+        truths = [m for _, m in recording.messages["/truth"]]
+        moves = [m for _, m in recording.messages["/move"]]
+        wrong[sid] = sum(
+            truth["label"]
+            != int(not world.optimal[truth["target"], move["from_state"],
+                                     ACTIONS.index(move["action"])])
+            for move, truth in zip(moves, truths, strict=True)
+        )
+    assert wrong["twin-a"] == 0
+    assert 4 <= wrong["twin-b"] <= 22
 
 
 KILLED = "killed"
 KILL_AFTER = 20  # moves seen before the kill (then the first move declaring no target)
 
 
-def test_a_killed_service_leaves_a_recording_with_all_it_sent(
-    tmp_path: Path, capsys: pytest.CaptureFixture[str]
-) -> None:
-    """The test is the source (feature vectors): it stops answering after move k and its
-    state, waits for every event it knows is due, and SIGKILLs the service mid-session."""
+def _stop_mid_session(
+    tmp_path: Path, session: str, signum: int
+) -> tuple[int | None, dict[int, dict], Counter[str]]:
+    """Be the source (feature vectors) of a session; stop answering after move k and its
+    state, wait for every event known to be due, and send ``signum`` to the service.
+
+    Returns the service's exit code, the moves by step, and the messages seen per kind.
+    """
     endpoint, client_endpoint = free_tcp_endpoint(), free_tcp_endpoint()
     inbox: queue.SimpleQueue[Received] = queue.SimpleQueue()
     rng = np.random.default_rng(0)
@@ -285,15 +310,17 @@ def test_a_killed_service_leaves_a_recording_with_all_it_sent(
     moves: dict[int, dict] = {}
     with zenoh.open(peer_config([client_endpoint], ())) as client:
         pumps = [
-            Pump(client, protocol.key(KILLED, kind), kind, inbox)
+            Pump(client, protocol.key(session, kind), kind, inbox)
             for kind in ("move", "state", "event")
         ]
         outbox = Outbox(client)
         service = SPAWN.Process(target=serve, args=([endpoint], [client_endpoint], tmp_path))
         service.start()
         try:
-            assert wait_for_subscribers(outbox.publisher(protocol.key(KILLED, "config")), TIMEOUT)
-            outbox.send("config", KILLED, {
+            assert wait_for_subscribers(
+                outbox.publisher(protocol.key(session, "config")), TIMEOUT
+            )
+            outbox.send("config", session, {
                 "seed": 0, "grid": GRID, "frame": "feedback", "steps": STEPS, "learner": {},
                 "dataset": {}, "signal": "features",
             })
@@ -313,15 +340,26 @@ def test_a_killed_service_leaves_a_recording_with_all_it_sent(
                         break
                     continue
                 fields = {"step": step, "signal": "features"}
-                outbox.send("epoch", KILLED, fields, rng.normal(size=4).astype(np.float32))
+                outbox.send("epoch", session, fields, rng.normal(size=4).astype(np.float32))
                 answered = step
         finally:
-            service.kill()
-            service.join()
+            assert service.pid is not None
+            os.kill(service.pid, signum)
+            service.join(TIMEOUT)
+            if service.is_alive():
+                service.kill()
+                service.join()
             for pump in pumps:
                 pump.close()
             outbox.close()
-    assert service.exitcode == -signal.SIGKILL
+    return service.exitcode, moves, seen
+
+
+def test_a_killed_service_leaves_a_recording_with_all_it_sent(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    exitcode, moves, seen = _stop_mid_session(tmp_path, KILLED, signal.SIGKILL)
+    assert exitcode == -signal.SIGKILL
     k = len(moves)
     assert seen["move"] == k >= KILL_AFTER and seen["state"] == k
 
@@ -346,6 +384,26 @@ def test_a_killed_service_leaves_a_recording_with_all_it_sent(
     assert f"recovered {recording.n_messages} messages" in out and "truncated" in out
     recovered = read_recording(clean)
     assert not recovered.truncated and recovered.messages == recording.messages
+
+
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
+def test_an_interrupted_service_closes_its_recording(tmp_path: Path, signum: int) -> None:
+    """SIGINT or SIGTERM mid-session: the service exits with 0, its recording closed
+    (summary and index written) and holding every message it sent."""
+    exitcode, moves, seen = _stop_mid_session(tmp_path, "interrupted", signum)
+    assert exitcode == 0
+    k = len(moves)
+    recording = read_recording(tmp_path / "interrupted.mcap")
+    assert not recording.truncated and recording.warning is None
+    counts = {topic: len(messages) for topic, messages in recording.messages.items()}
+    assert counts["/move"] == counts["/state"] == counts["/belief"] == seen["state"] == k
+    assert counts["/epoch"] == counts["/features"] == k - 1
+    assert counts["/event"] == counts["/log"] == seen["event"]
+    # Closed means indexed: the mcap library's seeking reader opens it.
+    with open(tmp_path / "interrupted.mcap", "rb") as stream:
+        summary = make_reader(stream).get_summary()
+    assert summary is not None
+    assert sum(summary.statistics.channel_message_counts.values()) == recording.n_messages
 
 
 def test_recover_names_a_missing_or_non_mcap_file(
