@@ -1,6 +1,6 @@
 """Read labelled BCI data from disk; :func:`load_labelled` is the single entry point.
 
-Three formats are read, chosen by the file extension and then checked against the content:
+Four formats are read, chosen by the file extension and then checked against the content:
 
 ``.mat`` (MATLAB v4-v7, read with :func:`scipy.io.loadmat`; the thesis data sets)
     Variable ``X``, shape (n_signals, n_features), real numbers (microvolts for ErrP
@@ -14,6 +14,11 @@ Three formats are read, chosen by the file extension and then checked against th
     Hz; ``tmin`` scalar, seconds (time of the first sample relative to action onset);
     ``ch_names`` str, shape (n_channels,); ``labels`` int, shape (n_epochs,), 0-based.
     :class:`decoding.features.ErrPFeatures` turns the epochs into feature vectors.
+``.mcap`` session recordings (written by :class:`replay.recording.SessionRecorder`)
+    The epochs the session's service accepted (``/epoch``), each labelled with the
+    ``label`` of its step's ``/truth``: raw epochs (float32 microvolts, with the recorded
+    ``sfreq``, ``tmin`` and ``ch_names``) when the session sent raw epochs, feature
+    vectors otherwise; see :func:`load_recording_dataset`.
 
 Labels always come back 0-based. The *feedback* frame needs exactly 2 classes (correct,
 error); the *guidance* frame exactly 4 (the four move directions). Every class needs at least
@@ -37,6 +42,7 @@ import scipy.io
 from acquisition.labelled import LabelledEpochs, LabelledFeatures
 from decoding.features import ErrPFeatures
 from decoding.validation import check_array, check_option
+from replay.recording import decode_array, read_recording
 
 PathLike = str | os.PathLike[str]
 
@@ -52,14 +58,15 @@ _EPOCH_KEYS = ("epochs", "sfreq", "tmin", "ch_names", "labels")
 
 
 def load_labelled(path: PathLike, *, frame: str = "feedback") -> LabelledFeatures:
-    """Load feature vectors and 0-based labels from a ``.mat`` or ``.npz`` file.
+    """Load feature vectors and 0-based labels from a ``.mat``, ``.npz`` or ``.mcap`` file.
 
     Parameters
     ----------
     path : str or path-like
-        A ``.mat`` file (``X``, ``Y``), a features ``.npz`` or an epochs ``.npz`` (see the
-        module docstring). Epochs are turned into features with
-        :class:`decoding.features.ErrPFeatures` and its default channels.
+        A ``.mat`` file (``X``, ``Y``), a features ``.npz``, an epochs ``.npz`` or a session
+        recording ``.mcap`` (see the module docstring and :func:`load_recording_dataset`).
+        Epochs are turned into features with :class:`decoding.features.ErrPFeatures` and
+        its default channels.
     frame : {"feedback", "guidance"}
         "feedback": exactly 2 classes, 0 = correct, 1 = error (1 and 2 in a ``.mat``).
         "guidance": exactly 4 classes, one per move direction, 0..3 (1..4 in a ``.mat``).
@@ -84,10 +91,13 @@ def load_labelled(path: PathLike, *, frame: str = "feedback") -> LabelledFeature
     suffix = path.suffix.lower()
     if suffix == ".mat":
         return _load_mat(path, frame)
+    if suffix == ".mcap":
+        data = load_recording_dataset(path, frame=frame)
+        return features_from_epochs(data) if isinstance(data, LabelledEpochs) else data
     if suffix != ".npz":
         raise ValueError(
             f"{where}: unknown file extension {path.suffix!r}; expected .mat (MATLAB X and Y) "
-            "or .npz (features or epochs)"
+            "or .npz (features or epochs), or .mcap (a session recording)"
         )
     arrays = _read_npz(path)
     if _npz_format(arrays, where) == "epochs":
@@ -128,14 +138,101 @@ def load_epochs(path: PathLike, *, frame: str = "feedback") -> LabelledEpochs:
     check_option("frame", frame, N_CLASSES)
     path = _existing_file(path)
     where = str(path)
+    if path.suffix.lower() == ".mcap":
+        data = load_recording_dataset(path, frame=frame)
+        if not isinstance(data, LabelledEpochs):
+            raise ValueError(f"{where}: the session sent feature vectors, not raw epochs")
+        return data
     if path.suffix.lower() != ".npz":
-        raise ValueError(f"{where}: epochs are stored in .npz files; got extension {path.suffix!r}")
+        raise ValueError(
+            f"{where}: epochs are stored in .npz files; got extension {path.suffix!r} (session "
+            "recordings, .mcap, hold them too)"
+        )
     arrays = _read_npz(path)
     if _npz_format(arrays, where) != "epochs":
         raise ValueError(
             f"{where}: holds feature vectors, not epochs; read it with load_labelled()"
         )
     return _epochs_from_arrays(arrays, where, frame)
+
+
+def load_recording_dataset(
+    path: PathLike, *, frame: str = "feedback"
+) -> LabelledEpochs | LabelledFeatures:
+    """A session recording as a labelled dataset: its epochs, labelled by its truth.
+
+    Every epoch the recorded service accepted (its ``/features`` was recorded; all of
+    ``/epoch`` in a recording without ``/features``) whose step has a ``/truth`` message is
+    kept, in step order, with that truth's ``label`` (feedback 0 = correct, 1 = error;
+    guidance 0..3, one per move direction). Epochs without a truth (the last ones of a cut
+    recording) are left out.
+
+    Parameters
+    ----------
+    path : str or path-like
+        An ``.mcap`` recording (:class:`replay.recording.SessionRecorder`), complete or cut.
+    frame : {"feedback", "guidance"}
+        Must be the recorded session's frame.
+
+    Returns
+    -------
+    LabelledEpochs or LabelledFeatures
+        Raw epochs when the session sent them (``signal`` "epochs"): ``epochs`` float32
+        microvolts exactly as received, shape (n, n_channels, n_times), with the recorded
+        ``sfreq``, ``tmin`` and ``ch_names``. Otherwise the feature vectors sent, float64
+        (exact copies of the float32 values), shape (n, n_features). ``labels`` int64,
+        ``source`` the path.
+
+    Raises
+    ------
+    FileNotFoundError
+        If ``path`` does not exist.
+    ValueError
+        If the file is not a recording, holds no configuration, was recorded in another
+        frame, holds no truth, or too few signals of a class; the message names the file.
+    """
+    check_option("frame", frame, N_CLASSES)
+    path = _existing_file(path)
+    where = str(path)
+    recording = read_recording(path)  # a ValueError naming the file if it is not MCAP
+    config = recording.config
+    if not config:
+        raise ValueError(f"{where}: the recording holds no session configuration")
+    if config.get("frame") != frame:
+        raise ValueError(
+            f"{where}: a recording of a {config.get('frame')!r}-frame session; its labels do "
+            f"not suit the {frame!r} frame"
+        )
+    truth = {m["step"]: m["label"] for _, m in recording.messages.get("/truth", [])}
+    if not truth:
+        raise ValueError(
+            f"{where}: the recording holds no /truth messages, so its epochs have no labels "
+            "(record a session whose source publishes truth, such as `cfbci session`)"
+        )
+    epochs = [m for m in recording.accepted_epochs() if m.get("step") in truth]
+    if not epochs:
+        raise ValueError(f"{where}: no recorded epoch has a truth message of its step")
+    labels = _check_classes(
+        np.array([truth[m["step"]] for m in epochs], dtype=np.int64),
+        frame, offset=0, name="truth labels", where=where,
+    )
+    signals = np.stack([decode_array(m) for m in epochs])
+    if config.get("signal") == "epochs":
+        return LabelledEpochs(
+            epochs=signals,
+            sfreq=float(config["sfreq"]),
+            tmin=float(config["tmin"]),
+            ch_names=tuple(config["ch_names"]),
+            labels=labels,
+            n_classes=N_CLASSES[frame],
+            source=where,
+        )
+    return LabelledFeatures(
+        features=signals.astype(np.float64),
+        labels=labels,
+        n_classes=N_CLASSES[frame],
+        source=where,
+    )
 
 
 def features_from_epochs(epochs: LabelledEpochs) -> LabelledFeatures:

@@ -13,8 +13,10 @@ learner's stream and the start cell from the same seed. A live session therefore
 decisions of ``cfbci simulate --first-seed S --seeds 1 --trace`` step for step.
 
 Synthetic data go out as raw float32 epochs (``signal`` "epochs"), which the service turns
-into ErrP features exactly as the simulation does; dataset files go out as their float32
-feature vectors (``signal`` "features").
+into ErrP features exactly as the simulation does; so do the epochs of a session recording
+(``.mcap``) that holds raw epochs, with its ``sfreq``, ``tmin`` and ``ch_names``; other
+dataset files (and recordings of feature vectors) go out as their float32 feature vectors
+(``signal`` "features").
 """
 
 from __future__ import annotations
@@ -29,13 +31,20 @@ from typing import Any
 import numpy as np
 import zenoh
 
+from acquisition.labelled import LabelledEpochs, LabelledFeatures
 from acquisition.sources import DataSpec, synthetic_epochs
 from acquisition.user import SimulatedUser
 from calibration_free.world import ACTIONS, GridWorld
 from cfbci import protocol
-from cfbci.protocol import ProtocolError, SequenceTracker
+from cfbci.protocol import SequenceTracker
 from cfbci.simulation import StepRecord, session_streams
-from cfbci.transport import Outbox, Pump, Received, wait_for_subscribers
+from cfbci.transport import (
+    Outbox,
+    Pump,
+    Received,
+    decode_from_service,
+    wait_for_subscribers,
+)
 from cfbci.zenoh_config import peer_config
 
 log = logging.getLogger("cfbci.source")
@@ -119,25 +128,26 @@ class _Signals:
 
     def __init__(self, settings: SourceSettings, rng: np.random.Generator) -> None:
         self.dataset: dict[str, Any] = {"description": settings.data.describe()}
+        data: LabelledEpochs | LabelledFeatures
         if settings.data.path is None:
             settings.data.resolve(settings.frame)  # rejects synthetic guidance data
-            epochs = synthetic_epochs(settings.data.synthetic_accuracy, rng)
-            self.values = epochs.epochs  # (n, n_channels, n_times) float32 uV
-            self.labels = epochs.labels
-            self.ch_names: list[str] | None = list(epochs.ch_names)
+            data = synthetic_epochs(settings.data.synthetic_accuracy, rng)
+            self.dataset["synthetic_accuracy"] = settings.data.synthetic_accuracy
+        else:  # a recording of raw epochs gives them raw, any other file features
+            data = settings.data.load_signals(settings.frame)
+            self.dataset["path"] = str(settings.data.path)
+        self.labels = data.labels
+        if isinstance(data, LabelledEpochs):
+            self.values = np.asarray(data.epochs, dtype=np.float32)  # (n, n_ch, n_times) uV
+            self.ch_names: list[str] | None = list(data.ch_names)
             self.config: dict[str, Any] = {
-                "signal": "epochs", "sfreq": float(epochs.sfreq), "tmin": float(epochs.tmin),
+                "signal": "epochs", "sfreq": float(data.sfreq), "tmin": float(data.tmin),
                 "ch_names": self.ch_names,
             }
-            self.dataset["synthetic_accuracy"] = settings.data.synthetic_accuracy
         else:
-            features = settings.data.resolve(settings.frame)
-            assert not callable(features)  # a path resolves to loaded features
-            self.values = np.asarray(features.features, dtype=np.float32)  # (n, d) uV
-            self.labels = features.labels
+            self.values = np.asarray(data.features, dtype=np.float32)  # (n, d) uV
             self.ch_names = None
             self.config = {"signal": "features"}
-            self.dataset["path"] = str(settings.data.path)
 
     def epoch_fields(self, step: int) -> dict[str, Any]:
         fields: dict[str, Any] = {"step": step, "signal": self.config["signal"]}
@@ -253,14 +263,9 @@ class _Replay:
 
     def handle(self, received: Received) -> None:
         """Take one message of the service; answer the moves that are due."""
-        try:
-            message = protocol.decode(received.data, key_expr=received.key_expr)
-        except ProtocolError as error:
-            log.warning("dropped a message of the service: %s", error)
+        message = decode_from_service(received, self.trackers, log)
+        if message is None:
             return
-        problem = self.trackers[message.kind].check(message.seq)
-        if problem is not None:
-            log.warning("%s %s", message.kind, problem)
         if message.kind == "event":
             self._on_event(message)
         elif message.kind == "move":

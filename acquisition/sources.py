@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from acquisition.labelled import LabelledEpochs, LabelledFeatures
-from acquisition.loaders import features_from_epochs, load_labelled
+from acquisition.loaders import features_from_epochs, load_labelled, load_recording_dataset
 from acquisition.synthetic import generate_errp_epochs
 
 #: Epochs of each class in a synthetic session's pools (the user draws without
@@ -32,7 +32,8 @@ class DataSpec:
     Attributes
     ----------
     path : Path or None
-        A dataset file (see :func:`acquisition.loaders.load_labelled`); None: synthetic.
+        A dataset file (see :func:`acquisition.loaders.load_labelled`; a ``.mcap`` session
+        recording answers with its epochs and their truth labels); None: synthetic.
     synthetic_accuracy : float
         Nominal balanced accuracy of the synthetic generator (ignored with a path).
     """
@@ -56,6 +57,16 @@ class DataSpec:
             )
         accuracy = self.synthetic_accuracy
         return lambda rng: synthetic_features(accuracy, rng)
+
+    def load_signals(self, frame: str) -> LabelledEpochs | LabelledFeatures:
+        """The signals a live source sends from the dataset file: the raw epochs of a
+        session recording that holds them (with its ``sfreq``, ``tmin`` and ``ch_names``),
+        else the file's feature vectors (as :meth:`resolve`)."""
+        if self.path is None:
+            raise ValueError("load_signals needs a dataset file; synthetic data are generated")
+        if self.path.suffix.lower() == ".mcap":
+            return load_recording_dataset(self.path, frame=frame)
+        return load_labelled(self.path, frame=frame)
 
 
 def synthetic_epochs(accuracy: float, rng: np.random.Generator) -> LabelledEpochs:

@@ -133,6 +133,21 @@ class TaskLearner:
             return Proposal(action, action == GOAL)
         return Proposal(self._explore(state, beliefs), False)
 
+    def follow_declaration(self, task: int) -> None:
+        """Count the next observation, ``goal`` in ``task``, as a target reached.
+
+        For open-loop re-analysis of a recorded history, where the learner observes the
+        recorded (state, action, signal) sequence without choosing the actions: when the
+        recorded device declared ``task`` reached (``goal`` there while confident), the
+        user moved on to a new target, so the learner must switch task at that step, to
+        that task, whether or not it is confident itself. Call this instead of
+        :meth:`propose` before :meth:`observe` of that step; the observation then counts
+        the target and relabels the history exactly as after a :meth:`propose` that
+        declared ``task``. Like a declaring proposal, it has no effect if the next
+        observation is not ``goal`` performed in ``task``. Draws nothing from the rng.
+        """
+        self._pending_target = self._check_state(task)
+
     def _explore(self, state: int, beliefs: Beliefs) -> int:
         planner = self.config.planner
         if planner == "random" or self.n_signals < self.config.warmup_steps:

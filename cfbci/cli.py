@@ -43,7 +43,11 @@ def _add_simulate(commands: argparse._SubParsersAction) -> None:
         description="Run sessions of the calibration-free learner (or the calibrated "
         "baseline) against a simulated user answering from a dataset, and summarise them.",
     )
-    p.add_argument("--dataset", type=Path, help="dataset file (.mat or .npz); default synthetic")
+    p.add_argument(
+        "--dataset", type=Path,
+        help="dataset file: .mat, .npz, or a session recording .mcap (its epochs, labelled by "
+        "its truth; raw epochs if it holds them); default synthetic",
+    )
     p.add_argument(
         "--synthetic-accuracy", type=float, default=DEFAULT_SYNTHETIC_ACCURACY,
         help=f"synthetic difficulty as nominal balanced LDA accuracy, in {list(ACCURACY_RANGE)}",
@@ -181,7 +185,11 @@ def _run_serve(args: argparse.Namespace, console: Console) -> int:
 
 
 def _add_source_options(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--dataset", type=Path, help="dataset file (.mat or .npz); default synthetic")
+    p.add_argument(
+        "--dataset", type=Path,
+        help="dataset file: .mat, .npz, or a session recording .mcap (its epochs, labelled by "
+        "its truth; raw epochs if it holds them); default synthetic",
+    )
     p.add_argument(
         "--synthetic-accuracy", type=float, default=DEFAULT_SYNTHETIC_ACCURACY,
         help=f"synthetic difficulty as nominal balanced LDA accuracy, in {list(ACCURACY_RANGE)}",
@@ -198,6 +206,10 @@ def _add_source_options(p: argparse.ArgumentParser) -> None:
         "--interval", type=float, default=0.0,
         help="seconds between a move and the user's epoch (default 0)",
     )
+    p.add_argument(
+        "--user-error-rate", type=float, default=0.0,
+        help="probability that the simulated user's label is wrong (default 0)",
+    )
 
 
 def _source_settings(args: argparse.Namespace, session: str) -> Any:
@@ -210,7 +222,7 @@ def _source_settings(args: argparse.Namespace, session: str) -> Any:
     return SourceSettings(
         session=session, data=DataSpec(args.dataset, args.synthetic_accuracy), seed=args.seed,
         steps=args.steps, grid=args.grid, frame=args.frame, learner=learner,
-        interval=args.interval,
+        interval=args.interval, user_error_rate=args.user_error_rate,
     )
 
 
@@ -324,27 +336,177 @@ def _run_recover(args: argparse.Namespace, console: Console) -> int:
 def _add_replay(commands: argparse._SubParsersAction) -> None:
     p = commands.add_parser(
         "replay",
-        help="re-run the learner over a recording and check every recorded decision",
-        description="Rebuild the learner from a recording's configuration and seeds, feed it "
-        "the recorded epochs, and compare every move, state and target event with the "
-        "recording. Exit 0 when identical, 1 at the first divergence.",
+        help="check a recording by re-running the learner, re-score it with other settings, "
+        "or re-publish it to a running service",
+        description="Three uses of a session recording. (1) Plain: rebuild the learner from "
+        "the recording's configuration and seeds, feed it the recorded epochs, and compare "
+        "every move, state and target event with the recording; exit 0 when identical, 1 "
+        "at the first divergence. (2) --option/--compare: open-loop re-analysis: learners "
+        "with other settings observe the recorded states, actions and epochs in order (they "
+        "choose no action; they switch task where the recording declared a target) and the "
+        "report compares when each becomes confident, on which cell, and whether it is the "
+        "user's target, with the recording's own settings (which must reproduce the recorded "
+        "confidences exactly; exit 1 if not). (3) --publish: send the recorded config, "
+        "epochs and truth to a running `cfbci serve` over Zenoh, open-loop, and check that "
+        "its moves equal the recorded ones (exit 1 if not).",
     )
     p.add_argument("file", type=Path, help="the recording (.mcap)")
+    analysis = p.add_argument_group("open-loop re-analysis")
+    analysis.add_argument(
+        "--option", action="append", default=[], metavar="KEY=VALUE",
+        help="a learner setting (any calibration_free.config.LearnerConfig field) to change; "
+        "several --option form one alternative setting",
+    )
+    analysis.add_argument(
+        "--compare", action="append", default=[], metavar="'KEY=VALUE [KEY=VALUE ...]'",
+        help="one more alternative setting: KEY=VALUE pairs separated by spaces or commas "
+        "(repeatable; each --compare is re-scored on its own, besides --option's)",
+    )
+    analysis.add_argument(
+        "--per-step", action="store_true",
+        help="also print every step's recorded and re-scored best cell and its confidence",
+    )
+    publish = p.add_argument_group("re-publishing to a running service (--publish)")
+    publish.add_argument(
+        "--publish", action="store_true",
+        help="re-publish the session over Zenoh to a running `cfbci serve`",
+    )
+    publish.add_argument(
+        "--speed", type=float, default=None,
+        help="pace factor of the recorded inter-epoch gaps (default 1; 2 = twice as fast; "
+        "0 or inf: each epoch as soon as the service's move arrives)",
+    )
+    publish.add_argument(
+        "--session", default=None,
+        help="session id to publish under (default <recorded session>-replay)",
+    )
+    publish.add_argument(
+        "--timeout", type=float, default=None,
+        help="seconds without a message from the service before giving up (default 30)",
+    )
+    _add_endpoints(
+        publish, "Zenoh endpoint to listen on (repeatable)",
+        "Zenoh endpoint of the service, e.g. tcp/127.0.0.1:7447 (repeatable)",
+    )
+    p.add_argument("--json", type=Path, help="write the result as JSON")
     p.set_defaults(run=_run_replay)
 
 
-def _run_replay(args: argparse.Namespace, console: Console) -> int:
-    from cfbci.rerun import replay_check
+def _alternatives(options: Sequence[str], compares: Sequence[str]) -> list[dict[str, Any]]:
+    """The alternative settings of ``--option`` (one) and ``--compare`` (one each)."""
+    import re
 
+    groups = ([("--option", list(options))] if options else []) + [
+        ("--compare", [pair for pair in re.split(r"[\s,]+", spec) if pair]) for spec in compares
+    ]
+    alternatives = []
+    for flag, pairs in groups:
+        bad = [pair for pair in pairs if "=" not in pair or pair.startswith("=")]
+        if bad or not pairs:
+            raise ValueError(
+                f"{flag} expects KEY=VALUE (a LearnerConfig field); got {bad or pairs}"
+            )
+        alternatives.append(parse_settings(pairs))
+    return alternatives
+
+
+def _run_replay(args: argparse.Namespace, console: Console) -> int:
     if not args.file.is_file():
         raise FileNotFoundError(f"{args.file}: no such file")
+    publish_only = {
+        "--speed": args.speed is not None, "--session": args.session is not None,
+        "--timeout": args.timeout is not None, "--listen": bool(args.listen),
+        "--connect": bool(args.connect),
+    }
+    analysis = {"--option": bool(args.option), "--compare": bool(args.compare),
+                "--per-step": args.per_step}
+    if args.publish:
+        clash = [flag for flag, given in analysis.items() if given]
+        if clash:
+            raise ValueError(f"--publish re-publishes the recording as it is; {clash} apply "
+                             "to the open-loop re-analysis")
+        return _replay_publish(args, console)
+    misplaced = [flag for flag, given in publish_only.items() if given]
+    if misplaced:
+        raise ValueError(f"{misplaced} only apply with --publish")
+    if any(analysis.values()):
+        return _replay_reanalyse(args, console)
+
+    from cfbci.rerun import replay_check
+
     result = replay_check(args.file)
+    if args.json:
+        divergence = result.divergence
+        args.json.write_text(json.dumps({
+            "file": str(args.file), "identical": divergence is None, "moves": result.moves,
+            "states": result.states, "events": result.events,
+            "divergence": None if divergence is None else vars(divergence),
+        }, indent=2, default=str) + "\n")
     if result.divergence is not None:
         console.print(result.divergence.describe(), soft_wrap=True)
         return 1
     console.print(f"identical: {result.moves} moves, {result.states} states, "
                   f"{result.events} events")
     return 0
+
+
+def _replay_reanalyse(args: argparse.Namespace, console: Console) -> int:
+    from cfbci.reanalysis import print_reanalysis, reanalyse
+
+    result = reanalyse(args.file, _alternatives(args.option, args.compare))
+    print_reanalysis(result, console, per_step=args.per_step)
+    if args.json:
+        args.json.write_text(json.dumps(result.to_json(), indent=2) + "\n")
+    return 0 if result.outcomes[0].identical_to_recording else 1
+
+
+def _replay_publish(args: argparse.Namespace, console: Console) -> int:
+    from cfbci.publish import DEFAULT_TIMEOUT, check_speed, print_publish, run_publish
+
+    speed = check_speed(1.0 if args.speed is None else args.speed)
+    timeout = DEFAULT_TIMEOUT if args.timeout is None else args.timeout
+    if timeout <= 0:
+        raise ValueError(f"--timeout must be positive; got {timeout}")
+    try:
+        result = run_publish(
+            args.file, args.listen, args.connect, session_id=args.session, speed=speed,
+            timeout=timeout,
+        )
+    except (TimeoutError, RuntimeError) as error:
+        Console(stderr=True).print(f"[bold red]error:[/] {error}")
+        return 1
+    print_publish(result, console)
+    if args.json:
+        args.json.write_text(json.dumps(result.to_json(), indent=2) + "\n")
+    return 0 if result.moves_equal else 1
+
+
+def _add_report(commands: argparse._SubParsersAction) -> None:
+    p = commands.add_parser(
+        "report",
+        help="metrics, figures and an HTML report of session recordings",
+        description="Measure every recording (targets, decoder accuracy against the truth by "
+        "re-running the learner, latency, confidence), draw its figures and write "
+        "DIR/metrics.json, DIR/<session>_<figure>.png and a self-contained DIR/index.html. "
+        "Truncated recordings are reported as far as they go. Exit 0 when every file was "
+        "reported, 1 when some could not be (the others are).",
+    )
+    p.add_argument("files", type=Path, nargs="+", metavar="FILE", help="recordings (.mcap)")
+    p.add_argument("--out", type=Path, required=True, metavar="DIR", help="output directory")
+    p.add_argument("--jobs", type=int, default=0, help="worker processes (default: all cores)")
+    p.set_defaults(run=_run_report)
+
+
+def _run_report(args: argparse.Namespace, console: Console) -> int:
+    from cfbci.report import print_summary, run_report
+
+    reports = run_report(args.files, args.out, jobs=_jobs(args.jobs), console=console)
+    print_summary(reports, console)
+    errors = [r.error for r in reports if r.error]
+    for error in errors:
+        Console(stderr=True).print(f"[bold red]error:[/] {error}", soft_wrap=True)
+    console.print(f"report: {args.out / 'index.html'} (metrics {args.out / 'metrics.json'})")
+    return 1 if errors else 0
 
 
 def _jobs(requested: int) -> int:
@@ -365,6 +527,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_session(commands)
     _add_recover(commands)
     _add_replay(commands)
+    _add_report(commands)
     return parser
 
 

@@ -10,12 +10,14 @@ the computation is deterministic; timing fields are not compared.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from calibration_free.config import LearnerConfig
 from calibration_free.learner import CalibrationFreeLearner
 from calibration_free.world import GridWorld
 from cfbci.service import learner_settings, move_fields, start_cell, state_fields
@@ -25,6 +27,10 @@ from replay.recording import Recording, decode_array, read_recording
 
 MOVE_FIELDS = ("step", "from_state", "action", "to_state", "target_reached")
 STATE_FIELDS = ("best_task", "confident", "n_signals", "class_counts", "balanced_accuracy")
+
+#: ``on_observe(step, learner)``: called after the learner has observed the epoch of
+#: ``step`` (1-based), before it proposes the next move.
+Observer = Callable[[int, CalibrationFreeLearner], None]
 
 
 @dataclass(frozen=True)
@@ -55,10 +61,25 @@ class ReplayResult:
     divergence: Divergence | None
 
 
-def _signals(recording: Recording) -> list[np.ndarray]:
-    """The learner's inputs, float32, from the recorded epochs (raw or features)."""
+def recorded_learner(
+    config: dict[str, Any], settings: LearnerConfig | None = None
+) -> CalibrationFreeLearner:
+    """The learner the service built for a recorded configuration (``.world`` its world).
+
+    ``settings`` replaces the recorded learner settings (open-loop re-analysis); the
+    learner's random stream is the session's all the same.
+    """
+    if settings is None:
+        settings = learner_settings(config["learner"], config["frame"])
+    return CalibrationFreeLearner(
+        GridWorld(config["grid"]), settings, session_streams(config["seed"])[2]
+    )
+
+
+def recorded_signals(recording: Recording) -> list[np.ndarray]:
+    """The learner's inputs, float32, from the accepted recorded epochs (raw or features)."""
     config = recording.config
-    epochs = [decode_array(message) for _, message in recording.messages.get("/epoch", [])]
+    epochs = [decode_array(message) for message in recording.accepted_epochs()]
     if config.get("signal") != "epochs":
         return [np.asarray(e, dtype=np.float32) for e in epochs]
     if not epochs:
@@ -68,17 +89,26 @@ def _signals(recording: Recording) -> list[np.ndarray]:
     return [extractor.transform(e[None])[0].astype(np.float32) for e in epochs]
 
 
-def recompute(recording: Recording) -> tuple[list[dict], list[dict], list[str]]:
-    """The moves, states (with ``confidence``) and target events of the re-run."""
+def recompute(
+    recording: Recording, on_observe: Observer | None = None
+) -> tuple[list[dict], list[dict], list[str]]:
+    """The moves, states (with ``confidence``) and target events of the re-run.
+
+    Parameters
+    ----------
+    recording : Recording
+        A recording with its configuration; every recorded epoch is fed, in order.
+    on_observe : callable, optional
+        ``on_observe(step, learner)`` after the learner has observed the epoch of ``step``
+        (1-based; ``learner.n_signals == step``), before it proposes the next move: the
+        learner as the service had it then (if the re-run is identical). It must not
+        change the learner.
+    """
     config = recording.config
-    world = GridWorld(config["grid"])
-    learner = CalibrationFreeLearner(
-        world,
-        learner_settings(config["learner"], config["frame"]),
-        session_streams(config["seed"])[2],
-    )
+    learner = recorded_learner(config)
+    world = learner.world
     state = start_cell(config["seed"], world.n_states)
-    signals = _signals(recording)
+    signals = recorded_signals(recording)
     moves: list[dict] = []
     states: list[dict] = []
     events: list[str] = []
@@ -99,6 +129,8 @@ def recompute(recording: Recording) -> tuple[list[dict], list[dict], list[str]]:
     action = move()
     for index, signal in enumerate(signals):
         learner.observe(state, action, signal)
+        if on_observe is not None:
+            on_observe(index + 1, learner)
         state = world.step(state, action)
         if index + 1 < config["steps"]:
             action = move()
@@ -113,6 +145,17 @@ def replay_check(path: str | Path) -> ReplayResult:
     if not recording.config:
         raise ValueError(f"{path}: the recording holds no session configuration")
     moves, states, events = recompute(recording)
+    divergence = first_divergence(recording, moves, states, events)
+    return ReplayResult(len(moves), len(states), len(events), divergence)
+
+
+def first_divergence(
+    recording: Recording, moves: list[dict], states: list[dict], events: list[str]
+) -> Divergence | None:
+    """The first difference between a recording and :func:`recompute`'s output, or None.
+
+    Moves first, then states, then target events; a different count is a divergence.
+    """
     recorded_moves = [m for _, m in recording.messages.get("/move", [])]
     recorded_states = [m for _, m in recording.messages.get("/state", [])]
     recorded_events = [
@@ -120,20 +163,34 @@ def replay_check(path: str | Path) -> ReplayResult:
         for _, m in recording.messages.get("/event", [])
         if m.get("event") == "target_reached"
     ]
-    divergence = (
-        _first_difference("/move", recorded_moves, moves, MOVE_FIELDS, moves)
-        or _first_difference(
-            "/state", recorded_states, states, (*STATE_FIELDS, "confidence"), moves
-        )
-        or _first_difference(
-            "/event",
-            [{"message": e} for e in recorded_events],
-            [{"message": e} for e in events],
-            ("message",),
-            moves,
-        )
+    return move_divergence(recorded_moves, moves) or state_divergence(
+        recorded_states, states, recorded_events, events, moves
     )
-    return ReplayResult(len(moves), len(states), len(events), divergence)
+
+
+def move_divergence(recorded: list[dict], moves: list[dict]) -> Divergence | None:
+    """The first difference between recorded and recomputed moves (fields or count)."""
+    return _first_difference("/move", recorded, moves, MOVE_FIELDS, moves)
+
+
+def state_divergence(
+    recorded_states: list[dict],
+    states: list[dict],
+    recorded_events: list[str],
+    events: list[str],
+    moves: list[dict],
+) -> Divergence | None:
+    """The first difference in the states (confidences included), then in the target
+    events' texts; ``moves`` (recomputed) give the steps."""
+    return _first_difference(
+        "/state", recorded_states, states, (*STATE_FIELDS, "confidence"), moves
+    ) or _first_difference(
+        "/event",
+        [{"message": e} for e in recorded_events],
+        [{"message": e} for e in events],
+        ("message",),
+        moves,
+    )
 
 
 def _first_difference(

@@ -8,6 +8,7 @@ back into Zenoh or into the application.
 
 from __future__ import annotations
 
+import logging
 import threading
 import time
 from dataclasses import dataclass
@@ -42,6 +43,27 @@ class Received:
     key_expr: str
     data: bytes
     t_ns: int
+
+
+def decode_from_service(
+    received: Received, trackers: dict[str, protocol.SequenceTracker], log: logging.Logger
+) -> protocol.Message | None:
+    """Decode a message of the service and check its sequence number, as a client does.
+
+    A message that does not decode is logged and dropped (None). A sequence problem is
+    logged and the message kept: a gap at INFO (normal when a session id is reused, since
+    the service numbers a key expression's messages for its whole life), anything else
+    (duplicate, out of order) at WARNING. ``trackers``: one per kind received.
+    """
+    try:
+        message = protocol.decode(received.data, key_expr=received.key_expr)
+    except protocol.ProtocolError as error:
+        log.warning("dropped a message of the service: %s", error)
+        return None
+    problem = trackers[message.kind].check(message.seq)
+    if problem is not None:
+        (log.info if problem.startswith("gap") else log.warning)("%s %s", message.kind, problem)
+    return message
 
 
 def reliable_publisher(session: zenoh.Session, key_expr: str) -> zenoh.Publisher:

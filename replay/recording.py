@@ -361,6 +361,20 @@ class Recording:
         """Number of messages read, all topics."""
         return sum(len(messages) for messages in self.messages.values())
 
+    def accepted_epochs(self) -> list[dict[str, Any]]:
+        """The ``/epoch`` messages the service accepted (and its learner observed), in order.
+
+        ``/epoch`` holds every epoch as received, rejected ones too; the service records the
+        ``/features`` of an accepted epoch under the same ``seq``, so when the recording has
+        ``/features`` only the epochs whose ``seq`` appears there are kept.
+        """
+        epochs = [message for _, message in self.messages.get("/epoch", [])]
+        features = self.messages.get("/features", [])
+        if not features:
+            return epochs
+        accepted = {message["seq"] for _, message in features}
+        return [message for message in epochs if message["seq"] in accepted]
+
 
 _PARSERS = {
     Opcode.HEADER: Header.read,

@@ -7,7 +7,6 @@ hang.
 from __future__ import annotations
 
 import json
-import multiprocessing
 import os
 import queue
 import signal
@@ -20,6 +19,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import zenoh
+from live import SPAWN, TIMEOUT, service_process
 from mcap.reader import make_reader
 
 from acquisition.replay_source import SourceSettings, SourceSummary, run_source
@@ -35,8 +35,6 @@ from cfbci.zenoh_config import free_tcp_endpoint, peer_config
 from replay.recording import Recording, SessionRecorder, decode_array, read_recording
 
 STEPS, GRID = 60, 3
-TIMEOUT = 60.0  # failure guard, seconds
-SPAWN = multiprocessing.get_context("spawn")
 
 
 def simulated(seed: int, user_error_rate: float = 0.0) -> tuple[list[StepRecord], object]:
@@ -44,24 +42,6 @@ def simulated(seed: int, user_error_rate: float = 0.0) -> tuple[list[StepRecord]
     config = SessionConfig(steps=STEPS, grid=GRID, user_error_rate=user_error_rate)
     result = run_session(seed, config, DataSpec().resolve("feedback"), trace.append)
     return trace, result
-
-
-@contextmanager
-def service_process(
-    endpoint: str, record_dir: Path, connect: tuple[str, ...] = ()
-) -> Iterator[None]:
-    """The service in a spawned process; stopped with SIGTERM, which must exit cleanly."""
-    process = SPAWN.Process(target=serve, args=([endpoint], list(connect), record_dir))
-    process.start()
-    try:
-        yield
-    finally:
-        process.terminate()
-        process.join(TIMEOUT)
-        if process.is_alive():
-            process.kill()
-            process.join()
-    assert process.exitcode == 0
 
 
 @contextmanager

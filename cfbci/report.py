@@ -1,0 +1,175 @@
+"""``cfbci report FILE.mcap [...] --out DIR``: metrics, figures and an HTML report of sessions.
+
+Every recording is one job (:func:`report_session`, run in spawned worker processes by
+:func:`cfbci.parallel.run_parallel`): read it (a truncated file gives what it holds), measure
+it (:mod:`replay.metrics`, which re-runs the learner), and draw its figures
+(:mod:`replay.figures`, ``DIR/<stem>_<kind>.png``). This process then writes
+``DIR/metrics.json`` (per session and aggregate) and ``DIR/index.html``
+(:mod:`replay.html_report`), and prints a summary. A file that cannot be processed (missing,
+not MCAP, no configuration, ...) is reported by name; the others are still processed.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+from rich import box
+from rich.console import Console
+from rich.markup import escape
+from rich.table import Table
+
+from cfbci.parallel import run_parallel
+from replay.figures import session_figures
+from replay.html_report import SessionReport, write_html
+from replay.metrics import aggregate, session_metrics
+from replay.recording import read_recording
+
+
+@dataclass(frozen=True)
+class ReportJob:
+    """One recording to report: its path, the output directory and its unique stem."""
+
+    path: str
+    out_dir: str
+    stem: str
+
+
+def unique_stems(paths: list[Path]) -> list[str]:
+    """A file-name-safe, distinct stem per path (``name``, ``name-2``, ...)."""
+    stems: list[str] = []
+    for path in paths:
+        base = re.sub(r"[^A-Za-z0-9_.-]", "-", path.stem) or "session"
+        stem, n = base, 1
+        while stem in stems:
+            n += 1
+            stem = f"{base}-{n}"
+        stems.append(stem)
+    return stems
+
+
+def report_session(job: ReportJob) -> SessionReport:
+    """Measure and draw one recording (a top-level function: a spawned worker's job).
+
+    Never raises for a bad file: the returned report then holds the error, naming the file.
+    """
+    path = Path(job.path)
+    try:
+        if not path.is_file():
+            raise FileNotFoundError(f"{path}: no such file")
+        recording = read_recording(path)
+        if not recording.config:
+            detail = f" ({recording.warning})" if recording.warning else ""
+            raise ValueError(f"{path}: the recording holds no session configuration{detail}")
+        metrics = session_metrics(recording, str(path))
+        figures = session_figures(recording, metrics, Path(job.out_dir), job.stem)
+    except Exception as error:  # one bad file must not stop the others: report it
+        message = str(error)
+        if str(path) not in message:
+            message = f"{path}: {type(error).__name__}: {message}"
+        return SessionReport(str(path), job.stem, error=message)
+    return SessionReport(str(path), job.stem, metrics, figures)
+
+
+def metrics_document(reports: list[SessionReport], out_dir: Path) -> dict[str, Any]:
+    """The content of ``metrics.json``: aggregate, sessions (with figure files), errors."""
+    done = [r.metrics for r in reports if r.metrics is not None]
+    sessions = []
+    for report in reports:
+        if report.metrics is None:
+            continue
+        sessions.append({
+            "stem": report.stem,
+            "scalars": report.metrics.scalars(),
+            "figures": [
+                {**asdict(f), "path": str(f.path.relative_to(out_dir))} for f in report.figures
+            ],
+            **report.metrics.to_dict(),
+        })
+    return {
+        "aggregate": aggregate(done),
+        "sessions": sessions,
+        "errors": [{"file": r.file, "error": r.error} for r in reports if r.error],
+    }
+
+
+def _cell(value: Any, digits: int = 3) -> str:
+    if value is None:
+        return "–"
+    return f"{value:.{digits}g}" if isinstance(value, float) else str(value)
+
+
+def print_summary(reports: list[SessionReport], console: Console) -> None:
+    """A table of the sessions' main metrics, then truncation and re-run warnings.
+
+    Columns: steps recorded, first target step, correct/wrong targets, steps per correct
+    target, mean steps between targets, final decoder balanced accuracy against the truth
+    and self-estimated, median and 99th percentile of the update latency (ms).
+    """
+    table = Table(
+        box=box.SIMPLE_HEAD,
+        caption="first: step of the first target; ✓/✗: correct/wrong targets; gap: mean steps "
+        "between targets; acc: decoder balanced accuracy at the last step vs truth/self-"
+        "estimate; ms: learner update, median/p99; *: truncated; !: re-run differs",
+        caption_justify="left",
+    )
+    table.add_column("session", no_wrap=True)
+    for name in ("steps", "first", "✓/✗", "steps/✓", "gap", "acc", "ms"):
+        table.add_column(name, justify="right", no_wrap=True)
+    for report in reports:
+        m = report.metrics
+        if m is None:  # printed as an error by the caller
+            continue
+        mark = "[yellow]*[/]" if m.truncated else ""
+        mark += "[yellow]![/]" if m.replay_identical is False else ""
+        latency = "–" if m.latency is None else (
+            f"{m.latency.median_ms:.1f}/{m.latency.p99_ms:.1f}"
+        )
+        table.add_row(
+            f"{report.stem}{mark}", str(m.steps), _cell(m.first_target_step),
+            f"{m.correct_targets}/{m.wrong_targets}", _cell(m.steps_per_correct_target),
+            _cell(m.mean_steps_between_targets),
+            f"{_cell(m.final_accuracy_truth, 2)}/{_cell(m.final_accuracy_self, 2)}", latency,
+        )
+    console.print(table)
+    done = [r.metrics for r in reports if r.metrics is not None]
+    if len(done) > 1:
+        summary = aggregate(done)
+        parts = []
+        for name, label in (("first_target_step", "first target"),
+                            ("steps_per_correct_target", "steps/correct"),
+                            ("final_accuracy_truth", "acc truth"),
+                            ("latency_median_ms", "update ms p50")):
+            values = summary[name]
+            if values["n"]:
+                parts.append(f"{label} {_cell(values['median'])} "
+                             f"[{_cell(values['min'])}–{_cell(values['max'])}]")
+        line = f"median [min–max] over {len(done)} sessions: " + ", ".join(parts)
+        console.print(escape(line), soft_wrap=True)
+    for report in reports:
+        if report.metrics is not None and report.metrics.truncated:
+            console.print(f"[yellow]warning:[/] truncated recording: {report.metrics.warning}",
+                          soft_wrap=True)
+        if report.metrics is not None and report.metrics.replay_identical is False:
+            console.print(f"[yellow]warning:[/] {report.file}: the re-run differs from the "
+                          f"recording: {report.metrics.replay_note}", soft_wrap=True)
+
+
+def run_report(
+    files: list[Path], out_dir: Path, *, jobs: int, console: Console
+) -> list[SessionReport]:
+    """Report every file into ``out_dir`` (see the module docstring); return the reports."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    stems = unique_stems(files)
+    work = [ReportJob(str(f), str(out_dir), s) for f, s in zip(files, stems, strict=True)]
+    reports = run_parallel(
+        report_session, work, workers=min(jobs, len(work)), description="reporting",
+        console=console,
+    )
+    document = metrics_document(reports, out_dir)
+    (out_dir / "metrics.json").write_text(json.dumps(document, indent=1) + "\n")
+    write_html(out_dir, reports, document["aggregate"])
+    return reports

@@ -1,0 +1,446 @@
+"""Paper-ready PNG figures of a recorded session (matplotlib, Agg backend, headless).
+
+Each ``*_figure`` function returns a :class:`matplotlib.figure.Figure` built without pyplot
+(no global state, safe in worker processes); :func:`session_figures` saves them all as PNG
+files and returns their titles and captions. Steps, confidences and accuracies are those
+of :mod:`replay.metrics` (see its docstring for the definitions and their alignment).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+
+import numpy as np
+from matplotlib.axes import Axes
+from matplotlib.figure import Figure
+from matplotlib.lines import Line2D
+from matplotlib.patches import Rectangle
+
+from replay.metrics import SessionMetrics
+from replay.recording import Recording, decode_array
+
+#: Resolution of the saved PNG files, dots per inch.
+DPI = 150
+#: Moves of the current search drawn on a belief map (the most recent ones).
+PATH_MOVES = 25
+_CORRECT, _WRONG, _UNVERIFIED = "tab:green", "tab:red", "tab:gray"
+_TOP, _MARK_Y = 1.1, 1.055  # y limit of the [0, 1] plots, and the height of target marks
+_CLASS_COLOURS = ("tab:blue", "tab:red", "tab:green", "tab:purple")
+
+
+@dataclass(frozen=True)
+class SavedFigure:
+    """A figure written to disk.
+
+    Attributes
+    ----------
+    kind : str
+        "confidence", "belief", "accuracy", "erp" or "latency".
+    path : Path
+        The PNG file.
+    title : str
+        The figure's title.
+    caption : str
+        What it shows, for a report.
+    """
+
+    kind: str
+    path: Path
+    title: str
+    caption: str
+
+
+def _series(values: list[float | None]) -> np.ndarray:
+    """A list with None as a float array with NaN (matplotlib leaves gaps there)."""
+    return np.array([np.nan if v is None else v for v in values], dtype=float)
+
+
+def _mark_targets(ax: Axes, metrics: SessionMetrics, y: float, label: bool = True) -> None:
+    """Declared targets as vertical lines and markers at height ``y`` (axes data units)."""
+    for target in metrics.targets:
+        colour = {True: _CORRECT, False: _WRONG, None: _UNVERIFIED}[target.correct]
+        ax.axvline(target.step, color=colour, lw=0.8, alpha=0.5, zorder=1)
+        ax.plot(target.step, y, marker="v", color=colour, ms=6, zorder=4)
+
+
+def _unit_axes_over_steps(ax: Axes, metrics: SessionMetrics) -> None:
+    """Steps on x (the whole configured session), [0, 1] on y; targets and truncation marked."""
+    _mark_targets(ax, metrics, _MARK_Y)
+    _mark_truncation(ax, metrics)
+    ax.set_xlim(0, max(metrics.configured_steps, metrics.steps, 1) + 1)
+    ax.set_ylim(0, _TOP)
+    ax.set_yticks(np.linspace(0, 1, 6))
+
+
+def _legend_beside(ax: Axes, metrics: SessionMetrics) -> None:
+    """The plot's legend, with the declared-target markers, right of the axes; a light grid."""
+    handles, _ = ax.get_legend_handles_labels()
+    ax.legend(handles=handles + _target_handles(metrics), loc="upper left",
+              bbox_to_anchor=(1.01, 1.0), fontsize=8, frameon=False)
+    ax.grid(alpha=0.3)
+
+
+def _mark_truncation(ax: Axes, metrics: SessionMetrics) -> None:
+    """Shade the steps a truncated recording does not hold."""
+    if metrics.truncated and metrics.steps < metrics.configured_steps:
+        ax.axvspan(metrics.steps + 0.5, metrics.configured_steps + 1, color="0.85", zorder=0,
+                   label="not in the file (truncated)")
+
+
+def _target_handles(metrics: SessionMetrics) -> list[Line2D]:
+    """Legend entries of the declared-target marks present in the session."""
+    kinds = {t.correct for t in metrics.targets}
+    names = {True: "correct target declared", False: "wrong target declared",
+             None: "target declared (no truth)"}
+    colours = {True: _CORRECT, False: _WRONG, None: _UNVERIFIED}
+    return [
+        Line2D([], [], color=colours[k], marker="v", lw=0.8, label=names[k])
+        for k in (True, False, None)
+        if k in kinds
+    ]
+
+
+def _targets_text(metrics: SessionMetrics) -> str:
+    return (
+        f"{metrics.correct_targets} correct, {metrics.wrong_targets} wrong targets"
+        + (f", {metrics.unverified_targets} unverified" if metrics.unverified_targets else "")
+    )
+
+
+def confidence_figure(metrics: SessionMetrics) -> Figure:
+    """Confidence of the true task and of the best other task against step.
+
+    The threshold beta is a dashed line; declared targets are vertical lines, green when
+    correct and red when wrong.
+    """
+    fig = Figure(figsize=(8, 3.8), layout="constrained")
+    ax = fig.add_subplot()
+    steps = np.asarray(metrics.step)
+    ax.plot(steps, _series(metrics.confidence_true), color="tab:blue", lw=1.3,
+            label="true target cell", zorder=3)
+    ax.plot(steps, _series(metrics.confidence_best_other), color="tab:orange", lw=1.0,
+            label="most confident other cell", zorder=2)
+    ax.axhline(metrics.beta, color="black", ls="--", lw=0.9,
+               label=f"threshold β = {metrics.beta:g}")
+    _unit_axes_over_steps(ax, metrics)
+    ax.set_xlabel("step (device action)")
+    ax.set_ylabel("confidence $W_t$ (pairwise-min)")
+    ax.set_title(
+        f"Session {metrics.session}: confidence in the true target\n"
+        f"{metrics.grid}×{metrics.grid} grid, {metrics.frame} frame; {_targets_text(metrics)}",
+        fontsize=10,
+    )
+    _legend_beside(ax, metrics)
+    return fig
+
+
+def belief_steps(metrics: SessionMetrics, n: int = 4) -> list[int]:
+    """The steps whose belief maps are drawn: ``n`` evenly spaced steps (the last one
+    included) and the step of the first declared target, sorted and distinct."""
+    last = metrics.steps
+    if last == 0:
+        return []
+    chosen = {max(1, round(last * (i + 1) / n)) for i in range(n)}
+    if metrics.first_target_step is not None:
+        chosen.add(metrics.first_target_step)
+    return sorted(chosen)
+
+
+def _cell_xy(cell: int, grid: int) -> tuple[int, int]:
+    row, col = divmod(int(cell), grid)
+    return col, row
+
+
+def belief_figure(recording: Recording, metrics: SessionMetrics) -> Figure:
+    """Belief maps (confidence of every target cell) at :func:`belief_steps`.
+
+    Each panel is the ``/state`` the learner chose that step's move on; row 0 of the grid is
+    at the top (``up`` moves towards it). Marked: the agent's cell, the user's true target,
+    the learner's best cell, and the most recent moves of the current search (since the
+    last declared target, at most :data:`PATH_MOVES`), more opaque when more recent.
+    """
+    states = [m for _, m in recording.messages.get("/state", [])]
+    chosen = [k for k in belief_steps(metrics) if k - 1 < len(states)]
+    grid = metrics.grid
+    fig = Figure(figsize=(2.6 * max(len(chosen), 1) + 1.2, 3.6), layout="constrained")
+    axes = fig.subplots(1, max(len(chosen), 1), squeeze=False)[0]
+    image = None
+    declared = [t.step for t in metrics.targets]
+    for ax, step in zip(axes, chosen, strict=False):
+        state = states[step - 1]
+        confidence = np.asarray(state["confidence"], dtype=float).reshape(grid, grid)
+        image = ax.imshow(confidence, cmap="viridis", vmin=0, vmax=1, origin="upper")
+        start = max([s for s in declared if s < step], default=0) + 1
+        start = max(start, step - PATH_MOVES)
+        path = [_cell_xy(c, grid) for c in metrics.agent[start - 1 : step]]
+        if len(path) > 1:
+            xs, ys = np.array(path, dtype=float).T
+            for i in range(len(path) - 1):
+                alpha = 0.25 + 0.75 * (i + 1) / (len(path) - 1)
+                ax.plot(xs[i : i + 2], ys[i : i + 2], color="white", lw=1.5, alpha=alpha)
+        x, y = _cell_xy(metrics.agent[step - 1], grid)
+        ax.plot(x, y, "o", ms=19, mfc="none", mec="white", mew=2.5)
+        target = metrics.true_target[step - 1]
+        if target is not None:
+            tx, ty = _cell_xy(target, grid)
+            ax.plot(tx, ty, "*", ms=15, mfc="tab:red", mec="white", mew=0.8)
+        bx, by = _cell_xy(state["best_task"], grid)
+        ax.add_patch(Rectangle(
+            (bx - 0.46, by - 0.46), 0.92, 0.92, fill=False, ec="tab:orange", lw=2.0))
+        label = f"step {step}"
+        if step == metrics.first_target_step:
+            label += "\n(first target declared)"
+        elif step in declared:
+            label += "\n(target declared)"
+        ax.set_title(label, fontsize=9)
+        ax.set_xticks(range(grid))
+        ax.set_yticks(range(grid))
+        ax.tick_params(labelsize=7)
+        ax.set_xlabel("column", fontsize=8)
+        ax.set_ylabel("row", fontsize=8)
+    if image is not None:
+        bar = fig.colorbar(image, ax=list(axes), shrink=0.8, pad=0.02)
+        bar.set_label("confidence $W_t$ of the cell as target", fontsize=8)
+    handles = [
+        Line2D([], [], ls="", marker="o", ms=10, mfc="none", mec="white", mew=2,
+               label="agent"),
+        Line2D([], [], ls="", marker="*", ms=11, mfc="tab:red", mec="white",
+               label="true target"),
+        Line2D([], [], ls="", marker="s", ms=9, mfc="none", mec="tab:orange", mew=2,
+               label="learner's best cell"),
+        Line2D([], [], color="white", lw=1.5, label="recent path"),
+    ]
+    legend = fig.legend(handles=handles, loc="outside lower center", ncol=4, fontsize=8,
+                        facecolor="0.5", framealpha=0.4)
+    legend.get_frame().set_edgecolor("none")
+    fig.suptitle(f"Session {metrics.session}: belief over target cells", fontsize=10)
+    return fig
+
+
+def accuracy_figure(metrics: SessionMetrics) -> Figure:
+    """Decoder balanced accuracy against the number of signals observed.
+
+    Against the recorded true labels (re-run learner, best task's out-of-fold
+    predictions) and the recording's self-estimate (against the best task's own labels),
+    with the chance level ``1 / n_classes``.
+    """
+    fig = Figure(figsize=(8, 3.8), layout="constrained")
+    ax = fig.add_subplot()
+    seen = np.asarray(metrics.n_seen)
+    ax.plot(seen, _series(metrics.accuracy_truth), color="tab:blue", lw=1.8, zorder=3,
+            label="vs true labels")
+    ax.plot(seen, _series(metrics.accuracy_self), color="tab:orange", lw=1.0, ls="--",
+            zorder=4, label="self-estimate (vs best task's labels)")
+    ax.axhline(metrics.chance, color="black", ls=":", lw=1.0,
+               label=f"chance ({metrics.chance:g})")
+    _unit_axes_over_steps(ax, metrics)
+    ax.set_xlabel("signals observed (= step of the latest epoch)")
+    ax.set_ylabel("balanced accuracy (10-fold CV)")
+    final = metrics.final_accuracy_truth
+    ax.set_title(
+        f"Session {metrics.session}: decoder balanced accuracy of the best task\n"
+        f"{len(metrics.class_names)} classes ({', '.join(metrics.class_names)}); final vs "
+        f"truth {'n/a' if final is None else f'{final:.2f}'}",
+        fontsize=10,
+    )
+    _legend_beside(ax, metrics)
+    return fig
+
+
+def _labelled_signals(recording: Recording) -> tuple[np.ndarray, np.ndarray, str]:
+    """Recorded epochs (n, ...) with their true labels (n,), and their units."""
+    truth = {int(m["step"]): int(m["label"]) for _, m in recording.messages.get("/truth", [])}
+    epochs, labels, units = [], [], "uV"
+    for index, (_, message) in enumerate(recording.messages.get("/epoch", [])):
+        label = truth.get(int(message.get("step", index + 1)))
+        if label is None:
+            continue
+        epochs.append(decode_array(message))
+        labels.append(label)
+        units = message.get("units", units)
+    if not epochs:
+        return np.zeros((0,)), np.zeros(0, dtype=int), units
+    return np.stack(epochs).astype(float), np.asarray(labels), units
+
+
+def _unit(units: str) -> str:
+    return "µV" if units in ("uV", "µV") else units
+
+
+def erp_figure(recording: Recording, metrics: SessionMetrics) -> tuple[Figure, str]:
+    """Grand averages of the recorded signals by true class; returns (figure, what).
+
+    Raw epochs (``signal`` "epochs"): one panel per channel, time in ms after the action
+    onset (``tmin`` and ``sfreq`` of the config). Features: class means against feature
+    index. Feedback frame: error and correct averages and the difference wave (error minus
+    correct); guidance frame: the mean of each of the four classes. ``what`` describes it.
+    """
+    signals, labels, units = _labelled_signals(recording)
+    unit = _unit(units)
+    names = metrics.class_names
+    feedback = metrics.frame == "feedback"
+    raw = metrics.signal == "epochs" and signals.ndim == 3
+    counts = [int(np.sum(labels == k)) for k in range(len(names))]
+    means = [signals[labels == k].mean(axis=0) if counts[k] else None for k in range(len(names))]
+    if raw:
+        what = "grand averages of the raw epochs"
+    else:
+        what = "class means of the feature vectors (the recording holds no raw epochs)"
+    if feedback:
+        what += "\nerror vs correct, and the difference wave (error − correct)"
+    else:
+        what += "\none curve per true class (guidance frame, 4 classes: no error/correct)"
+    if raw:
+        config = recording.config
+        channels = config.get("ch_names") or [f"ch{i}" for i in range(signals.shape[1])]
+        times = (config["tmin"] + np.arange(signals.shape[2]) / config["sfreq"]) * 1e3
+        n_cols = min(2, len(channels))
+        n_rows = int(np.ceil(len(channels) / n_cols))
+        fig = Figure(figsize=(4.2 * n_cols + 1.5, 2.6 * n_rows + 0.9), layout="constrained")
+        axes = fig.subplots(n_rows, n_cols, squeeze=False, sharex=True, sharey=True).ravel()
+        for channel, ax in enumerate(axes):
+            if channel >= len(channels):
+                ax.set_visible(False)
+                continue
+            _plot_means(ax, times, [m[channel] if m is not None else None for m in means],
+                        names, counts, feedback)
+            ax.axvline(0, color="black", lw=0.8)
+            ax.set_title(channels[channel], fontsize=9)
+            if channel + n_cols >= len(channels):
+                ax.set_xlabel("time after action onset (ms)", fontsize=8)
+                ax.tick_params(labelbottom=True)
+            if channel % n_cols == 0:
+                ax.set_ylabel(f"amplitude ({unit})", fontsize=8)
+    else:
+        flat = [m.reshape(-1) if m is not None else None for m in means]
+        n_features = next((len(f) for f in flat if f is not None), 0)
+        fig = Figure(figsize=(9.5, 3.8), layout="constrained")
+        ax = fig.add_subplot()
+        _plot_means(ax, np.arange(n_features), flat, names, counts, feedback, markers=True)
+        ax.set_xlabel("feature index")
+        ax.set_ylabel(f"feature value ({unit})")
+    handles, labels_ = fig.axes[0].get_legend_handles_labels() if fig.axes else ([], [])
+    if handles:
+        fig.legend(handles, labels_, loc="outside lower center", ncol=len(handles),
+                   fontsize=8, frameon=False)
+    fig.suptitle(f"Session {metrics.session}: {what}", fontsize=10)
+    return fig, " ".join(what.split())
+
+
+def _plot_means(ax: Axes, x: np.ndarray, means: list[np.ndarray | None], names: list[str],
+                counts: list[int], feedback: bool, markers: bool = False) -> None:
+    """Class means (and, for feedback, the error - correct difference) on one axes."""
+    style = {"marker": ".", "ms": 4} if markers else {}
+    if len(x) == 0:
+        ax.text(0.5, 0.5, "no labelled signal", ha="center", va="center",
+                transform=ax.transAxes)
+        return
+    for k, (mean, name) in enumerate(zip(means, names, strict=True)):
+        if mean is not None:
+            ax.plot(x, mean, color=_CLASS_COLOURS[k], lw=1.1, label=f"{name} (n={counts[k]})",
+                    **style)
+    if feedback and means[0] is not None and means[1] is not None:
+        ax.plot(x, means[1] - means[0], color="black", lw=1.4, ls="--",
+                label="difference (error − correct)", **style)
+    ax.axhline(0, color="0.6", lw=0.6)
+    ax.grid(alpha=0.3)
+
+
+def latency_figure(metrics: SessionMetrics) -> Figure:
+    """Histogram of the learner's update time per step, ms, with median, p90 and p99."""
+    fig = Figure(figsize=(8, 3.6), layout="constrained")
+    ax = fig.add_subplot()
+    values = np.asarray(metrics.update_ms, dtype=float)
+    latency = metrics.latency
+    if latency is None:
+        ax.text(0.5, 0.5, "no update time recorded", ha="center", va="center",
+                transform=ax.transAxes)
+    else:
+        upper = max(latency.p99_ms * 1.5, latency.median_ms * 2)
+        shown = values[values <= upper]
+        ax.hist(shown, bins=60, range=(0, upper), color="tab:blue", alpha=0.75)
+        for value, name, style in ((latency.median_ms, "median", "-"),
+                                   (latency.p90_ms, "90th percentile", "--"),
+                                   (latency.p99_ms, "99th percentile", ":")):
+            ax.axvline(value, color="black", ls=style, lw=1.1, label=f"{name} {value:.1f} ms")
+        beyond = len(values) - len(shown)
+        ax.plot([], [], " ", label=f"max {latency.max_ms:.1f} ms"
+                + (f"\n({beyond} step(s) above {upper:.0f} ms\nnot shown)" if beyond else ""))
+        ax.set_xlim(0, upper)
+        ax.legend(fontsize=8, frameon=False, loc="upper left", bbox_to_anchor=(1.01, 1.0))
+    ax.set_xlabel("learner update time per step (ms; observe + propose)")
+    ax.set_ylabel("steps")
+    ax.set_title(
+        f"Session {metrics.session}: learner update latency "
+        f"({len(values)} steps, {metrics.grid ** 2} task hypotheses)",
+        fontsize=10,
+    )
+    ax.grid(alpha=0.3)
+    return fig
+
+
+def session_figures(
+    recording: Recording, metrics: SessionMetrics, out_dir: Path, stem: str
+) -> list[SavedFigure]:
+    """Write the five figures of a session as ``out_dir/<stem>_<kind>.png``.
+
+    Parameters
+    ----------
+    recording : Recording
+    metrics : SessionMetrics
+        Of ``recording`` (:func:`replay.metrics.session_metrics`).
+    out_dir : Path
+        Created if missing.
+    stem : str
+        File name prefix, unique per session.
+
+    Returns
+    -------
+    list of SavedFigure
+        In the order confidence, belief, accuracy, erp, latency.
+    """
+    out_dir.mkdir(parents=True, exist_ok=True)
+    erp, erp_what = erp_figure(recording, metrics)
+    chosen = ", ".join(str(s) for s in belief_steps(metrics))
+    items = [
+        ("confidence", confidence_figure(metrics),
+         "Confidence W (pairwise-min, in the state the learner chose each move on) of the "
+         "user's true target cell and of the most confident other cell, per step. "
+         f"Dashed: the threshold β = {metrics.beta:g} above which the learner declares a "
+         "target; triangles and vertical lines: declared targets (green correct, red wrong). "
+         "After each declared target the user picks a new target and the learner restarts "
+         "its likelihoods (all cells at 0.5)."),
+        ("belief", belief_figure(recording, metrics),
+         f"Confidence of every cell as the target at steps {chosen} (evenly spaced, and the "
+         "step of the first declared target), in the state each step's move was chosen on. "
+         "Circle: the agent; star: the user's true target; orange square: the learner's most "
+         f"likely cell; white line: the last moves (at most {PATH_MOVES}) since the previous "
+         "declared target, more opaque when more recent. Row 0 is at the top."),
+        ("accuracy", accuracy_figure(metrics),
+         "Cross-validated balanced accuracy of the decoder of the learner's most likely task, "
+         "after each signal: against the recorded true labels (out-of-fold predictions of the "
+         "re-run learner) and the learner's own estimate (against that task's hypothesised "
+         f"labels). Dotted: chance ({metrics.chance:g})."),
+        ("erp", erp,
+         f"{erp_what[0].upper()}{erp_what[1:]}. Classes are the recorded true labels of the "
+         "epochs (/truth); n per class in the legend."
+         + (" Time 0 is the action onset (times from the recording's tmin and sfreq)."
+            if metrics.signal == "epochs" else "")),
+        ("latency", latency_figure(metrics),
+         "Distribution of the learner's update time per step as recorded by the service "
+         "(observe the epoch + propose the next move, ms), with its median, 90th and 99th "
+         "percentiles."),
+    ]
+    saved = []
+    for kind, figure, caption in items:
+        path = out_dir / f"{stem}_{kind}.png"
+        figure.savefig(path, dpi=DPI)
+        title = figure.get_suptitle() or figure.axes[0].get_title()
+        title = "; ".join(" ".join(line.split()) for line in title.splitlines())
+        saved.append(SavedFigure(kind, path, title, caption))
+    return saved

@@ -1,0 +1,240 @@
+"""A self-contained HTML report of recorded sessions: one file, images embedded.
+
+:func:`write_html` writes ``index.html`` with an aggregate table at the top, then one
+section per session: a warning banner when the recording is truncated (saying where it
+ends) or its re-run diverged, its metrics table, and every figure with its caption. The
+PNG files are embedded as base64 ``data:`` URIs, so the single file still works when moved
+or mailed; each ``<img>`` also names its file in ``data-file``.
+"""
+
+from __future__ import annotations
+
+import base64
+import html
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from replay.figures import SavedFigure
+from replay.metrics import SCALAR_METRICS, SessionMetrics
+
+_STYLE = """
+body { font-family: system-ui, sans-serif; margin: 2em auto; max-width: 1200px;
+       padding: 0 1em; color: #222; line-height: 1.4; }
+h1 { font-size: 1.6em; } h2 { font-size: 1.3em; border-bottom: 1px solid #ccc; }
+table { border-collapse: collapse; margin: 0.5em 0 1.5em; font-size: 0.9em; }
+th, td { border: 1px solid #ccc; padding: 0.25em 0.6em; text-align: left; }
+td.num { text-align: right; font-variant-numeric: tabular-nums; }
+th { background: #f0f0f0; }
+.warning { background: #fff3cd; border: 1px solid #e0b000; padding: 0.6em 1em;
+           margin: 0.8em 0; border-radius: 4px; }
+.error { background: #f8d7da; border: 1px solid #c0392b; padding: 0.6em 1em;
+         margin: 0.8em 0; border-radius: 4px; }
+figure { margin: 1.5em 0; } figure img { max-width: 100%; border: 1px solid #eee; }
+figcaption { font-size: 0.9em; color: #444; max-width: 60em; }
+dl dt { font-weight: bold; margin-top: 0.5em; } dl dd { margin-left: 1.5em; }
+"""
+
+#: The definitions a reader needs, shown under the aggregate table.
+DEFINITIONS: dict[str, str] = {
+    "Step": "One device action (move or goal), answered by one epoch (the user's reaction).",
+    "Declared target": "A goal performed while confident; correct when the cell was the "
+    "user's target at that step (recorded truth).",
+    "Steps per correct target": "Steps recorded divided by correct targets (first search "
+    "included).",
+    "Mean steps between targets": "Mean number of steps between successive declared "
+    "targets (correct or wrong); the first search is excluded (see first target step).",
+    "Decoder accuracy vs truth": "The learner is re-run over the recording; after t signals, "
+    "the out-of-fold (10-fold) predictions of its most likely task's decoder for those t "
+    "signals (argmax of the cross-validated class probabilities) are compared with the "
+    "recorded true labels: mean recall over the true classes present.",
+    "Self-estimate": "The same cross-validated balanced accuracy as recorded by the learner, "
+    "against the labels its most likely task hypothesises (what the learner can know).",
+    "Update latency": "The learner's time per step recorded by the service: observe the "
+    "epoch + propose the next move, ms; median, 90th and 99th percentiles (linear "
+    "interpolation) and maximum.",
+}
+
+
+@dataclass
+class SessionReport:
+    """One recording's part of the report.
+
+    Attributes
+    ----------
+    file : str
+        Path of the recording.
+    stem : str
+        Unique name of the session in the report (prefix of its PNG files, HTML anchor).
+    metrics : SessionMetrics or None
+        None when the file could not be processed.
+    figures : list of SavedFigure
+    error : str or None
+        Why the file could not be processed (naming it).
+    """
+
+    file: str
+    stem: str
+    metrics: SessionMetrics | None = None
+    figures: list[SavedFigure] = field(default_factory=list)
+    error: str | None = None
+
+
+def _format(value: object, digits: int = 3) -> str:
+    if value is None:
+        return "–"
+    if isinstance(value, bool):
+        return "yes" if value else "no"
+    if isinstance(value, float):
+        return f"{value:.{digits}g}" if abs(value) < 1e4 else f"{value:.0f}"
+    return str(value)
+
+
+def _table(header: Sequence[str], rows: Sequence[Sequence[object]]) -> str:
+    head = "".join(f"<th>{html.escape(h)}</th>" for h in header)
+    body = []
+    for row in rows:
+        cells = []
+        for value in row:
+            number = isinstance(value, int | float) and not isinstance(value, bool)
+            cls = ' class="num"' if number else ""
+            cells.append(f"<td{cls}>{html.escape(_format(value))}</td>")
+        body.append("<tr>" + "".join(cells) + "</tr>")
+    return f"<table><tr>{head}</tr>{''.join(body)}</table>"
+
+
+def aggregate_table(aggregate: dict[str, dict[str, float | int | None]]) -> str:
+    """The aggregate table: one row per scalar metric, median / min / max / n."""
+    rows = [
+        [f"{name} ({meaning})", *(aggregate[name][k] for k in ("median", "min", "max", "n"))]
+        for name, meaning in SCALAR_METRICS.items()
+        if name in aggregate
+    ]
+    return _table(["metric", "median", "min", "max", "sessions"], rows)
+
+
+def metrics_table(metrics: SessionMetrics) -> str:
+    """One session's metrics, name and value."""
+    latency = metrics.latency
+    rows: list[list[object]] = [
+        ["session", metrics.session],
+        ["file", metrics.file],
+        ["grid / frame / signal", f"{metrics.grid}×{metrics.grid} / {metrics.frame} / "
+                                  f"{metrics.signal}"],
+        ["steps recorded (configured)", f"{metrics.steps} ({metrics.configured_steps})"],
+        ["first target step", metrics.first_target_step],
+        ["targets correct / wrong / unverified",
+         f"{metrics.correct_targets} / {metrics.wrong_targets} / {metrics.unverified_targets}"],
+        ["steps per correct target", metrics.steps_per_correct_target],
+        ["mean steps between targets", metrics.mean_steps_between_targets],
+        ["decoder balanced accuracy vs truth, last step", metrics.final_accuracy_truth],
+        ["decoder balanced accuracy, self-estimate, last step", metrics.final_accuracy_self],
+        ["chance level", metrics.chance],
+        ["update latency median / p90 / p99 / max (ms)",
+         "–" if latency is None else
+         f"{latency.median_ms:.2f} / {latency.p90_ms:.2f} / {latency.p99_ms:.2f} / "
+         f"{latency.max_ms:.2f} (n = {latency.n})"],
+        ["re-run identical to the recording", metrics.replay_identical],
+        ["truncated", metrics.truncated],
+    ]
+    return _table(["metric", "value"], rows)
+
+
+def _image(figure: SavedFigure) -> str:
+    data = base64.b64encode(figure.path.read_bytes()).decode("ascii")
+    return (
+        f'<img src="data:image/png;base64,{data}" alt="{html.escape(figure.title)}" '
+        f'data-file="{html.escape(figure.path.name)}">'
+    )
+
+
+def session_section(report: SessionReport, first_figure: int) -> str:
+    """The HTML section of one session; figures numbered from ``first_figure``."""
+    anchor = html.escape(report.stem)
+    if report.metrics is None:
+        return (
+            f'<section id="{anchor}"><h2>{html.escape(report.file)}</h2>'
+            f'<div class="error"><b>Not processed:</b> {html.escape(report.error or "")}</div>'
+            "</section>"
+        )
+    metrics = report.metrics
+    parts = [f'<section id="{anchor}"><h2>Session {html.escape(metrics.session)} '
+             f'<small>({html.escape(report.file)})</small></h2>']
+    if metrics.truncated:
+        parts.append(
+            '<div class="warning"><b>Truncated recording</b> (its writer did not close it): '
+            f"{html.escape(metrics.warning or '')}. The report covers what it holds.</div>"
+        )
+    if metrics.replay_identical is False or (
+        metrics.replay_identical is None and metrics.replay_note
+    ):
+        parts.append(
+            '<div class="warning"><b>The re-run of the learner differs from the recording'
+            f"</b> (decoder accuracy vs truth may not be the session's): "
+            f"{html.escape(metrics.replay_note or '')}</div>"
+        )
+    parts.append(metrics_table(metrics))
+    for number, figure in enumerate(report.figures, start=first_figure):
+        parts.append(
+            f'<figure id="{anchor}-{figure.kind}">{_image(figure)}<figcaption>'
+            f"<b>Figure {number}. {html.escape(figure.title)}.</b> "
+            f"{html.escape(figure.caption)}</figcaption></figure>"
+        )
+    parts.append("</section>")
+    return "\n".join(parts)
+
+
+def render_html(
+    reports: Sequence[SessionReport], aggregate: dict[str, dict[str, float | int | None]]
+) -> str:
+    """The whole report as one HTML document."""
+    done = [r for r in reports if r.metrics is not None]
+    failed = [r for r in reports if r.metrics is None]
+    truncated = [r for r in done if r.metrics is not None and r.metrics.truncated]
+    parts = [
+        "<!DOCTYPE html>",
+        '<html lang="en"><head><meta charset="utf-8">',
+        "<title>cfbci session report</title>",
+        f"<style>{_STYLE}</style></head><body>",
+        "<h1>Calibration-free BCI: session report</h1>",
+        f"<p>{len(done)} session(s) reported"
+        + (f", {len(truncated)} truncated" if truncated else "")
+        + (f", {len(failed)} file(s) not processed" if failed else "")
+        + ".</p>",
+    ]
+    for report in failed:
+        parts.append(f'<div class="error"><b>Not processed:</b> {html.escape(report.error or "")}'
+                     "</div>")
+    for report in truncated:
+        assert report.metrics is not None
+        parts.append(f'<div class="warning"><b>Truncated:</b> '
+                     f"{html.escape(report.metrics.warning or '')}</div>")
+    parts.append("<h2>Aggregate over sessions</h2>")
+    parts.append(aggregate_table(aggregate))
+    parts.append("<h3>Definitions</h3><dl>")
+    for term, text in DEFINITIONS.items():
+        parts.append(f"<dt>{html.escape(term)}</dt><dd>{html.escape(text)}</dd>")
+    parts.append("</dl><h3>Sessions</h3><ul>")
+    for report in reports:
+        name = report.metrics.session if report.metrics else report.file
+        parts.append(f'<li><a href="#{html.escape(report.stem)}">{html.escape(name)}</a> '
+                     f"({html.escape(report.file)})</li>")
+    parts.append("</ul>")
+    number = 1
+    for report in reports:
+        parts.append(session_section(report, number))
+        number += len(report.figures)
+    parts.append("</body></html>")
+    return "\n".join(parts)
+
+
+def write_html(
+    out_dir: Path,
+    reports: Sequence[SessionReport],
+    aggregate: dict[str, dict[str, float | int | None]],
+) -> Path:
+    """Write ``out_dir/index.html`` (see the module docstring); return its path."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    path = out_dir / "index.html"
+    path.write_text(render_html(reports, aggregate), encoding="utf-8")
+    return path

@@ -1,0 +1,502 @@
+"""Figures of merit of a recorded session, computed from its :class:`~replay.recording.Recording`.
+
+Pure computation (no plotting, no files): :func:`session_metrics` gives one session's
+:class:`SessionMetrics`, :func:`aggregate` the median, minimum and maximum of every scalar
+metric over sessions.
+
+Steps and alignment
+-------------------
+Step ``k`` (1-based) is the ``k``-th ``/move``. It is answered by the epoch of step ``k``
+(the user's reaction to it), whose ``/truth`` (step ``k``) holds the user's target *while*
+move ``k`` was made and the true class of that epoch. The ``k``-th ``/state`` accompanies
+move ``k``: it is the belief the learner chose move ``k`` on, after ``k - 1`` signals (the
+recording holds one more, final, state after the last signal).
+
+* **Declared target** at step ``k``: move ``k`` has ``target_reached`` True, in the cell
+  ``from_state``. It is *correct* when ``from_state`` equals the truth target of step ``k``,
+  *wrong* otherwise, and *unverified* when the truth of step ``k`` is missing (a truncated
+  recording).
+* **Confidence of the true task** at step ``k``: ``confidence[target_k]`` of the ``k``-th
+  state, with ``target_k`` the truth target of step ``k``; the **best other task** is the
+  cell of highest confidence among the others.
+* **Steps per correct target**: ``steps / correct_targets`` (the user's cost of one correct
+  selection, first search included). **Mean steps between targets**: mean difference of
+  the steps of successive declared targets, correct or wrong (the first search excluded;
+  it is ``first_target_step``), i.e. the speed once the decoder is calibrated by use.
+* **Decoder balanced accuracy against the truth** after ``t`` signals: the learner is re-run
+  over the recording (:func:`cfbci.rerun.recompute`, identical to the service); after it
+  has observed the epochs of steps ``1..t``, take its best task ``b_t`` (the one the
+  ``/state`` after ``t`` signals names) and the out-of-fold class probabilities of ``b_t``'s
+  decoder for those ``t`` signals (``TaskModels.cv_proba[b_t]``: each signal predicted by
+  the decoder trained, with ``b_t``'s hypothesised labels, on the folds it is not in);
+  the predicted class is the argmax (ties to the lower class); the accuracy is the mean,
+  over the true classes present among the ``t`` signals, of the fraction of that class's
+  signals predicted as it (the recorded true labels, ``/truth`` ``label``). None while
+  fewer than two true classes are present. This is exactly the recording's own
+  ``balanced_accuracy`` (the **self-estimate**) with the true labels in place of the
+  best task's hypothesised ones: the two coincide when those labels are the truth.
+* **Update latency**: the moves' ``update_ms`` (the learner's observe + propose time, ms;
+  the first move has none), summarised by median, 90th and 99th percentiles (linear
+  interpolation, numpy's default) and maximum.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+from typing import Any
+
+import numpy as np
+
+from calibration_free.frames import FRAMES, Frame
+from calibration_free.learner import CalibrationFreeLearner
+from calibration_free.world import GridWorld
+from cfbci.rerun import first_divergence, recompute
+from cfbci.service import learner_settings
+from replay.recording import Recording
+
+#: Names of the classes of each frame, in class order (truth ``label`` values).
+CLASS_NAMES: dict[str, tuple[str, ...]] = {
+    "feedback": ("correct", "error"),
+    "guidance": ("up", "down", "left", "right"),
+}
+#: The scalar metrics :func:`aggregate` summarises, with their meaning (and unit).
+SCALAR_METRICS: dict[str, str] = {
+    "steps": "moves recorded",
+    "first_target_step": "step of the first declared target",
+    "correct_targets": "declared targets that were the user's target",
+    "wrong_targets": "declared targets that were not",
+    "steps_per_correct_target": "steps / correct targets",
+    "mean_steps_between_targets": "mean steps between successive declared targets",
+    "final_accuracy_truth": "decoder balanced accuracy vs true labels, last step",
+    "final_accuracy_self": "decoder balanced accuracy, self-estimate, last step",
+    "latency_median_ms": "median learner update, ms",
+    "latency_p90_ms": "90th percentile learner update, ms",
+    "latency_p99_ms": "99th percentile learner update, ms",
+    "latency_max_ms": "maximum learner update, ms",
+}
+
+
+@dataclass(frozen=True)
+class DeclaredTarget:
+    """A target the learner declared reached.
+
+    Attributes
+    ----------
+    step : int
+        Step of the ``goal`` move (1-based).
+    cell : int
+        The declared cell (the move's ``from_state``).
+    true_target : int or None
+        The user's target at that step (None: no truth recorded for it).
+    correct : bool or None
+        ``cell == true_target`` (None when unverified).
+    """
+
+    step: int
+    cell: int
+    true_target: int | None
+    correct: bool | None
+
+
+@dataclass(frozen=True)
+class Latency:
+    """Distribution of the learner's update time, ms (``n`` values)."""
+
+    n: int
+    median_ms: float
+    p90_ms: float
+    p99_ms: float
+    max_ms: float
+    mean_ms: float
+
+
+@dataclass
+class SessionMetrics:
+    """Everything :func:`session_metrics` measures in one recording (see the module doc).
+
+    Per-step series are lists (None where undefined), JSON-ready.
+
+    Attributes
+    ----------
+    file, session : str
+        Path of the recording, and its session name.
+    frame : str
+        "feedback" or "guidance"; ``class_names`` its classes (truth labels 0..K-1).
+    grid : int
+        Side of the grid (``grid ** 2`` cells and tasks).
+    signal : str
+        "epochs" (raw epochs recorded) or "features".
+    beta : float
+        The learner's confidence threshold.
+    configured_steps : int
+        Steps the session was configured for.
+    steps : int
+        Moves recorded.
+    n_signals : int
+        Epochs recorded (signals the learner observed).
+    first_target_step : int or None
+    targets : list of DeclaredTarget
+    correct_targets, wrong_targets, unverified_targets : int
+    steps_per_correct_target : float or None
+        ``steps / correct_targets``.
+    mean_steps_between_targets : float or None
+        Mean gap, in steps, between successive declared targets (needs two).
+    update_ms : list of float
+        The learner's update time of every move that has one, ms, in step order.
+    latency : Latency or None
+    step : list of int
+        1..steps: the x axis of the per-step series below.
+    agent : list of int
+        The agent's cell at each step (the move's ``from_state``).
+    true_target : list of int or None
+        The user's target at each step (truth).
+    confidence_true, confidence_best_other : list of float or None
+        Confidence of the true task, and of the most confident other task, when the
+        learner chose each step's move.
+    best_other_task : list of int or None
+        The cell of ``confidence_best_other``.
+    n_seen : list of int
+        1..n_signals: the x axis of the accuracy series (signals observed).
+    accuracy_truth : list of float or None
+        Decoder balanced accuracy against the true labels after ``n_seen`` signals.
+    accuracy_self : list of float or None
+        The recording's self-estimated balanced accuracy after ``n_seen`` signals.
+    final_accuracy_truth, final_accuracy_self : float or None
+        The last values of the two series.
+    chance : float
+        Chance balanced accuracy, ``1 / n_classes``.
+    replay_identical : bool or None
+        The re-run reproduced every recorded move, state and target event (the prefix
+        the file holds, if truncated); None if the re-run failed.
+    replay_note : str or None
+        The first divergence, or why the re-run failed.
+    truncated : bool
+    warning : str or None
+        Where a truncated recording ends (byte offset, messages, last step).
+    """
+
+    file: str
+    session: str
+    frame: str
+    class_names: list[str]
+    grid: int
+    signal: str
+    beta: float
+    configured_steps: int
+    steps: int
+    n_signals: int
+    first_target_step: int | None
+    targets: list[DeclaredTarget]
+    correct_targets: int
+    wrong_targets: int
+    unverified_targets: int
+    steps_per_correct_target: float | None
+    mean_steps_between_targets: float | None
+    update_ms: list[float]
+    latency: Latency | None
+    step: list[int]
+    agent: list[int]
+    true_target: list[int | None]
+    confidence_true: list[float | None]
+    confidence_best_other: list[float | None]
+    best_other_task: list[int | None]
+    n_seen: list[int]
+    accuracy_truth: list[float | None]
+    accuracy_self: list[float | None]
+    final_accuracy_truth: float | None
+    final_accuracy_self: float | None
+    chance: float
+    replay_identical: bool | None
+    replay_note: str | None
+    truncated: bool
+    warning: str | None
+
+    def scalars(self) -> dict[str, float | int | None]:
+        """The :data:`SCALAR_METRICS` of this session."""
+        latency = self.latency
+        values: dict[str, float | int | None] = {
+            name: getattr(self, name) for name in SCALAR_METRICS if hasattr(self, name)
+        }
+        for name in ("median_ms", "p90_ms", "p99_ms", "max_ms"):
+            values[f"latency_{name}"] = getattr(latency, name) if latency else None
+        return values
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready dictionary (no NaN: undefined values are None)."""
+        return asdict(self)
+
+
+def balanced_accuracy(predicted: np.ndarray, labels: np.ndarray, n_classes: int) -> float | None:
+    """Mean per-class recall over the true classes present.
+
+    Parameters
+    ----------
+    predicted : ndarray, shape (n,), int
+        Predicted classes.
+    labels : ndarray, shape (n,), int
+        True classes; entries < 0 (unknown) are ignored.
+    n_classes : int
+
+    Returns
+    -------
+    float or None
+        None while fewer than two true classes are present.
+    """
+    known = labels >= 0
+    predicted, labels = predicted[known], labels[known]
+    totals = np.bincount(labels, minlength=n_classes)
+    present = totals > 0
+    if present.sum() < 2:
+        return None
+    hits = np.bincount(labels[predicted == labels], minlength=n_classes)
+    return float(np.mean(hits[present] / totals[present]))
+
+
+def latency_summary(update_ms: list[float]) -> Latency | None:
+    """Median, 90th and 99th percentiles (linear interpolation), max and mean, ms."""
+    if not update_ms:
+        return None
+    values = np.asarray(update_ms, dtype=float)
+    p50, p90, p99 = np.percentile(values, [50, 90, 99])
+    return Latency(
+        len(values), float(p50), float(p90), float(p99), float(values.max()), float(values.mean())
+    )
+
+
+def declared_targets(
+    moves: list[dict[str, Any]], truth: dict[int, dict[str, Any]]
+) -> list[DeclaredTarget]:
+    """The declared targets of the moves, judged against the truth of their step."""
+    targets = []
+    for move in moves:
+        if not move.get("target_reached"):
+            continue
+        step, cell = int(move["step"]), int(move["from_state"])
+        true = truth.get(step, {}).get("target")
+        targets.append(DeclaredTarget(step, cell, true, None if true is None else cell == true))
+    return targets
+
+
+def truth_by_step(recording: Recording) -> dict[int, dict[str, Any]]:
+    """The ``/truth`` messages by step (the latest one if a step repeats)."""
+    return {int(m["step"]): m for _, m in recording.messages.get("/truth", [])}
+
+
+def _signal_steps(recording: Recording) -> list[int]:
+    """The step of every recorded epoch, in order (its ``step`` field, else its rank)."""
+    epochs = recording.messages.get("/epoch", [])
+    return [int(m.get("step", i + 1)) for i, (_, m) in enumerate(epochs)]
+
+
+def _confidences(
+    states: list[dict[str, Any]], targets: list[int | None], n_steps: int
+) -> tuple[list[float | None], list[float | None], list[int | None]]:
+    """Per step: confidence of the true task, of the best other task, and that task."""
+    true_conf: list[float | None] = []
+    other_conf: list[float | None] = []
+    other_task: list[int | None] = []
+    for k in range(n_steps):
+        target = targets[k]
+        confidence = states[k].get("confidence") if k < len(states) else None
+        if target is None or confidence is None:
+            true_conf.append(None)
+            other_conf.append(None)
+            other_task.append(None)
+            continue
+        values = np.asarray(confidence, dtype=float)
+        others = values.copy()
+        others[target] = -np.inf
+        best = int(np.argmax(others))
+        true_conf.append(float(values[target]))
+        other_conf.append(float(values[best]))
+        other_task.append(best)
+    return true_conf, other_conf, other_task
+
+
+@dataclass
+class _Rerun:
+    """What the re-run of the learner gives: accuracy vs truth per signal, divergence."""
+
+    accuracy_truth: list[float | None]
+    identical: bool | None
+    note: str | None
+
+
+def _task_models(learner: CalibrationFreeLearner) -> Any:
+    """The learner's current :class:`TaskModels` (it exposes no accessor; read only)."""
+    return learner._models
+
+
+def _rerun(recording: Recording, n_classes: int) -> _Rerun:
+    """Re-run the learner, measuring its best task's decoder against the true labels."""
+    truth = truth_by_step(recording)
+    labels = np.array(
+        [int(truth.get(step, {}).get("label", -1)) for step in _signal_steps(recording)],
+        dtype=int,
+    )
+    one_hot = np.zeros((len(labels), n_classes))
+    known = labels >= 0
+    one_hot[np.flatnonzero(known), labels[known]] = 1.0
+    accuracy: list[float | None] = []
+
+    def measure(step: int, learner: CalibrationFreeLearner) -> None:
+        best = learner.beliefs().best_task
+        models = _task_models(learner)
+        # TaskModels.balanced_accuracy with the true labels (unknown ones weigh 0): the
+        # self-estimate's exact definition, against the truth.
+        accuracy.append(models.balanced_accuracy(best, one_hot[:step]))
+
+    try:
+        moves, states, events = recompute(recording, measure)
+    except (KeyError, ValueError, TypeError) as error:
+        return _Rerun([None] * len(labels), None, f"re-run failed: {error!r}")
+    if recording.truncated:  # compare only what the file holds
+        n_moves = len(recording.messages.get("/move", []))
+        n_states = len(recording.messages.get("/state", []))
+        n_events = sum(
+            m.get("event") == "target_reached" for _, m in recording.messages.get("/event", [])
+        )
+        moves, states, events = moves[:n_moves], states[:n_states], events[:n_events]
+    divergence = first_divergence(recording, moves, states, events)
+    return _Rerun(
+        accuracy, divergence is None, None if divergence is None else divergence.describe()
+    )
+
+
+def _mean_gap(steps: list[int]) -> float | None:
+    return float(np.mean(np.diff(steps))) if len(steps) >= 2 else None
+
+
+def session_metrics(recording: Recording, file: str = "", rerun: bool = True) -> SessionMetrics:
+    """Measure one recorded session (definitions in the module docstring).
+
+    Parameters
+    ----------
+    recording : Recording
+        A recording with its configuration (complete or truncated).
+    file : str
+        Its path, for the report.
+    rerun : bool, default True
+        Re-run the learner for the decoder accuracy against the truth (about 10 s for 500
+        steps on a 5 x 5 grid); False leaves that series None.
+
+    Returns
+    -------
+    SessionMetrics
+
+    Raises
+    ------
+    ValueError
+        If the recording holds no configuration, or an unknown frame or no grid.
+    """
+    config = recording.config
+    where = file or recording.session or "recording"
+    if not config:
+        raise ValueError(f"{where}: the recording holds no session configuration")
+    frame = config.get("frame", "feedback")
+    if frame not in FRAMES or "grid" not in config:
+        raise ValueError(f"{where}: the configuration has no valid frame and grid: {config}")
+    grid = int(config["grid"])
+    try:
+        beta = learner_settings(config.get("learner", {}), frame).beta
+    except (ValueError, TypeError):
+        beta = float(config.get("learner", {}).get("beta", 0.9))
+    n_classes = Frame(GridWorld(2), frame).n_classes
+    moves = [m for _, m in recording.messages.get("/move", [])]
+    states = [m for _, m in recording.messages.get("/state", [])]
+    truth = truth_by_step(recording)
+    n_steps = len(moves)
+    steps = [int(m["step"]) for m in moves]
+    targets = [truth.get(step, {}).get("target") for step in steps]
+    true_conf, other_conf, other_task = _confidences(states, targets, n_steps)
+
+    declared = declared_targets(moves, truth)
+    correct = sum(t.correct is True for t in declared)
+    wrong = sum(t.correct is False for t in declared)
+    update_ms = [float(m["update_ms"]) for m in moves if m.get("update_ms") is not None]
+
+    n_signals = len(recording.messages.get("/epoch", []))
+    self_by_count = {int(s["n_signals"]): s.get("balanced_accuracy") for s in states}
+    accuracy_self = [self_by_count.get(t) for t in range(1, n_signals + 1)]
+    if rerun:
+        replay = _rerun(recording, n_classes)
+    else:
+        replay = _Rerun([None] * n_signals, None, "not re-run")
+    accuracy_truth = replay.accuracy_truth
+
+    warning = recording.warning
+    if recording.truncated:
+        last = steps[-1] if steps else 0
+        warning = (
+            f"{warning}; it ends after the move of step {last} "
+            f"({n_signals} epochs, {len(truth)} truths of {config.get('steps', '?')} steps)"
+        )
+    return SessionMetrics(
+        file=file,
+        session=recording.session,
+        frame=frame,
+        class_names=list(CLASS_NAMES[frame]),
+        grid=grid,
+        signal=str(config.get("signal", "features")),
+        beta=float(beta),
+        configured_steps=int(config.get("steps", n_steps)),
+        steps=n_steps,
+        n_signals=n_signals,
+        first_target_step=declared[0].step if declared else None,
+        targets=declared,
+        correct_targets=correct,
+        wrong_targets=wrong,
+        unverified_targets=len(declared) - correct - wrong,
+        steps_per_correct_target=n_steps / correct if correct else None,
+        mean_steps_between_targets=_mean_gap([t.step for t in declared]),
+        update_ms=update_ms,
+        latency=latency_summary(update_ms),
+        step=steps,
+        agent=[int(m["from_state"]) for m in moves],
+        true_target=targets,
+        confidence_true=true_conf,
+        confidence_best_other=other_conf,
+        best_other_task=other_task,
+        n_seen=list(range(1, n_signals + 1)),
+        accuracy_truth=accuracy_truth,
+        accuracy_self=accuracy_self,
+        final_accuracy_truth=accuracy_truth[-1] if accuracy_truth else None,
+        final_accuracy_self=accuracy_self[-1] if accuracy_self else None,
+        chance=1.0 / n_classes,
+        replay_identical=replay.identical,
+        replay_note=replay.note,
+        truncated=recording.truncated,
+        warning=warning,
+    )
+
+
+def aggregate(sessions: list[SessionMetrics]) -> dict[str, dict[str, float | int | None]]:
+    """Median, minimum and maximum of every :data:`SCALAR_METRICS` over sessions.
+
+    Sessions where a metric is undefined (None) are left out of it; ``n`` counts the
+    sessions that define it.
+
+    Returns
+    -------
+    dict
+        ``{metric: {"median", "min", "max", "n"}}``, plus ``"sessions"`` and
+        ``"truncated"`` counts under ``"_count"``.
+    """
+    result: dict[str, dict[str, float | int | None]] = {}
+    scalars = [s.scalars() for s in sessions]
+    for name in SCALAR_METRICS:
+        values = np.array([v[name] for v in scalars if v.get(name) is not None], dtype=float)
+        if len(values):
+            result[name] = {
+                "median": float(np.median(values)),
+                "min": float(values.min()),
+                "max": float(values.max()),
+                "n": len(values),
+            }
+        else:
+            result[name] = {"median": None, "min": None, "max": None, "n": 0}
+    result["_count"] = {
+        "sessions": len(sessions),
+        "truncated": sum(s.truncated for s in sessions),
+    }
+    return result

@@ -1,0 +1,46 @@
+"""Shared by the tests of the live service and of recordings: a spawned service process,
+and rewriting a recording after editing its messages.
+
+Spawned, not forked: a forked child's Zenoh session silently drops messages.
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+from cfbci.service import serve
+from replay.recording import Recording, SessionRecorder
+
+TIMEOUT = 60.0  # failure guard, seconds
+SPAWN = multiprocessing.get_context("spawn")
+
+
+@contextmanager
+def service_process(
+    endpoint: str, record_dir: Path, connect: tuple[str, ...] = ()
+) -> Iterator[None]:
+    """The service in a spawned process, recording to ``record_dir``; stopped with SIGTERM,
+    which must exit cleanly (recordings closed, so complete once this exits)."""
+    process = SPAWN.Process(target=serve, args=([endpoint], list(connect), record_dir))
+    process.start()
+    try:
+        yield
+    finally:
+        process.terminate()
+        process.join(TIMEOUT)
+        if process.is_alive():
+            process.kill()
+            process.join()
+    assert process.exitcode == 0
+
+
+def rewrite(recording: Recording, path: Path) -> None:
+    """A recording's messages (as they are now in memory) into a new file."""
+    with SessionRecorder(path, recording.session, recording.config) as recorder:
+        for topic, messages in recording.messages.items():
+            if topic not in ("/config", "/belief", "/log"):
+                for log_time_ns, message in messages:
+                    recorder.record(topic, message, log_time_ns)
