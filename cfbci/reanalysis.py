@@ -43,6 +43,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+from rich import box
 from rich.console import Console
 from rich.table import Table
 
@@ -464,11 +465,29 @@ def _show(confident: Confident | None) -> str:
     if confident is None:
         return "-"
     mark = {True: "✓", False: "✗", None: "?"}[confident.correct]
-    return f"{confident.step}→{confident.task} {mark}"
+    return f"{confident.step}→{confident.task}{mark}"
+
+
+def _labels(result: Reanalysis) -> list[str]:
+    """Short column labels: the own settings' name, then A, B, ... for the alternatives."""
+    return ["own", *(chr(ord("A") + i) for i in range(len(result.outcomes) - 1))]
 
 
 def print_reanalysis(result: Reanalysis, console: Console, per_step: bool = False) -> None:
-    """Summary table, per-segment table and, if asked, the per-step beliefs."""
+    """The settings and how they differ from the recording's, a summary table, a
+    per-segment table and, if asked, the per-step beliefs (alternatives labelled A, B...)."""
+    labels = _labels(result)
+    console.print("own: the recording's settings", soft_wrap=True)
+    for label, outcome in zip(labels[1:], result.outcomes[1:], strict=True):
+        changes = ", ".join(f"{k} {old!r} → {new!r}" for k, (old, new) in outcome.differs.items())
+        note = ""
+        if changes and set(outcome.differs) <= ACTING:
+            note = " (settings of the action choice only: no effect open-loop)"
+        console.print(
+            f"{label}: {outcome.name} — differs from the recording's settings in {changes}{note}"
+            if changes else f"{label}: {outcome.name} — no setting differs from the recording's",
+            soft_wrap=True,
+        )
     summary = Table(
         title=f"open-loop re-analysis of {result.file or result.session}: {result.n_steps} "
         f"steps, {len(result.segments)} segments between recorded targets",
@@ -477,11 +496,11 @@ def print_reanalysis(result: Reanalysis, console: Console, per_step: bool = Fals
     for column in ("first confident", "segments", "correct", "wrong", "median steps",
                    "= recorded"):
         summary.add_column(column, justify="right")
-    for outcome in result.outcomes:
+    for label, outcome in zip(labels, result.outcomes, strict=True):
         figures = outcome.summary(result.segments)
         median = figures["median_steps_to_confidence"]
         summary.add_row(
-            outcome.name,
+            label,
             _show(outcome.first_confident),
             f"{figures['segments_confident']}/{len(result.segments)}",
             str(figures["correct"]),
@@ -498,21 +517,12 @@ def print_reanalysis(result: Reanalysis, console: Console, per_step: bool = Fals
         "equal the recorded states (else the first step that differs)",
         soft_wrap=True,
     )
-    for outcome in result.outcomes[1:]:
-        changes = ", ".join(f"{k} {old!r} → {new!r}" for k, (old, new) in outcome.differs.items())
-        note = ""
-        if changes and set(outcome.differs) <= ACTING:
-            note = " (settings of the action choice only: no effect open-loop)"
-        console.print(
-            f"{outcome.name}: differs from the recording's settings in {changes}{note}"
-            if changes else f"{outcome.name}: no setting differs from the recording's",
-            soft_wrap=True,
-        )
-    segments = Table(title="first confident step per segment (step→cell)")
-    for column in ("segment", "steps", "target", "declared"):
-        segments.add_column(column, justify="right")
-    for outcome in result.outcomes:
-        segments.add_column(outcome.name, justify="right")
+    segments = Table(
+        title="first confident step per segment (step→cell)", box=box.SIMPLE_HEAD,
+        pad_edge=False,
+    )
+    for column in ("#", "steps", "target", "decl.", *labels):
+        segments.add_column(column, justify="right", no_wrap=True)
     for i, segment in enumerate(result.segments):
         segments.add_row(
             str(segment.index),
@@ -521,6 +531,10 @@ def print_reanalysis(result: Reanalysis, console: Console, per_step: bool = Fals
             "-" if segment.declared is None else str(segment.declared),
             *(_show(outcome.segments[i]) for outcome in result.outcomes),
         )
+    segments.caption = (
+        "target: the user's target in the segment (truth); decl.: the cell the recorded "
+        "device declared at its end"
+    )
     console.print(segments)
     if per_step:
         console.print(_per_step_table(result))
@@ -540,8 +554,8 @@ def _per_step_table(result: Reanalysis) -> Table:
     table = Table(title="beliefs each move was chosen from (best cell, its confidence)")
     table.add_column("step", justify="right")
     shown = [
-        (o.name, o.trajectory)
-        for o in result.outcomes
+        (label, o.trajectory)
+        for label, o in zip(_labels(result), result.outcomes, strict=True)
         if o.name != OWN or not o.identical_to_recording
     ]
     for name in (RECORDED, *(name for name, _ in shown)):
