@@ -103,9 +103,9 @@ def test_alternative_settings_rescore_the_same_history_differently(
     ])
     assert code == 0
     text = capsys.readouterr().out
-    assert "eps=0.2, shrinkage=0.3: differs from the recording's settings in eps 0.1 → 0.2, " \
-        "shrinkage 0.5 → 0.3" in text
-    assert "eps=0.1, decoder=lda: no setting differs from the recording's" in text
+    assert "A: eps=0.2, shrinkage=0.3 — differs from the recording's settings in eps 0.1 → " \
+        "0.2, shrinkage 0.5 → 0.3" in text
+    assert "C: eps=0.1, decoder=lda — no setting differs from the recording's" in text
     report = json.loads(out.read_text())
     own, changed, unbalanced, same = report["settings"]
     assert own["name"] == OWN and own["identical_to_recording"] and own["differs"] == {}
