@@ -270,12 +270,20 @@ class CalibrationFreeLearner(TaskLearner):
             raise RuntimeError("the learner has not observed any signal yet")
         return self._history
 
-    def balanced_accuracy(self, task: int) -> float | None:
+    def balanced_accuracy(
+        self, task: int, label_weights: np.ndarray | None = None
+    ) -> float | None:
         """Cross-validated balanced accuracy of ``task``'s decoder on the history so far
-        (see :meth:`TaskModels.balanced_accuracy`); None before two classes have signals."""
+        (see :meth:`TaskModels.balanced_accuracy`); None before two classes have signals.
+
+        Against ``task``'s own labels by default, or against ``label_weights``
+        (n_signals, n_classes), e.g. the true labels in an offline analysis.
+        """
         if self._models is None or self._history is None:
             return None
-        return self._models.balanced_accuracy(task, self._history.label_weights[task])
+        if label_weights is None:
+            label_weights = self._history.label_weights[task]
+        return self._models.balanced_accuracy(task, label_weights)
 
     @property
     def uses_power_prior(self) -> bool:

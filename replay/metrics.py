@@ -322,11 +322,6 @@ class _Rerun:
     note: str | None
 
 
-def _task_models(learner: CalibrationFreeLearner) -> Any:
-    """The learner's current :class:`TaskModels` (it exposes no accessor; read only)."""
-    return learner._models
-
-
 def _rerun(recording: Recording, n_classes: int) -> _Rerun:
     """Re-run the learner, measuring its best task's decoder against the true labels."""
     truth = truth_by_step(recording)
@@ -340,11 +335,9 @@ def _rerun(recording: Recording, n_classes: int) -> _Rerun:
     accuracy: list[float | None] = []
 
     def measure(step: int, learner: CalibrationFreeLearner) -> None:
-        best = learner.beliefs().best_task
-        models = _task_models(learner)
-        # TaskModels.balanced_accuracy with the true labels (unknown ones weigh 0): the
-        # self-estimate's exact definition, against the truth.
-        accuracy.append(models.balanced_accuracy(best, one_hot[:step]))
+        # The self-estimate's exact definition, against the true labels (unknown ones
+        # weigh 0).
+        accuracy.append(learner.balanced_accuracy(learner.beliefs().best_task, one_hot[:step]))
 
     try:
         moves, states, events = recompute(recording, measure)
