@@ -1,5 +1,5 @@
 """The ``cfbci`` command line: ``simulate``, ``bench``, ``serve``, ``source``, ``session``,
-``recover``."""
+``recover``, ``replay``, ``report``."""
 
 from __future__ import annotations
 
