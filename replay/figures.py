@@ -323,7 +323,9 @@ def erp_figure(recording: Recording, metrics: SessionMetrics) -> tuple[Figure, s
         ax = fig.add_subplot()
         _plot_means(ax, np.arange(n_features), flat, names, counts, feedback, markers=True)
         ax.set_xlabel("feature index")
-        ax.set_ylabel(f"feature value ({unit})")
+        # The wire protocol labels every epoch payload "uV", but a dataset's feature
+        # vectors may be in other units (s4.mat's are µV, move_finger.mat's are not).
+        ax.set_ylabel("feature value (units of the dataset)")
     handles, labels_ = fig.axes[0].get_legend_handles_labels() if fig.axes else ([], [])
     if handles:
         fig.legend(handles, labels_, loc="outside lower center", ncol=len(handles),
