@@ -226,32 +226,6 @@ class SessionMetrics:
         return asdict(self)
 
 
-def balanced_accuracy(predicted: np.ndarray, labels: np.ndarray, n_classes: int) -> float | None:
-    """Mean per-class recall over the true classes present.
-
-    Parameters
-    ----------
-    predicted : ndarray, shape (n,), int
-        Predicted classes.
-    labels : ndarray, shape (n,), int
-        True classes; entries < 0 (unknown) are ignored.
-    n_classes : int
-
-    Returns
-    -------
-    float or None
-        None while fewer than two true classes are present.
-    """
-    known = labels >= 0
-    predicted, labels = predicted[known], labels[known]
-    totals = np.bincount(labels, minlength=n_classes)
-    present = totals > 0
-    if present.sum() < 2:
-        return None
-    hits = np.bincount(labels[predicted == labels], minlength=n_classes)
-    return float(np.mean(hits[present] / totals[present]))
-
-
 def latency_summary(update_ms: list[float]) -> Latency | None:
     """Median, 90th and 99th percentiles (linear interpolation), max and mean, ms."""
     if not update_ms:
