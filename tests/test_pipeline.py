@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import zenoh
+from jsonschema import Draft202012Validator
 from live import SPAWN, TIMEOUT, service_process
 from mcap.reader import make_reader
 
@@ -91,6 +92,12 @@ def test_live_session_equals_simulation_and_is_recorded(tmp_path: Path) -> None:
     epoch = decode_array(recording.messages["/epoch"][0][1])
     features = decode_array(recording.messages["/features"][0][1])
     assert epoch.ndim == 2 and features.shape == (57,)
+    assert all("update_ms" in m and m["update_ms"] > 0 for m in moves[1:])
+    # Every message the service recorded is valid under its channel's schema.
+    with (tmp_path / "live-1.mcap").open("rb") as stream:
+        for schema, _, message in make_reader(stream).iter_messages():
+            assert schema is not None
+            Draft202012Validator(json.loads(schema.data)).validate(json.loads(message.data))
 
     # Offline replay of the recording reproduces every decision ...
     path = tmp_path / "live-1.mcap"

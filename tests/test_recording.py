@@ -16,6 +16,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from jsonschema import Draft202012Validator
 from mcap.reader import make_reader
 
 from replay.recording import (
@@ -31,29 +32,14 @@ from replay.recording import (
 ROOT = Path(__file__).resolve().parents[1]
 CONFIG = {"grid": 3, "frame": "feedback", "learner": {"eps": 0.1, "decoder": "lda"}}
 T0 = 1_700_000_000_123_456_789  # ns
-_TYPES = {"object": dict, "array": list, "string": str, "integer": int, "number": (int, float)}
 
 
-def schema_errors(instance: Any, schema: dict[str, Any], where: str = "$") -> list[str]:
-    """The JSON Schema keywords SCHEMAS uses: type, required, properties, items, const,
-    oneOf, minimum, maximum (others, such as title or contentEncoding, are annotations)."""
-    kind = schema.get("type")
-    if kind and (isinstance(instance, bool) or not isinstance(instance, _TYPES[kind])):
-        return [f"{where} is not of type {kind}"]
-    errors = [f"{where} lacks {key}" for key in schema.get("required", ()) if key not in instance]
-    if "const" in schema and instance != schema["const"]:
-        errors.append(f"{where} is not {schema['const']!r}")
-    if "oneOf" in schema and sum(not schema_errors(instance, s) for s in schema["oneOf"]) != 1:
-        errors.append(f"{where} matches not exactly one of oneOf")
-    low, high = schema.get("minimum"), schema.get("maximum")
-    if (low is not None and instance < low) or (high is not None and instance > high):
-        errors.append(f"{where} is out of range")
-    for key, sub in schema.get("properties", {}).items():
-        if key in instance:
-            errors += schema_errors(instance[key], sub, f"{where}.{key}")
-    for i, item in enumerate(instance if "items" in schema else ()):
-        errors += schema_errors(item, schema["items"], f"{where}[{i}]")
-    return errors
+def schema_errors(instance: Any, schema: dict[str, Any]) -> list[str]:
+    """Every JSON Schema (2020-12) validation error, as ``"<JSON path>: <message>"``."""
+    return [
+        f"{error.json_path}: {error.message}"
+        for error in Draft202012Validator(schema).iter_errors(instance)
+    ]
 
 
 def write_session(path: Path) -> tuple[list[tuple[str, int, Any]], list[int]]:
@@ -175,6 +161,7 @@ def test_messages_validate_against_the_schemas_in_the_file(
             assert channel.message_encoding == "json"
             stored = json.loads(schema.data)
             assert stored == SCHEMAS[channel.topic] and schema.name == stored["title"]
+            Draft202012Validator.check_schema(stored)  # a valid schema in the first place
             assert schema_errors(json.loads(message.data), stored) == []
     assert SCHEMAS["/belief"]["title"] == "foxglove.Grid"
     assert SCHEMAS["/log"]["title"] == "foxglove.Log"
@@ -183,12 +170,16 @@ def test_messages_validate_against_the_schemas_in_the_file(
 @pytest.mark.parametrize(
     ("topic", "message", "problem"),
     [
-        ("/move", {"t_ns": 1}, "lacks seq"),
-        ("/move", {"seq": -1, "t_ns": 1}, "seq is out of range"),
-        ("/move", {"seq": True, "t_ns": 1}, "seq is not of type integer"),
-        ("/epoch", {"seq": 0, "t_ns": 1, "data": "", "shape": [2], "dtype": "<f8"}, "dtype"),
-        ("/log", {"level": 9}, "level matches not exactly one"),
-        ("/belief", {"fields": [{"type": 7.5}]}, "fields[0].type"),
+        ("/move", {"t_ns": 1}, "$: 'seq' is a required property"),
+        ("/move", {"seq": -1, "t_ns": 1}, "$.seq: -1 is less than the minimum of 0"),
+        ("/move", {"seq": True, "t_ns": 1}, "$.seq: True is not of type 'integer'"),
+        (
+            "/epoch",
+            {"seq": 0, "t_ns": 1, "data": "", "shape": [2], "dtype": "<f8"},
+            "$.dtype: '<f4' was expected",
+        ),
+        ("/log", {"level": 9}, "$.level: 9 is not valid under any of the given schemas"),
+        ("/belief", {"fields": [{"type": 7.5}]}, "$.fields[0].type"),
     ],
 )
 def test_the_validator_catches_bad_messages(
