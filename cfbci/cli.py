@@ -451,7 +451,8 @@ def _run_replay(args: argparse.Namespace, console: Console) -> int:
 
 
 def _replay_reanalyse(args: argparse.Namespace, console: Console) -> int:
-    from cfbci.reanalysis import print_reanalysis, reanalyse
+    from cfbci.reanalysis import reanalyse
+    from cfbci.reanalysis_output import print_reanalysis
 
     result = reanalyse(args.file, _alternatives(args.option, args.compare))
     print_reanalysis(result, console, per_step=args.per_step)
