@@ -317,8 +317,6 @@ def _run_recover(args: argparse.Namespace, console: Console) -> int:
     from replay.recording import read_recording, recover
 
     source: Path = args.file
-    if not source.is_file():
-        raise FileNotFoundError(f"{source}: no such file")
     out: Path = args.out or source.with_name(f"{source.stem}.recovered.mcap")
     if out.resolve() == source.resolve():
         raise ValueError(f"--out {out} is the input file; give another path")
@@ -411,8 +409,6 @@ def _alternatives(options: Sequence[str], compares: Sequence[str]) -> list[dict[
 
 
 def _run_replay(args: argparse.Namespace, console: Console) -> int:
-    if not args.file.is_file():
-        raise FileNotFoundError(f"{args.file}: no such file")
     publish_only = {
         "--speed": args.speed is not None, "--session": args.session is not None,
         "--timeout": args.timeout is not None, "--listen": bool(args.listen),

@@ -38,7 +38,6 @@ import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from itertools import pairwise
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -290,10 +289,9 @@ def publish_recording(
     RuntimeError
         If the service rejects the config or an epoch (an ``error`` event).
     """
-    where = str(recording) if not isinstance(recording, Recording) else recording.session
     if not isinstance(recording, Recording):
         recording = read_recording(recording)
-    published = _prepare(recording, where)
+    published = _prepare(recording, recording.path)
     sid = session_id or default_session_id(recording)
     protocol.key(sid, "config")  # ProtocolError (a ValueError) on a bad id
     pace = check_speed(speed) > 0 and math.isfinite(speed)
@@ -377,10 +375,9 @@ def run_publish(
     """Open a Zenoh peer on the endpoints and :func:`publish_recording` ``path``."""
     if not listen and not connect:
         raise ValueError("give at least one --connect (the service's endpoint) or --listen")
-    if not Path(path).is_file():
-        raise FileNotFoundError(f"{path}: no such file")
+    recording = read_recording(path)  # a bad file fails before the network is touched
     with zenoh.open(peer_config(listen, connect)) as session:
-        return publish_recording(session, path, **options)
+        return publish_recording(session, recording, **options)
 
 
 def print_publish(result: PublishResult, console: Console) -> None:

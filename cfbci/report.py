@@ -58,8 +58,6 @@ def report_session(job: ReportJob) -> SessionReport:
     """
     path = Path(job.path)
     try:
-        if not path.is_file():
-            raise FileNotFoundError(f"{path}: no such file")
         recording = read_recording(path)
         if not recording.config:
             detail = f" ({recording.warning})" if recording.warning else ""

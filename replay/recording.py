@@ -347,6 +347,8 @@ class Recording:
         Byte offset just past the last complete record read.
     warning : str or None
         Where and why reading stopped early; None for a closed file.
+    path : str
+        The file it was read from.
     """
 
     session: str
@@ -355,6 +357,7 @@ class Recording:
     truncated: bool
     end_offset: int
     warning: str | None
+    path: str
 
     @property
     def n_messages(self) -> int:
@@ -391,6 +394,10 @@ def _scan(path: Path) -> tuple[list[McapRecord], int, str | None]:
     (messages of chunks in place of the chunks), the offset past the last complete record,
     and a warning if the file ends before its DataEnd record.
     """
+    if not path.exists():
+        raise FileNotFoundError(f"{path}: no such file")
+    if not path.is_file():
+        raise ValueError(f"{path}: is not a regular file (a directory?)")
     data = path.read_bytes()
     if not data.startswith(_MAGIC):
         if _MAGIC.startswith(data):
@@ -437,8 +444,10 @@ def read_recording(path: str | os.PathLike[str]) -> Recording:
 
     Raises
     ------
+    FileNotFoundError
+        If there is no such file.
     ValueError
-        If the file is not MCAP, or a complete record is corrupt.
+        If it is not a regular file, not MCAP, or a complete record is corrupt.
     """
     records, end_offset, warning = _scan(Path(path))
     topics: dict[int, str] = {}
@@ -457,6 +466,7 @@ def read_recording(path: str | os.PathLike[str]) -> Recording:
         truncated=warning is not None,
         end_offset=end_offset,
         warning=warning,
+        path=str(path),
     )
 
 
