@@ -36,13 +36,8 @@ def parse_settings(pairs: Sequence[str]) -> dict[str, Any]:
     return settings
 
 
-def _add_simulate(commands: argparse._SubParsersAction) -> None:
-    p = commands.add_parser(
-        "simulate",
-        help="offline closed-loop sessions with a simulated user (no network)",
-        description="Run sessions of the calibration-free learner (or the calibrated "
-        "baseline) against a simulated user answering from a dataset, and summarise them.",
-    )
+def _add_data_options(p: argparse.ArgumentParser) -> None:
+    """``--dataset`` and ``--synthetic-accuracy``: where the simulated user's signals come from."""
     p.add_argument(
         "--dataset", type=Path,
         help="dataset file: .mat, .npz, or a session recording .mcap (its epochs, labelled by "
@@ -52,6 +47,16 @@ def _add_simulate(commands: argparse._SubParsersAction) -> None:
         "--synthetic-accuracy", type=float, default=DEFAULT_SYNTHETIC_ACCURACY,
         help=f"synthetic difficulty as nominal balanced LDA accuracy, in {list(ACCURACY_RANGE)}",
     )
+
+
+def _add_simulate(commands: argparse._SubParsersAction) -> None:
+    p = commands.add_parser(
+        "simulate",
+        help="offline closed-loop sessions with a simulated user (no network)",
+        description="Run sessions of the calibration-free learner (or the calibrated "
+        "baseline) against a simulated user answering from a dataset, and summarise them.",
+    )
+    _add_data_options(p)
     p.add_argument("--seeds", type=int, default=20, help="number of sessions (default 20)")
     p.add_argument("--first-seed", type=int, default=0, help="seed of the first session")
     p.add_argument("--steps", type=int, default=500, help="actions per session (default 500)")
@@ -185,15 +190,7 @@ def _run_serve(args: argparse.Namespace, console: Console) -> int:
 
 
 def _add_source_options(p: argparse.ArgumentParser) -> None:
-    p.add_argument(
-        "--dataset", type=Path,
-        help="dataset file: .mat, .npz, or a session recording .mcap (its epochs, labelled by "
-        "its truth; raw epochs if it holds them); default synthetic",
-    )
-    p.add_argument(
-        "--synthetic-accuracy", type=float, default=DEFAULT_SYNTHETIC_ACCURACY,
-        help=f"synthetic difficulty as nominal balanced LDA accuracy, in {list(ACCURACY_RANGE)}",
-    )
+    _add_data_options(p)
     p.add_argument("--seed", type=int, default=0, help="session seed (default 0)")
     p.add_argument("--steps", type=int, default=500, help="actions in the session (default 500)")
     p.add_argument("--grid", type=int, default=5, help="grid side (default 5)")
