@@ -5,7 +5,7 @@ service (docs/protocol.md): it publishes the session's ``config``, waits for
 ``session_started``, then answers every ``move`` with the ``epoch`` of that step and the
 step's ``truth``, until ``session_ended``.
 
-The random streams are those of the simulation (:func:`cfbci.simulation.session_streams`):
+The random streams are those of the simulation (:func:`calibration_free.session.session_streams`):
 the data stream makes the synthetic epochs, the user stream drives
 :class:`acquisition.user.SimulatedUser` with the same draws in the same order (the answer
 to a move, then a new target if the move declared one), and the service derives the
@@ -34,18 +34,18 @@ import zenoh
 from acquisition.labelled import LabelledEpochs, LabelledFeatures
 from acquisition.sources import DataSpec, synthetic_epochs
 from acquisition.user import SimulatedUser
+from calibration_free.session import StepRecord, session_streams
 from calibration_free.world import ACTIONS, GridWorld
-from cfbci import protocol
-from cfbci.protocol import SequenceTracker
-from cfbci.simulation import StepRecord, session_streams
-from cfbci.transport import (
+from wire import protocol
+from wire.protocol import SequenceTracker
+from wire.transport import (
     Outbox,
     Pump,
     Received,
     decode_from_service,
     wait_for_subscribers,
 )
-from cfbci.zenoh_config import peer_config
+from wire.zenoh_config import peer_config
 
 log = logging.getLogger("cfbci.source")
 

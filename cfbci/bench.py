@@ -30,8 +30,8 @@ from acquisition.sources import synthetic_features
 from acquisition.user import SimulatedUser
 from calibration_free.config import LearnerConfig
 from calibration_free.learner import CalibrationFreeLearner
+from calibration_free.session import session_streams
 from calibration_free.world import GridWorld
-from cfbci.simulation import session_streams
 
 
 @dataclass(frozen=True)

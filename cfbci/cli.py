@@ -425,7 +425,7 @@ def _run_replay(args: argparse.Namespace, console: Console) -> int:
     if any(analysis.values()):
         return _replay_reanalyse(args, console)
 
-    from cfbci.rerun import replay_check
+    from replay.rerun import replay_check
 
     result = replay_check(args.file)
     if args.json:

@@ -30,7 +30,7 @@ from rich.table import Table
 
 from acquisition.replay_source import SourceSettings, replay_session
 from cfbci.service import serve
-from cfbci.zenoh_config import free_tcp_endpoint, peer_config
+from wire.zenoh_config import free_tcp_endpoint, peer_config
 
 #: Grid side of the benchmark (T = GRID ** 2 tasks).
 GRID = 5

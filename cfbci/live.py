@@ -29,11 +29,11 @@ from rich.table import Table
 from rich.text import Text
 
 from acquisition.replay_source import SourceSettings, SourceSummary, run_source
-from cfbci import protocol
-from cfbci.protocol import ProtocolError
 from cfbci.service import serve
-from cfbci.transport import Pump, Received
-from cfbci.zenoh_config import free_tcp_endpoint, peer_config
+from wire import protocol
+from wire.protocol import ProtocolError
+from wire.transport import Pump, Received
+from wire.zenoh_config import free_tcp_endpoint, peer_config
 
 #: Seconds the service may take to shut down (close its recordings) after SIGTERM.
 SHUTDOWN_TIMEOUT = 30.0

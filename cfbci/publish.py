@@ -5,9 +5,9 @@ sent again over Zenoh, open-loop, as a source would (docs/protocol.md), under a 
 session id: its ``config`` (the recorded fields; ``steps`` cut to the epochs the recording
 holds, ``dataset`` noting the recording it comes from), then every accepted recorded epoch
 in order, each followed by the recorded ``truth`` of its step (so that a recording service
-records it), all with fresh sequence numbers and timestamps (:class:`cfbci.transport.Outbox`,
+records it), all with fresh sequence numbers and timestamps (:class:`wire.transport.Outbox`,
 reliable publication with congestion control BLOCK). The service's answers are read by our
-own threads (:class:`cfbci.transport.Pump`), never in Zenoh callbacks.
+own threads (:class:`wire.transport.Pump`), never in Zenoh callbacks.
 
 Pacing
     The service checks that an epoch carries the step of its last move and answers each
@@ -44,18 +44,18 @@ import numpy as np
 import zenoh
 from rich.console import Console
 
-from cfbci import protocol
-from cfbci.protocol import SequenceTracker
-from cfbci.rerun import Divergence, move_divergence, state_divergence
-from cfbci.transport import (
+from replay.recording import Recording, decode_array, read_recording
+from replay.rerun import Divergence, move_divergence, state_divergence
+from wire import protocol
+from wire.protocol import SequenceTracker
+from wire.transport import (
     Outbox,
     Pump,
     Received,
     decode_from_service,
     wait_for_subscribers,
 )
-from cfbci.zenoh_config import peer_config
-from replay.recording import Recording, decode_array, read_recording
+from wire.zenoh_config import peer_config
 
 log = logging.getLogger("cfbci.publish")
 

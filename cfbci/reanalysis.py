@@ -6,7 +6,7 @@ re-scored by learners with other settings, to compare settings on identical data
 Open loop
     A re-scoring learner never chooses an action: it observes the recorded
     ``(from_state, action, signal)`` of every step, in order (raw epochs go through the ErrP
-    feature extractor as in the service, :func:`cfbci.rerun.recorded_signals`). Where the
+    feature extractor as in the service, :func:`replay.rerun.recorded_signals`). Where the
     recorded device declared a target (a ``move`` with ``target_reached``), the user then
     picked a new target, so every re-scoring learner switches task *at the same steps, to
     the same declared cells* (:meth:`calibration_free.learner.TaskLearner.follow_declaration`):
@@ -46,9 +46,9 @@ import numpy as np
 
 from calibration_free.config import LearnerConfig
 from calibration_free.world import ACTIONS
-from cfbci.rerun import recorded_learner, recorded_signals
-from cfbci.service import learner_settings
 from replay.recording import Recording, read_recording
+from replay.rerun import recorded_learner, recorded_signals
+from wire.messages import learner_settings
 
 #: Name of the recording's own settings in the report.
 OWN = "own settings"

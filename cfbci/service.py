@@ -12,9 +12,9 @@ learner, owns the only ``cfbci/*/truth`` subscription and writes what arrives th
 recordings. :class:`_Session`, the learner's side, is never given a truth message.
 
 The agent's start cell is the first draw of the session's *user* stream
-(:func:`cfbci.simulation.session_streams` ``[1]``), as :class:`acquisition.user.SimulatedUser`
-draws it, so that a live session replays ``cfbci simulate`` exactly; the learner's stream is
-``session_streams(seed)[2]``.
+(:func:`calibration_free.session.session_streams` ``[1]``), as
+:class:`acquisition.user.SimulatedUser` draws it, so that a live session replays
+``cfbci simulate`` exactly; the learner's stream is ``session_streams(seed)[2]``.
 """
 
 from __future__ import annotations
@@ -31,17 +31,17 @@ from typing import Any
 import numpy as np
 import zenoh
 
-from calibration_free.config import LearnerConfig
-from calibration_free.learner import CalibrationFreeLearner, Proposal
-from calibration_free.world import ACTIONS, GridWorld
-from cfbci import protocol
+from calibration_free.learner import CalibrationFreeLearner
+from calibration_free.session import session_streams, start_cell
+from calibration_free.world import GridWorld
 from cfbci.memory import keep_freed_memory
-from cfbci.protocol import NO_SESSION, ProtocolError, SequenceTracker
-from cfbci.simulation import session_streams
-from cfbci.transport import Outbox, Pump, Received, wait_for_subscribers
-from cfbci.zenoh_config import peer_config
 from decoding.features import ErrPFeatures
 from replay.recording import SessionRecorder
+from wire import protocol
+from wire.messages import learner_settings, move_fields, state_fields
+from wire.protocol import NO_SESSION, ProtocolError, SequenceTracker
+from wire.transport import Outbox, Pump, Received, wait_for_subscribers
+from wire.zenoh_config import peer_config
 
 log = logging.getLogger("cfbci.service")
 
@@ -52,83 +52,6 @@ MAX_GRID = 32
 #: foxglove.Log levels of the event kinds.
 _LOG_LEVELS = {"error": 4, "info": 2}
 _STOP = None  # queue sentinel: shut the service down
-
-
-def learner_settings(values: dict[str, Any], frame: str) -> LearnerConfig:
-    """The learner configuration of a config message's ``learner`` object and ``frame``.
-
-    Every value must have the JSON type of its setting's default (a number for a float
-    setting, an integer for an integer one, ...).
-
-    Raises
-    ------
-    ValueError
-        On an unknown setting, a value of the wrong type or out of range, or a ``frame``
-        setting that differs from the config's.
-    """
-    defaults = LearnerConfig().to_dict()
-    for name, value in values.items():
-        default = defaults.get(name)
-        if isinstance(default, bool | str):
-            ok = isinstance(value, type(default))
-        elif isinstance(default, int):
-            ok = isinstance(value, int) and not isinstance(value, bool)
-        else:  # a float setting takes any number
-            ok = isinstance(value, int | float) and not isinstance(value, bool)
-        if name in defaults and not ok:
-            raise ValueError(
-                f"learner setting {name!r} must be a {type(default).__name__}; got {value!r}"
-            )
-    if values.get("frame", frame) != frame:
-        raise ValueError(
-            f"learner frame {values['frame']!r} differs from the config's frame {frame!r}"
-        )
-    return LearnerConfig.from_dict({**values, "frame": frame})
-
-
-def start_cell(seed: int, n_states: int) -> int:
-    """The agent's start cell: the first draw of the session's user stream.
-
-    Parameters
-    ----------
-    seed : int
-        Session seed.
-    n_states : int
-        Cells of the grid (``grid ** 2``).
-    """
-    return int(session_streams(seed)[1].integers(n_states))
-
-
-def move_fields(world: GridWorld, step: int, state: int, proposal: Proposal) -> dict[str, Any]:
-    """The fields of the ``move`` message of ``proposal`` taken in ``state`` at ``step``."""
-    return {
-        "step": step,
-        "from_state": state,
-        "action": ACTIONS[proposal.action],
-        "to_state": world.step(state, proposal.action),
-        "target_reached": proposal.declares_target,
-    }
-
-
-def state_fields(learner: CalibrationFreeLearner) -> tuple[dict[str, Any], np.ndarray]:
-    """The fields of a ``state`` message, and its payload: the confidence of every task
-    (float32, shape (n_tasks,))."""
-    beliefs = learner.beliefs()
-    counts = (
-        learner.history.label_weights[beliefs.best_task].sum(axis=0)
-        if beliefs.n_signals
-        else np.zeros(learner.frame.n_classes)
-    )
-    fields = {
-        "best_task": beliefs.best_task,
-        "confident": beliefs.confident,
-        "n_signals": beliefs.n_signals,
-        "class_counts": [float(c) for c in counts],
-        "balanced_accuracy": (
-            learner.balanced_accuracy(beliefs.best_task) if beliefs.n_signals else None
-        ),
-    }
-    return fields, beliefs.confidence.astype(np.float32)
 
 
 class Recordings:
@@ -544,7 +467,7 @@ def serve(
     Parameters
     ----------
     listen, connect : sequence of str
-        Zenoh endpoints (see :func:`cfbci.zenoh_config.peer_config`).
+        Zenoh endpoints (see :func:`wire.zenoh_config.peer_config`).
     record_dir : Path or None
         Directory of the recordings (``<session>.mcap``); None records nothing.
     on_end : callable or None

@@ -13,9 +13,10 @@ from rich.table import Table
 
 from acquisition.labelled import LabelledFeatures
 from acquisition.sources import DataFactory, DataSpec
+from calibration_free.session import StepRecord
 from cfbci.memory import keep_freed_memory
 from cfbci.parallel import run_parallel
-from cfbci.simulation import SessionConfig, SessionResult, StepRecord, run_session, summarise
+from cfbci.simulation import SessionConfig, SessionResult, run_session, summarise
 
 
 @dataclass(frozen=True)

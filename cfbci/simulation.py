@@ -4,11 +4,8 @@ A step is one device action (``goal`` included) answered by one signal. A target
 reached when the device performs ``goal`` while confident, in the cell it is confident
 about; the user then picks a new target.
 
-Random streams: the session seed ``s`` is expanded with
-``numpy.random.SeedSequence(s).spawn(3)`` into, in order, the *data* stream (the
-synthetic generator's draws), the *user* stream (start cell, targets, labels, pool
-shuffles; see :mod:`acquisition.user`) and the *learner* stream (planner choices). Any
-process that spawns the same way reproduces the session exactly.
+Random streams: :mod:`calibration_free.session` (data, user and learner streams of a
+session seed).
 """
 
 from __future__ import annotations
@@ -24,6 +21,7 @@ from acquisition.user import SimulatedUser
 from calibration_free.baseline import DEFAULT_CALIBRATION_TRIALS, CalibratedBaseline
 from calibration_free.config import LearnerConfig
 from calibration_free.learner import CalibrationFreeLearner, TaskLearner
+from calibration_free.session import StepRecord, session_streams
 from calibration_free.world import ACTIONS, GridWorld
 
 BASELINES: tuple[str, ...] = ("calibrated",)
@@ -60,23 +58,6 @@ class SessionConfig:
 
 
 @dataclass(frozen=True)
-class StepRecord:
-    """One step of a session, as written to a trace.
-
-    ``confident`` and ``best_task`` are the learner's beliefs when it chose the action.
-    """
-
-    seed: int
-    step: int
-    state: int
-    action: str
-    next_state: int
-    confident: bool
-    best_task: int
-    event: str | None
-
-
-@dataclass(frozen=True)
 class SessionResult:
     """Figures of one session (steps are 1-based; None when it never happened)."""
 
@@ -86,11 +67,6 @@ class SessionResult:
     first_correct_target_step: int | None
     correct_targets: int
     wrong_targets: int
-
-
-def session_streams(seed: int) -> tuple[np.random.Generator, ...]:
-    """The (data, user, learner) generators of a session seed."""
-    return tuple(np.random.default_rng(s) for s in np.random.SeedSequence(seed).spawn(3))
 
 
 def make_learner(

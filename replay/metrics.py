@@ -24,7 +24,7 @@ recording holds one more, final, state after the last signal).
   the steps of successive declared targets, correct or wrong (the first search excluded;
   it is ``first_target_step``), i.e. the speed once the decoder is calibrated by use.
 * **Decoder balanced accuracy against the truth** after ``t`` signals: the learner is re-run
-  over the recording (:func:`cfbci.rerun.recompute`, identical to the service); after it
+  over the recording (:func:`replay.rerun.recompute`, identical to the service); after it
   has observed the epochs of steps ``1..t``, take its best task ``b_t`` (the one the
   ``/state`` after ``t`` signals names) and the out-of-fold class probabilities of ``b_t``'s
   decoder for those ``t`` signals (``TaskModels.cv_proba[b_t]``: each signal predicted by
@@ -50,9 +50,9 @@ import numpy as np
 from calibration_free.frames import FRAMES, Frame
 from calibration_free.learner import CalibrationFreeLearner
 from calibration_free.world import GridWorld
-from cfbci.rerun import first_divergence, recompute
-from cfbci.service import learner_settings
 from replay.recording import Recording
+from replay.rerun import first_divergence, recompute
+from wire.messages import learner_settings
 
 #: Names of the classes of each frame, in class order (truth ``label`` values).
 CLASS_NAMES: dict[str, tuple[str, ...]] = {

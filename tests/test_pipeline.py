@@ -25,15 +25,16 @@ from mcap.reader import make_reader
 
 from acquisition.replay_source import SourceSettings, SourceSummary, run_source
 from acquisition.sources import DataSpec
+from calibration_free.session import StepRecord
 from calibration_free.world import ACTIONS, GridWorld
-from cfbci import protocol
 from cfbci.cli import main
-from cfbci.rerun import replay_check
 from cfbci.service import serve
-from cfbci.simulation import SessionConfig, StepRecord, run_session
-from cfbci.transport import Outbox, Pump, Received, reliable_publisher, wait_for_subscribers
-from cfbci.zenoh_config import free_tcp_endpoint, peer_config
+from cfbci.simulation import SessionConfig, run_session
 from replay.recording import Recording, SessionRecorder, decode_array, read_recording
+from replay.rerun import replay_check
+from wire import protocol
+from wire.transport import Outbox, Pump, Received, reliable_publisher, wait_for_subscribers
+from wire.zenoh_config import free_tcp_endpoint, peer_config
 
 STEPS, GRID = 60, 3
 

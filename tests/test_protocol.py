@@ -8,7 +8,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from cfbci.protocol import (
+from wire.protocol import (
     COMMON,
     KINDS,
     MAX_BYTES,

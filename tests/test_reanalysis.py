@@ -26,10 +26,10 @@ from cfbci.reanalysis import (
     rescore,
     segments_of,
 )
-from cfbci.rerun import replay_check
-from cfbci.service import learner_settings
-from cfbci.zenoh_config import free_tcp_endpoint
 from replay.recording import Recording, decode_array, read_recording
+from replay.rerun import replay_check
+from wire.messages import learner_settings
+from wire.zenoh_config import free_tcp_endpoint
 
 STEPS, GRID, SEED = 60, 3, 4  # seed 4: 2 correct and 1 wrong target
 

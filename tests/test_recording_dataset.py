@@ -16,26 +16,29 @@ from live import TIMEOUT, rewrite, service_process
 from acquisition.labelled import LabelledEpochs, LabelledFeatures
 from acquisition.loaders import load_epochs, load_labelled, load_recording_dataset
 from acquisition.replay_source import SourceSettings, run_source
-from acquisition.sources import DataSpec
+from acquisition.sources import DEFAULT_SYNTHETIC_ACCURACY, DataSpec, synthetic_features
+from calibration_free.session import StepRecord
 from cfbci.cli import main
-from cfbci.rerun import replay_check
-from cfbci.simulation import SessionConfig, StepRecord, run_session
-from cfbci.zenoh_config import free_tcp_endpoint
+from cfbci.simulation import SessionConfig, run_session
 from replay.recording import Recording, decode_array, read_recording
+from replay.rerun import replay_check
+from wire.zenoh_config import free_tcp_endpoint
 
-DATASETS = Path(__file__).resolve().parents[1].parent / "shared" / "datasets"
-S4 = DATASETS / "errp-features-s4" / "s4.mat"
 STEPS, GRID = 60, 3
 REPLAY_SEED = 5  # a session on the raw recording's 60 epochs that reaches targets
 
 
 @pytest.fixture(scope="module")
 def recordings(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
-    """Two recorded live sessions: synthetic raw epochs ("raw") and s4 features ("feat")."""
+    """Two recorded live sessions: synthetic raw epochs ("raw") and synthetic feature vectors
+    from a features ``.npz`` file ("feat"; 34 features, as ``s4.mat``'s)."""
     directory = tmp_path_factory.mktemp("recordings")
+    features = synthetic_features(DEFAULT_SYNTHETIC_ACCURACY, np.random.default_rng(4))
+    features_file = directory / "features.npz"
+    np.savez(features_file, features=features.features, labels=features.labels)
     endpoint = free_tcp_endpoint()
     with service_process(endpoint, directory):
-        for session, data in (("raw", DataSpec()), ("feat", DataSpec(S4))):
+        for session, data in (("raw", DataSpec()), ("feat", DataSpec(features_file))):
             settings = SourceSettings(
                 session, data=data, seed=1, steps=STEPS, grid=GRID, timeout=TIMEOUT
             )
@@ -79,7 +82,7 @@ def test_a_recording_of_features_gives_its_feature_vectors(recordings: dict[str,
     recording = read_recording(path)
     data = load_recording_dataset(path)
     assert isinstance(data, LabelledFeatures)
-    assert data.features.shape == (STEPS, 34)
+    assert data.features.shape == (STEPS, 57)
     assert np.array_equal(data.features, _payloads(recording, "/epoch").astype(np.float64))
     assert data.labels.tolist() == _truth_labels(recording)
     assert np.array_equal(load_labelled(path).features, data.features)

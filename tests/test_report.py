@@ -3,7 +3,7 @@
 Recordings are written in-process with :class:`SessionRecorder` (no Zenoh): a hand-built one
 whose every metric is known by construction, and a real one made by running the learner and
 a simulated user exactly as the service and the replay source do (checked with
-:func:`cfbci.rerun.replay_check`).
+:func:`replay.rerun.replay_check`).
 """
 
 from __future__ import annotations
@@ -20,16 +20,16 @@ import pytest
 from acquisition.sources import DEFAULT_SYNTHETIC_ACCURACY, synthetic_epochs
 from acquisition.user import SimulatedUser
 from calibration_free.learner import CalibrationFreeLearner
+from calibration_free.session import session_streams, start_cell
 from calibration_free.world import ACTIONS, GridWorld
 from cfbci.cli import main
-from cfbci.rerun import replay_check
-from cfbci.service import learner_settings, move_fields, start_cell, state_fields
-from cfbci.simulation import session_streams
 from decoding.features import ErrPFeatures
 from replay.figures import session_figures
 from replay.html_report import SessionReport, render_html
 from replay.metrics import aggregate, latency_summary, session_metrics
 from replay.recording import SessionRecorder, read_recording
+from replay.rerun import replay_check
+from wire.messages import learner_settings, move_fields, state_fields
 
 KINDS = ("confidence", "belief", "accuracy", "erp", "latency")
 

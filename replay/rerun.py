@@ -19,11 +19,11 @@ import numpy as np
 
 from calibration_free.config import LearnerConfig
 from calibration_free.learner import CalibrationFreeLearner
+from calibration_free.session import session_streams, start_cell
 from calibration_free.world import GridWorld
-from cfbci.service import learner_settings, move_fields, start_cell, state_fields
-from cfbci.simulation import session_streams
 from decoding.features import ErrPFeatures
 from replay.recording import Recording, decode_array, read_recording
+from wire.messages import learner_settings, move_fields, state_fields
 
 MOVE_FIELDS = ("step", "from_state", "action", "to_state", "target_reached")
 STATE_FIELDS = ("best_task", "confident", "n_signals", "class_counts", "balanced_accuracy")

@@ -17,7 +17,7 @@ from typing import Any
 
 import zenoh
 
-from cfbci import protocol
+from wire import protocol
 
 #: Capacity of a subscriber's FIFO channel, in messages.
 CHANNEL_CAPACITY = 1024
@@ -167,7 +167,7 @@ class Outbox:
         Parameters
         ----------
         kind, session : str
-            See :func:`cfbci.protocol.key`.
+            See :func:`wire.protocol.key`.
         fields : dict
             The kind's header fields.
         payload : ndarray or None
