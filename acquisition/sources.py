@@ -13,21 +13,29 @@ from pathlib import Path
 
 import numpy as np
 
+from acquisition.gaussian import generate_gaussian_features
 from acquisition.labelled import LabelledEpochs, LabelledFeatures
-from acquisition.loaders import features_from_epochs, load_labelled, load_recording_dataset
+from acquisition.loaders import (
+    N_CLASSES,
+    features_from_epochs,
+    load_labelled,
+    load_recording_dataset,
+)
 from acquisition.synthetic import generate_errp_epochs
 
 #: Epochs of each class in a synthetic session's pools (the user draws without
 #: replacement per class and reshuffles a pool when it runs out).
 SYNTHETIC_EPOCHS_PER_CLASS = 600
 DEFAULT_SYNTHETIC_ACCURACY = 0.78
+#: The synthetic generators: ErrP EEG epochs (feedback only), or K-class Gaussian signals.
+SYNTHETIC_KINDS = ("errp", "gaussian")
 
 DataFactory = Callable[[np.random.Generator], LabelledFeatures]
 
 
 @dataclass(frozen=True)
 class DataSpec:
-    """A dataset file, or synthetic ErrP data of a given nominal balanced accuracy.
+    """A dataset file, or synthetic data of a given nominal balanced accuracy.
 
     Attributes
     ----------
@@ -36,26 +44,41 @@ class DataSpec:
         recording answers with its epochs and their truth labels); None: synthetic.
     synthetic_accuracy : float
         Nominal balanced accuracy of the synthetic generator (ignored with a path).
+    synthetic : {"errp", "gaussian"}
+        The generator: ErrP EEG epochs (:mod:`acquisition.synthetic`, feedback frame), or
+        Gaussian signals with as many classes as the frame needs
+        (:mod:`acquisition.gaussian`).
+    dims : int
+        Dimensions of a Gaussian signal.
     """
 
     path: Path | None = None
     synthetic_accuracy: float = DEFAULT_SYNTHETIC_ACCURACY
+    synthetic: str = "errp"
+    dims: int = 2
 
     def describe(self) -> str:
         if self.path is not None:
             return str(self.path)
-        return f"synthetic (nominal balanced accuracy {self.synthetic_accuracy:g})"
+        kind = "" if self.synthetic == "errp" else f" {self.dims}-D Gaussian"
+        return f"synthetic{kind} (nominal balanced accuracy {self.synthetic_accuracy:g})"
 
     def resolve(self, frame: str) -> LabelledFeatures | DataFactory:
         """Loaded features, or a function generating a session's synthetic features."""
         if self.path is not None:
             return load_labelled(self.path, frame=frame)
+        accuracy = self.synthetic_accuracy
+        if self.synthetic == "gaussian":
+            n_classes, dims = N_CLASSES[frame], self.dims
+            return lambda rng: generate_gaussian_features(
+                SYNTHETIC_EPOCHS_PER_CLASS, n_classes, dims, accuracy, rng
+            )
         if frame != "feedback":
             raise ValueError(
                 "the synthetic generator makes ErrP (correct/error) data for the feedback "
-                f"frame; the {frame} frame needs a 4-class dataset: pass --dataset PATH"
+                f"frame; the {frame} frame needs a 4-class dataset: pass --dataset PATH, or "
+                "--synthetic gaussian"
             )
-        accuracy = self.synthetic_accuracy
         return lambda rng: synthetic_features(accuracy, rng)
 
     def load_signals(self, frame: str) -> LabelledEpochs | LabelledFeatures:
