@@ -1,0 +1,73 @@
+"""Offline sessions of the continuous-goal world (method-extensions §3): learner and teacher.
+
+Random streams are those of :mod:`calibration_free.session`: the user stream drives the
+:class:`acquisition.cardinal_teacher.CardinalTeacher` (goal, directions, pools), the
+learner stream the :class:`calibration_free.continuous_goals.ContinuousGoalLearner`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from acquisition.cardinal_teacher import CardinalTeacher
+from acquisition.labelled import LabelledFeatures
+from calibration_free.continuous_goals import ContinuousConfig, ContinuousGoalLearner
+from calibration_free.session import session_streams
+
+
+@dataclass(frozen=True)
+class ContinuousResult:
+    """One session: the best particle's distance to the goal after every step.
+
+    Attributes
+    ----------
+    seed : int
+    goal : tuple of float
+    distances : tuple of float
+        Euclidean distance of the estimate to the goal after steps 1, 2, ...
+    probes : tuple of tuple of float
+        The probed points, in order.
+    """
+
+    seed: int
+    goal: tuple[float, float]
+    distances: tuple[float, ...]
+    probes: tuple[tuple[float, float], ...]
+
+    @property
+    def final_distance(self) -> float:
+        return self.distances[-1]
+
+    def to_dict(self) -> dict[str, object]:
+        return {
+            "seed": self.seed,
+            "goal": list(self.goal),
+            "final_distance": self.final_distance,
+            "distance_every_10": [self.distances[k] for k in range(9, len(self.distances), 10)],
+        }
+
+
+def run_continuous_session(
+    seed: int,
+    config: ContinuousConfig,
+    data: LabelledFeatures,
+    steps: int = 200,
+    class_order: Sequence[int] | None = None,
+) -> ContinuousResult:
+    """One closed-loop session of ``steps`` probes on a 4-class dataset."""
+    _, user_rng, learner_rng = session_streams(seed)
+    teacher = CardinalTeacher(data.labels, user_rng, class_order=class_order)
+    learner = ContinuousGoalLearner(config, learner_rng)
+    distances, probes = [], []
+    for _ in range(steps):
+        point = learner.propose()
+        index, _ = teacher.answer(point)
+        learner.observe(point, data.features[index])
+        distances.append(float(np.linalg.norm(learner.estimate() - teacher.goal)))
+        probes.append((float(point[0]), float(point[1])))
+    return ContinuousResult(
+        seed, (float(teacher.goal[0]), float(teacher.goal[1])), tuple(distances), tuple(probes)
+    )
