@@ -1,6 +1,6 @@
 """Read labelled BCI data from disk; :func:`load_labelled` is the single entry point.
 
-Four formats are read, chosen by the file extension and then checked against the content:
+Six formats are read, chosen by the file extension and then checked against the content:
 
 ``.mat`` (MATLAB v4-v7, read with :func:`scipy.io.loadmat`; the thesis data sets)
     Variable ``X``, shape (n_signals, n_features), real numbers (microvolts for ErrP
@@ -19,6 +19,17 @@ Four formats are read, chosen by the file extension and then checked against the
     ``label`` of its step's ``/truth``: raw epochs (float32 microvolts, with the recorded
     ``sfreq``, ``tmin`` and ``ch_names``) when the session sent raw epochs, feature
     vectors otherwise; see :func:`load_recording_dataset`.
+``-epo.fif`` MNE epochs (``.fif``, ``.fif.gz``; optional package ``mne``)
+    The EEG channels not marked bad, volts turned into microvolts, with the file's
+    ``sfreq``, ``tmin`` and channel names; labels from the event names (``correct``,
+    ``error``; guidance ``up``, ``down``, ``left``, ``right``; or MNE tags of them such as
+    ``feedback/error``), or from the event codes in the ``.mat`` convention when every event
+    name is a number; see :mod:`acquisition.lab_formats`.
+``.xdf`` XDF recordings (``.xdfz``, ``.xdf.gz``; optional package ``pyxdf``)
+    One ``EEG`` stream and one ``Markers`` stream; every marker whose value is a class name
+    (as for MNE event names) is an action onset, and its epoch is cut MNE-style from
+    -0.2 s to 1.0 s around it (:data:`acquisition.lab_formats.XDF_EPOCH_WINDOW`); see
+    :mod:`acquisition.lab_formats`.
 
 Labels always come back 0-based. The *feedback* frame needs exactly 2 classes (correct,
 error); the *guidance* frame exactly 4 (the four move directions). Every class needs at least
@@ -39,6 +50,7 @@ from typing import Any
 import numpy as np
 import scipy.io
 
+from acquisition.lab_formats import read_fif_epochs, read_xdf_epochs, write_fif_epochs
 from acquisition.labelled import LabelledEpochs, LabelledFeatures
 from decoding.features import ErrPFeatures
 from decoding.validation import check_array, check_option
@@ -55,16 +67,21 @@ MIN_SIGNALS_PER_CLASS = 2
 _MAT_VARIABLES = ("X", "Y")
 _FEATURE_KEYS = ("features", "labels")
 _EPOCH_KEYS = ("epochs", "sfreq", "tmin", "ch_names", "labels")
+#: File-name endings of the formats read by :mod:`acquisition.lab_formats`.
+_LAB_FORMATS = {".fif": "fif", ".fif.gz": "fif", ".xdf": "xdf", ".xdfz": "xdf", ".xdf.gz": "xdf"}
+#: The endings MNE expects of an epochs file's name.
+_FIF_EPOCHS_ENDINGS = ("-epo.fif", "_epo.fif", "-epo.fif.gz", "_epo.fif.gz")
 
 
 def load_labelled(path: PathLike, *, frame: str = "feedback") -> LabelledFeatures:
-    """Load feature vectors and 0-based labels from a ``.mat``, ``.npz`` or ``.mcap`` file.
+    """Load feature vectors and 0-based labels from a file of one of the six formats.
 
     Parameters
     ----------
     path : str or path-like
-        A ``.mat`` file (``X``, ``Y``), a features ``.npz``, an epochs ``.npz`` or a session
-        recording ``.mcap`` (see the module docstring and :func:`load_recording_dataset`).
+        A ``.mat`` file (``X``, ``Y``), a features ``.npz``, an epochs ``.npz``, a session
+        recording ``.mcap`` (see the module docstring and :func:`load_recording_dataset`),
+        MNE epochs (``-epo.fif``) or an XDF recording (``.xdf``).
         Epochs are turned into features with :class:`decoding.features.ErrPFeatures` and
         its default channels.
     frame : {"feedback", "guidance"}
@@ -94,10 +111,13 @@ def load_labelled(path: PathLike, *, frame: str = "feedback") -> LabelledFeature
     if suffix == ".mcap":
         data = load_recording_dataset(path, frame=frame)
         return features_from_epochs(data) if isinstance(data, LabelledEpochs) else data
+    if _lab_format(path) is not None:
+        return features_from_epochs(_lab_epochs(path, frame))
     if suffix != ".npz":
         raise ValueError(
-            f"{where}: unknown file extension {path.suffix!r}; expected .mat (MATLAB X and Y) "
-            "or .npz (features or epochs), or .mcap (a session recording)"
+            f"{where}: unknown file extension {path.suffix!r}; expected .mat (MATLAB X and Y), "
+            ".npz (features or epochs), .mcap (a session recording), -epo.fif (MNE epochs) or "
+            ".xdf (an XDF recording)"
         )
     arrays = _read_npz(path)
     if _npz_format(arrays, where) == "epochs":
@@ -112,12 +132,13 @@ def load_labelled(path: PathLike, *, frame: str = "feedback") -> LabelledFeature
 
 
 def load_epochs(path: PathLike, *, frame: str = "feedback") -> LabelledEpochs:
-    """Load raw labelled epochs from an epochs ``.npz`` file (see the module docstring).
+    """Load raw labelled epochs from a file that holds them (see the module docstring).
 
     Parameters
     ----------
     path : str or path-like
-        An epochs ``.npz`` as written by :func:`save_epochs_npz`.
+        An epochs ``.npz`` as written by :func:`save_epochs_npz`, a session recording of
+        raw epochs (``.mcap``), MNE epochs (``-epo.fif``) or an XDF recording (``.xdf``).
     frame : {"feedback", "guidance"}
         Which labels are valid, as in :func:`load_labelled`.
 
@@ -133,7 +154,7 @@ def load_epochs(path: PathLike, *, frame: str = "feedback") -> LabelledEpochs:
     FileNotFoundError
         If ``path`` does not exist.
     ValueError
-        If the file is not an epochs ``.npz`` or breaks the format.
+        If the file holds no epochs (e.g. a features ``.npz``) or breaks its format.
     """
     check_option("frame", frame, N_CLASSES)
     path = _existing_file(path)
@@ -143,10 +164,12 @@ def load_epochs(path: PathLike, *, frame: str = "feedback") -> LabelledEpochs:
         if not isinstance(data, LabelledEpochs):
             raise ValueError(f"{where}: the session sent feature vectors, not raw epochs")
         return data
+    if _lab_format(path) is not None:
+        return _lab_epochs(path, frame)
     if path.suffix.lower() != ".npz":
         raise ValueError(
-            f"{where}: epochs are stored in .npz files; got extension {path.suffix!r} (session "
-            "recordings, .mcap, hold them too)"
+            f"{where}: epochs are read from .npz, .mcap (session recordings of raw epochs), "
+            f"-epo.fif (MNE) or .xdf files; got extension {path.suffix!r}"
         )
     arrays = _read_npz(path)
     if _npz_format(arrays, where) != "epochs":
@@ -157,7 +180,7 @@ def load_epochs(path: PathLike, *, frame: str = "feedback") -> LabelledEpochs:
 
 
 def load_recording_dataset(
-    path: PathLike, *, frame: str = "feedback"
+    path: PathLike, *, frame: str | None = "feedback"
 ) -> LabelledEpochs | LabelledFeatures:
     """A session recording as a labelled dataset: its epochs, labelled by its truth.
 
@@ -171,8 +194,8 @@ def load_recording_dataset(
     ----------
     path : str or path-like
         An ``.mcap`` recording (:class:`replay.recording.SessionRecorder`), complete or cut.
-    frame : {"feedback", "guidance"}
-        Must be the recorded session's frame.
+    frame : {"feedback", "guidance"} or None
+        Must be the recorded session's frame; None: the recorded session's frame.
 
     Returns
     -------
@@ -191,13 +214,16 @@ def load_recording_dataset(
         If the file is not a recording, holds no configuration, was recorded in another
         frame, holds no truth, or too few signals of a class; the message names the file.
     """
-    check_option("frame", frame, N_CLASSES)
+    if frame is not None:
+        check_option("frame", frame, N_CLASSES)
     path = _existing_file(path)
     where = str(path)
     recording = read_recording(path)  # a ValueError naming the file if it is not MCAP
     config = recording.config
     if not config:
         raise ValueError(f"{where}: the recording holds no session configuration")
+    if frame is None and config.get("frame") in N_CLASSES:
+        frame = config["frame"]
     if config.get("frame") != frame:
         raise ValueError(
             f"{where}: a recording of a {config.get('frame')!r}-frame session; its labels do "
@@ -317,6 +343,53 @@ def save_epochs_npz(path: PathLike, epochs: LabelledEpochs) -> None:
     }
     _parse_epochs(arrays, str(path))
     np.savez(path, **arrays)
+
+
+def save_epochs_fif(path: PathLike, epochs: LabelledEpochs) -> None:
+    """Write labelled epochs as an MNE epochs file that :func:`load_epochs` reads back.
+
+    Parameters
+    ----------
+    path : str or path-like
+        Destination; must end in ``-epo.fif`` (or ``_epo.fif``, ``.gz`` optional), MNE's
+        convention for epochs files. Overwritten if it exists.
+    epochs : LabelledEpochs
+        Epochs in microvolts (written in volts, float64), with ``sfreq``, ``tmin``,
+        ``ch_names`` (EEG channels) and 0-based labels, which become events
+        ``[i, 0, label + 1]`` named after their classes (``correct``, ``error``; guidance
+        ``up``, ``down``, ``left``, ``right``); see
+        :func:`acquisition.lab_formats.write_fif_epochs`.
+
+    Raises
+    ------
+    ValueError
+        If the name does not end as MNE expects, the epochs break the format, ``mne`` is not
+        installed, or ``epochs.n_classes`` is that of no frame.
+    """
+    path = Path(path)
+    if not path.name.lower().endswith(_FIF_EPOCHS_ENDINGS):
+        raise ValueError(f"{path}: an MNE epochs file name must end in -epo.fif")
+    frames = {n: frame for frame, n in N_CLASSES.items()}
+    if epochs.n_classes not in frames:
+        raise ValueError(f"{path}: {epochs.n_classes} classes are those of no frame")
+    arrays = {
+        "epochs": epochs.epochs, "sfreq": epochs.sfreq, "tmin": epochs.tmin,
+        "ch_names": np.array(epochs.ch_names, dtype=str), "labels": epochs.labels,
+    }
+    _parse_epochs(arrays, str(path))
+    write_fif_epochs(path, arrays, frames[epochs.n_classes])
+
+
+def _lab_format(path: Path) -> str | None:
+    """"fif" or "xdf" for the file names of :mod:`acquisition.lab_formats`, else None."""
+    name = path.name.lower()
+    return next((kind for end, kind in _LAB_FORMATS.items() if name.endswith(end)), None)
+
+
+def _lab_epochs(path: Path, frame: str) -> LabelledEpochs:
+    """Epochs of an MNE or XDF file, checked as those of an epochs ``.npz``."""
+    read = read_fif_epochs if _lab_format(path) == "fif" else read_xdf_epochs
+    return _epochs_from_arrays(read(path, frame), str(path), frame)
 
 
 def _existing_file(path: PathLike) -> Path:

@@ -26,6 +26,7 @@ import queue
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -42,6 +43,7 @@ from wire.transport import (
     Outbox,
     Pump,
     Received,
+    Resender,
     decode_from_service,
     wait_for_subscribers,
 )
@@ -51,6 +53,8 @@ log = logging.getLogger("cfbci.source")
 
 #: Seconds without any message from the service after which the source gives up.
 DEFAULT_TIMEOUT = 30.0
+#: Seconds between two sendings of an unanswered config or epoch.
+RESEND_INTERVAL = 1.0
 
 
 @dataclass(frozen=True)
@@ -78,6 +82,8 @@ class SourceSettings:
         Probability that the user's label is wrong (see :class:`SimulatedUser`).
     timeout : float
         Seconds without a message from the service before giving up (a failure guard).
+    resend_interval : float
+        Seconds between two sendings of the unanswered config or epoch.
     """
 
     session: str
@@ -90,6 +96,7 @@ class SourceSettings:
     interval: float = 0.0
     user_error_rate: float = 0.0
     timeout: float = DEFAULT_TIMEOUT
+    resend_interval: float = RESEND_INTERVAL
 
 
 @dataclass(frozen=True)
@@ -160,9 +167,11 @@ def run_source(
     settings: SourceSettings,
     listen: Sequence[str] = (),
     connect: Sequence[str] = (),
+    zenoh_config: Path | None = None,
 ) -> SourceSummary:
-    """Open a Zenoh peer and replay one session (see :func:`replay_session`)."""
-    with zenoh.open(peer_config(listen, connect)) as session:
+    """Open a Zenoh peer (or what ``zenoh_config``, a Zenoh JSON5 file merged over the
+    defaults, says) and replay one session (see :func:`replay_session`)."""
+    with zenoh.open(peer_config(listen, connect, zenoh_config)) as session:
         return replay_session(session, settings)
 
 
@@ -186,7 +195,8 @@ def replay_session(
         If no service subscribes to the config, or the service falls silent for
         ``settings.timeout`` seconds.
     RuntimeError
-        If the service rejects the config (an ``error`` event before ``session_started``).
+        If the service rejects the session (a ``session_rejected`` event answering its
+        config); ``error`` events about single messages are only logged.
     """
     data_rng, user_rng, _ = session_streams(settings.seed)
     signals = _Signals(settings, data_rng)
@@ -204,21 +214,25 @@ def replay_session(
                                     settings.timeout):
             raise TimeoutError(f"no service subscribed to {protocol.key(sid, 'config')} "
                                f"within {settings.timeout} s")
-        outbox.send("config", sid, {
+        resender = Resender(outbox, settings.resend_interval)
+        config = resender.send("config", sid, {
             "seed": settings.seed, "grid": settings.grid, "frame": settings.frame,
             "steps": settings.steps, "learner": settings.learner,
             "dataset": signals.dataset, **signals.config,
         })
-        replay = _Replay(settings, signals, world, user, outbox, on_step)
+        replay = _Replay(settings, signals, world, user, resender, config.t_ns, on_step)
+        heard = time.monotonic()
         while not replay.done:
             try:
-                received = inbox.get(timeout=settings.timeout)
+                replay.handle(inbox.get(timeout=resender.wait(settings.timeout)))
+                heard = time.monotonic()
             except queue.Empty:
-                raise TimeoutError(
-                    f"session {sid!r}: no message from the service for {settings.timeout} s "
-                    f"(at step {replay.next_step})"
-                ) from None
-            replay.handle(received)
+                if time.monotonic() - heard >= settings.timeout:
+                    raise TimeoutError(
+                        f"session {sid!r}: no message from the service for {settings.timeout} "
+                        f"s (at step {replay.next_step})"
+                    ) from None
+            resender.poll()
         return replay.summary()
     finally:
         for pump in pumps:
@@ -235,15 +249,16 @@ class _Replay:
         signals: _Signals,
         world: GridWorld,
         user: SimulatedUser,
-        outbox: Outbox,
+        resender: Resender,
+        config_t_ns: int,
         on_step: Callable[[StepRecord], None] | None,
     ) -> None:
         self.settings, self.signals, self.world, self.user = settings, signals, world, user
-        self.outbox, self.on_step = outbox, on_step
+        self.resender, self.config_t_ns, self.on_step = resender, config_t_ns, on_step
         self.trackers = {kind: SequenceTracker() for kind in ("move", "state", "event")}
         self.started = self.ended = False
-        self.moves: dict[int, protocol.Message] = {}
-        self.states: list[protocol.Message] = []
+        self.moves: dict[int, protocol.Message] = {}  # step -> first move received
+        self.states: dict[int, protocol.Message] = {}  # n_signals -> first state received
         self.records: list[StepRecord] = []
         self.events: dict[int, str | None] = {}
         self.epoch_sent_ns: dict[int, int] = {}  # step -> its epoch's t_ns
@@ -270,11 +285,14 @@ class _Replay:
             self._on_event(message)
         elif message.kind == "move":
             step = message.fields["step"]
-            self.moves[step] = message
+            self.moves.setdefault(step, message)  # a move sent again is the same move
             if step - 1 in self.epoch_sent_ns:
                 self.latency_ns[step - 1] = received.t_ns - self.epoch_sent_ns.pop(step - 1)
+            pending = self.resender.pending
+            if pending is not None and pending.kind == "epoch" and step > pending.fields["step"]:
+                self.resender.answered()
         else:
-            self.states.append(message)
+            self.states.setdefault(message.fields["n_signals"], message)
         while self.started and self.next_step in self.moves:
             self._answer(self.moves[self.next_step])
             self.next_step += 1
@@ -282,13 +300,16 @@ class _Replay:
 
     def _on_event(self, message: protocol.Message) -> None:
         event, text = message.fields["event"], message.fields["message"]
-        if event == "session_started":
+        own = message.fields["config_t_ns"] == self.config_t_ns
+        if event == "session_started" and own:
             self.started = True
+            if self.resender.pending is not None and self.resender.pending.kind == "config":
+                self.resender.answered()
         elif event == "session_ended":
             self.ended = True
-        elif event == "error" and not self.started:
+        elif event == "session_rejected" and own:
             raise RuntimeError(f"the service rejected the session: {text}")
-        else:
+        else:  # errors about single messages, information, others' sessions on this id
             (log.warning if event == "error" else log.info)("%s: %s", event, text)
 
     def _answer(self, move: protocol.Message) -> None:
@@ -303,9 +324,10 @@ class _Replay:
         target = self.user.target
         sid = self.settings.session
         epoch = self.signals.values[index]
-        sent = self.outbox.send("epoch", sid, self.signals.epoch_fields(step), epoch)
+        sent = self.resender.send("epoch", sid, self.signals.epoch_fields(step), epoch)
         self.epoch_sent_ns[step] = sent.t_ns
-        self.outbox.send("truth", sid, {"step": step, "target": target, "label": label})
+        truth = {"step": step, "target": target, "label": label}
+        self.resender.send("truth", sid, truth, companion=True)
         event = None
         if fields["target_reached"]:
             event = "correct_target" if state == target else "wrong_target"
@@ -318,8 +340,8 @@ class _Replay:
 
     def _complete_records(self) -> None:
         """Records of the answered steps whose state has arrived, in step order."""
-        while (step := len(self.records) + 1) < self.next_step and len(self.states) >= step:
-            move, state = self.moves.pop(step).fields, self.states[step - 1].fields
+        while (step := len(self.records) + 1) < self.next_step and step - 1 in self.states:
+            move, state = self.moves[step].fields, self.states[step - 1].fields
             record = StepRecord(
                 self.settings.seed, step, move["from_state"], move["action"], move["to_state"],
                 state["confident"], state["best_task"], self.events.pop(step),

@@ -3,21 +3,24 @@
 For every action the user decides the label its brain would produce under the current
 target and the interaction frame, then answers with a recorded (or synthetic) signal of
 that label, drawn without replacement from that label's pool; an empty pool is refilled
-with a fresh shuffle. After every target the device declares reached, correct or not, the
-user picks a new target uniformly among the other cells.
+with a fresh shuffle. The target is a task of the world (the grid's: a cell). After every
+target the device declares reached, correct or not, the user picks a new target uniformly
+among the other tasks.
 
 Feedback frame: label 0 (correct) if the action is optimal for the target, else 1 (error).
-Guidance frame: the label is the move direction the user wants from the current state:
-dataset class ``k`` stands for ``MOVES[k]`` — 0 up, 1 down, 2 left, 3 right (for
-``move_finger.mat``, ``Y`` = 1..4 in that order). The choice is uniform among the optimal
-directions, and among all four at the target itself. The learner never knows this mapping.
+Guidance frame: the label is the guidance action the user wants from the current state:
+dataset class ``k`` stands for ``world.guidance_actions[k]`` — on the grid ``MOVES[k]``,
+0 up, 1 down, 2 left, 3 right (for ``move_finger.mat``, ``Y`` = 1..4 in that order). The
+choice is uniform among the optimal guidance actions, and among all of them where none is
+optimal (the grid's target cell itself). The learner never knows this mapping.
 
 With ``error_rate`` > 0 the user gives a wrong label with that probability: the other
-class for feedback, a uniformly drawn non-optimal direction for guidance.
+class for feedback, a uniformly drawn non-optimal guidance action for guidance.
 
-Random draws, in order, from the user's generator: the agent's start cell, the first
-target, then for every action one uniform draw for the error coin, the guidance choice
-(guidance only), and pool shuffles when a pool is (re)filled.
+Random draws, in order, from the user's generator: the agent's start state (none in a
+world with a fixed start, e.g. the line world's middle), the first target, then for every
+action one uniform draw for the error coin, the guidance choice (guidance only), and pool
+shuffles when a pool is (re)filled.
 """
 
 from __future__ import annotations
@@ -25,7 +28,7 @@ from __future__ import annotations
 import numpy as np
 
 from calibration_free.frames import CORRECT, ERROR, FRAMES
-from calibration_free.world import MOVES, GridWorld
+from calibration_free.world import World
 from decoding.validation import check_option, check_range
 
 
@@ -34,7 +37,7 @@ class SimulatedUser:
 
     Parameters
     ----------
-    world : GridWorld
+    world : World
     frame : {"feedback", "guidance"}
     labels : ndarray, shape (n_signals,), int
         Class of every signal of the dataset the user answers from.
@@ -45,14 +48,14 @@ class SimulatedUser:
     Attributes
     ----------
     start_state : int
-        The cell the agent starts in (uniformly random).
+        The state the agent starts in (:meth:`World.start_state`: uniform on the grid).
     target : int
-        The current hidden target.
+        The current hidden target (a task index; on the grid, a cell).
     """
 
     def __init__(
         self,
-        world: GridWorld,
+        world: World,
         frame: str,
         labels: np.ndarray,
         rng: np.random.Generator,
@@ -62,7 +65,8 @@ class SimulatedUser:
         check_range("user error rate", error_rate, 0.0, 1.0)
         self.world, self.frame, self.rng, self.error_rate = world, frame, rng, error_rate
         labels = np.asarray(labels)
-        n_classes = 2 if frame == "feedback" else len(MOVES)
+        self._guidance = np.array(world.guidance_actions)
+        n_classes = 2 if frame == "feedback" else len(self._guidance)
         self._members = [np.flatnonzero(labels == k) for k in range(n_classes)]
         empty = [k for k, members in enumerate(self._members) if len(members) == 0]
         if empty:
@@ -70,8 +74,8 @@ class SimulatedUser:
                 f"the dataset has no signal of class(es) {empty} for the {frame} frame"
             )
         self._queues: list[list[int]] = [[] for _ in range(n_classes)]
-        self.start_state = int(rng.integers(world.n_states))
-        self.target = int(rng.integers(world.n_states))
+        self.start_state = world.start_state(rng)
+        self.target = int(rng.integers(world.n_tasks))
 
     def label(self, state: int, action: int) -> int:
         """The class the user's brain produces for ``action`` taken in ``state``."""
@@ -80,11 +84,12 @@ class SimulatedUser:
         if self.frame == "feedback":
             is_error = (not optimal[action]) != wrong
             return ERROR if is_error else CORRECT
-        directions = np.flatnonzero(optimal[: len(MOVES)])
+        n_classes = len(self._guidance)
+        directions = np.flatnonzero(optimal[self._guidance])
         if len(directions) == 0:
-            directions = np.arange(len(MOVES))
-        if wrong and len(directions) < len(MOVES):
-            directions = np.setdiff1d(np.arange(len(MOVES)), directions)
+            directions = np.arange(n_classes)
+        if wrong and len(directions) < n_classes:
+            directions = np.setdiff1d(np.arange(n_classes), directions)
         return int(self.rng.choice(directions))
 
     def answer(self, state: int, action: int) -> tuple[int, int]:
@@ -96,8 +101,8 @@ class SimulatedUser:
         return queue.pop(), label
 
     def new_target(self) -> int:
-        """Pick the next target uniformly among the cells other than the current one."""
-        others = np.delete(np.arange(self.world.n_states), self.target)
+        """Pick the next target uniformly among the tasks other than the current one."""
+        others = np.delete(np.arange(self.world.n_tasks), self.target)
         self.target = int(self.rng.choice(others))
         return self.target
 

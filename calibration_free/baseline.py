@@ -18,7 +18,7 @@ from calibration_free.config import LearnerConfig
 from calibration_free.learner import Proposal, TaskLearner
 from calibration_free.likelihood import match
 from calibration_free.task_decoders import TaskHistory, TaskModels
-from calibration_free.world import GridWorld
+from calibration_free.world import World
 from decoding.validation import check_range
 
 DEFAULT_CALIBRATION_TRIALS = 400
@@ -30,7 +30,7 @@ class CalibratedBaseline(TaskLearner):
 
     Parameters
     ----------
-    world : GridWorld
+    world : World
     calibration_target : int
         The cell the user is told to aim at during calibration (known to the device).
     n_calibration : int, default 400
@@ -44,7 +44,7 @@ class CalibratedBaseline(TaskLearner):
 
     def __init__(
         self,
-        world: GridWorld,
+        world: World,
         calibration_target: int,
         n_calibration: int = DEFAULT_CALIBRATION_TRIALS,
         config: LearnerConfig | None = None,
@@ -84,9 +84,10 @@ class CalibratedBaseline(TaskLearner):
         if self._models is None:
             if self._history is None:
                 self._history = TaskHistory(
-                    1, self.frame.n_classes, x.shape[0], self.config.n_folds
+                    1, self.frame.n_classes, x.shape[0], self.config.n_folds,
+                    class_scatters=self._fit.class_scatters,
                 )
-            weights = self.frame.label_weights[self.calibration_target, state, action]
+            weights = self.frame.weights_at(state, action)[self.calibration_target]
             self._history.add(x, weights[None])
             if not self.calibrating:
                 self._models = TaskModels.fit(
@@ -97,7 +98,7 @@ class CalibratedBaseline(TaskLearner):
                 )
             return
         corrected = self._models.corrected_proba(x[None])[0, 0]
-        expected = self.frame.label_distribution[:, state, action]
+        expected = self.frame.distribution_at(state, action)
         self.log_likelihood += np.log(match(expected, np.broadcast_to(corrected, expected.shape)))
         if self._take_target_reached(state, action) is not None:
             self.log_likelihood[:] = 0.0

@@ -2,44 +2,65 @@
 
 A frame gives, for every task ``t``, state ``s`` and action ``a``:
 
-* ``label_weights[t, s, a, k]`` — the frame's own label as a distribution over the
-  ``n_classes`` classes (one-hot for the feedback frame; uniform over the optimal move
-  directions for the guidance frame). Decoders are trained with these weights, except
-  where the label is uniform over all classes (guidance, at the task cell itself): those
-  signals teach nothing about any class and get weight 0.
-* ``label_distribution[t, s, a, k]`` — the label the learner *expects* from a user who
-  errs with rate ``eps``: ``1 - eps`` on the frame's label(s), ``eps`` spread over the
-  other classes. This is ``p(l | s, a, t)`` of the matching pseudo-likelihood.
+* the frame's own label as a distribution over the ``n_classes`` classes (the *label
+  weights*: one-hot for the feedback frame; uniform over the optimal guidance actions for
+  the guidance frame). Decoders are trained with these weights, except where the label is
+  uniform over all classes (guidance, at the task's state itself when no guidance action
+  is optimal there): those signals teach nothing about any class and get weight 0.
+* the label the learner *expects* from a user who errs with rate ``eps`` (the *label
+  distribution*): ``1 - eps`` on the frame's label(s), ``eps`` spread over the other
+  classes. This is ``p(l | s, a, t)`` of the matching pseudo-likelihood.
 
 Feedback frame (ErrP): class 0 = correct, 1 = error; an action is correct under ``t`` iff
-it is optimal (see :class:`~calibration_free.world.GridWorld`).
+it is optimal (:attr:`calibration_free.world.World.optimal`).
 
-Guidance frame: class ``k`` is the move direction ``MOVES[k]`` (up, down, left, right) the
-user wants *from the state where the action is taken*, whatever that action was; uniform
-over the optimal directions when several are optimal, and over all four at the task cell
-itself, where no move is optimal.
+Guidance frame: class ``k`` is the guidance action ``world.guidance_actions[k]`` (the
+grid's move directions up, down, left, right) the user wants *from the state where the
+action is taken*, whatever that action was; uniform over the optimal ones when several are
+optimal, and over all of them where none is (the grid's task cell itself).
+
+Storage is compact: a frame has only a few distinct label rows (feedback: 2; guidance: one
+per set of optimal guidance actions, at most ``2 ** n_classes``), kept once in
+:attr:`Frame.weight_rows` and :attr:`Frame.distribution_rows`, and a table
+:attr:`Frame.row_index` of which row applies where: ``(n_tasks, n_states, n_actions)``
+uint8 for feedback (a view of the world's optimality table), ``(n_tasks, n_states, 1)`` for
+guidance, whose label does not depend on the action. The table is built on first use.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
-from calibration_free.world import MOVES, GridWorld
+from calibration_free.world import World
 from decoding.validation import check_option, check_range
 
 FRAMES: tuple[str, ...] = ("feedback", "guidance")
 CORRECT, ERROR = 0, 1
 
 
-@dataclass(frozen=True)
+def _expected_rows(weights: np.ndarray, eps: float) -> tuple[np.ndarray, np.ndarray]:
+    """(training weights, expected distribution) of label rows ``weights`` (R, K).
+
+    ``1 - eps`` on the support, ``eps`` spread over the other classes; a row supported on
+    every class is kept as it is and trains nothing (weight 0).
+    """
+    support = weights > 0
+    n_other = (~support).sum(axis=-1, keepdims=True)
+    spread = np.where(~support, eps / np.maximum(n_other, 1), 0.0)
+    distribution = np.where(n_other > 0, (1.0 - eps) * weights + spread, weights)
+    return np.where(n_other > 0, weights, 0.0), distribution
+
+
+@dataclass(frozen=True, eq=False)
 class Frame:
     """An interaction frame on a world, with the learner's assumed user error rate.
 
     Parameters
     ----------
-    world : GridWorld
+    world : World
     kind : {"feedback", "guidance"}
     eps : float, default 0.1
         Assumed probability that the user's label is not the frame's (method.md §2).
@@ -47,44 +68,97 @@ class Frame:
     Attributes
     ----------
     n_classes : int
-        2 (feedback: correct, error) or 4 (guidance: up, down, left, right).
-    label_weights : ndarray, shape (n_tasks, n_states, n_actions, n_classes)
-    label_distribution : ndarray, shape (n_tasks, n_states, n_actions, n_classes)
+        2 (feedback: correct, error) or ``len(world.guidance_actions)`` (guidance).
+    weight_rows, distribution_rows : ndarray, shape (n_rows, n_classes)
+        The distinct label rows: training weights and expected label distribution.
+    row_index : ndarray, shape (n_tasks, n_states, n_actions or 1), uint8
+        Which row applies to task t, state s and action a (last axis 1: every action).
     """
 
-    world: GridWorld
+    world: World
     kind: str = "feedback"
     eps: float = 0.1
-    label_weights: np.ndarray = field(init=False, repr=False)
-    label_distribution: np.ndarray = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
         check_option("frame", self.kind, FRAMES)
         check_range("eps", self.eps, 0.0, 0.5, inclusive=True)
-        optimal = self.world.optimal
-        if self.kind == "feedback":
-            weights = np.stack([optimal, ~optimal], axis=-1).astype(float)
-        else:
-            moves = optimal[:, :, : len(MOVES)].astype(float)
-            at_task = moves.sum(axis=-1, keepdims=True) == 0
-            moves = np.where(at_task, 1.0, moves)
-            moves /= moves.sum(axis=-1, keepdims=True)
-            # The label depends on the state only: broadcast over the actions taken there.
-            weights = np.repeat(moves[:, :, None, :], self.world.n_actions, axis=2)
-        support = weights > 0
-        n_other = (~support).sum(axis=-1, keepdims=True)
-        spread = np.where(~support, self.eps / np.maximum(n_other, 1), 0.0)
-        distribution = np.where(n_other > 0, (1.0 - self.eps) * weights + spread, weights)
-        # A label uniform over every class says nothing about what any class looks like:
-        # such signals do not train the decoders (weight 0), though they are still matched.
-        weights = np.where(n_other > 0, weights, 0.0)
-        object.__setattr__(self, "label_weights", weights)
-        object.__setattr__(self, "label_distribution", distribution)
+        if self.kind == "guidance" and not 2 <= len(self.world.guidance_actions) <= 8:
+            raise ValueError(
+                f"the guidance frame needs 2 to 8 guidance actions; the {self.world.name} "
+                f"world has {len(self.world.guidance_actions)}"
+            )
 
     @property
     def n_classes(self) -> int:
-        return self.label_weights.shape[-1]
+        return 2 if self.kind == "feedback" else len(self.world.guidance_actions)
 
     def class_names(self) -> tuple[str, ...]:
         """Names of the classes, in class order."""
-        return ("correct", "error") if self.kind == "feedback" else MOVES
+        if self.kind == "feedback":
+            return ("correct", "error")
+        return tuple(self.world.action_names[a] for a in self.world.guidance_actions)
+
+    @cached_property
+    def _tables(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        optimal = self.world.optimal
+        if self.kind == "feedback":
+            # Row 0: error, row 1: correct, so that the index is the optimality table.
+            labels = np.array([[0.0, 1.0], [1.0, 0.0]])
+            index = optimal.view(np.uint8)
+        else:
+            guided = optimal[:, :, list(self.world.guidance_actions)]
+            bits = (guided.astype(np.uint8) << np.arange(guided.shape[-1], dtype=np.uint8))
+            masks, index = np.unique(bits.sum(axis=-1, dtype=np.uint8), return_inverse=True)
+            index = index.reshape((*guided.shape[:2], 1)).astype(np.uint8)
+            labels = (masks[:, None] >> np.arange(self.n_classes) & 1).astype(float)
+            labels[masks == 0] = 1.0
+            labels /= labels.sum(axis=-1, keepdims=True)
+        weights, distribution = _expected_rows(labels, self.eps)
+        return weights, distribution, index
+
+    @property
+    def weight_rows(self) -> np.ndarray:
+        return self._tables[0]
+
+    @property
+    def distribution_rows(self) -> np.ndarray:
+        return self._tables[1]
+
+    @property
+    def row_index(self) -> np.ndarray:
+        return self._tables[2]
+
+    def rows_at(self, state: int, action: int) -> np.ndarray:
+        """Every task's label row at (state, action), shape (n_tasks,)."""
+        index = self.row_index
+        return index[:, state, action if index.shape[-1] > 1 else 0]
+
+    def weights_at(self, state: int, action: int) -> np.ndarray:
+        """Every task's training weights at (state, action), shape (n_tasks, n_classes)."""
+        return self.weight_rows[self.rows_at(state, action)]
+
+    def distribution_at(self, state: int, action: int) -> np.ndarray:
+        """Every task's ``p(l | s, a, t)``, shape (n_tasks, n_classes)."""
+        return self.distribution_rows[self.rows_at(state, action)]
+
+    def _dense(self, rows: np.ndarray) -> np.ndarray:
+        index = self.row_index
+        shape = (*index.shape[:2], self.world.n_actions)
+        return rows[np.broadcast_to(index, shape)]
+
+    @property
+    def label_weights(self) -> np.ndarray:
+        """Dense training weights, shape (n_tasks, n_states, n_actions, n_classes).
+
+        Built on every call (``T S A K`` floats): for small worlds and checks only; the
+        learner uses :meth:`weights_at`.
+        """
+        return self._dense(self.weight_rows)
+
+    @property
+    def label_distribution(self) -> np.ndarray:
+        """Dense ``p(l | s, a, t)``, shape (n_tasks, n_states, n_actions, n_classes).
+
+        Built on every call: for small worlds and checks only (see :attr:`label_weights`).
+        """
+        return self._dense(self.distribution_rows)

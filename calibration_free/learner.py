@@ -16,7 +16,7 @@ from calibration_free.frames import Frame
 from calibration_free.likelihood import match, pairwise_confidence, power_log_ratio
 from calibration_free.planning import UncertaintyPlanner, greedy_action, random_action
 from calibration_free.task_decoders import TaskHistory, TaskModels, decoder_fit
-from calibration_free.world import GOAL, GridWorld
+from calibration_free.world import World
 from decoding.validation import check_array
 
 
@@ -29,8 +29,9 @@ class Proposal:
     action : int
         Index into :data:`calibration_free.world.ACTIONS`.
     declares_target : bool
-        True when the action is ``goal`` performed while confident, in the cell the learner
-        is confident about: a target reached (correct or not, the learner cannot know).
+        True when the action is the world's declaration action (the grid's ``goal``)
+        performed while confident, in the state of the task the learner is confident
+        about: a target reached (correct or not, the learner cannot know).
     """
 
     action: int
@@ -72,7 +73,7 @@ class TaskLearner:
 
     def __init__(
         self,
-        world: GridWorld,
+        world: World,
         config: LearnerConfig | None = None,
         rng: np.random.Generator | int | None = None,
     ) -> None:
@@ -87,9 +88,7 @@ class TaskLearner:
         self._pending_target: int | None = None
         self._visits = np.zeros(world.n_states)
         self._fit = decoder_fit(self.config.decoder, self.config.shrinkage)
-        self._planner = UncertaintyPlanner(
-            world, self.frame.label_distribution, self.config.discount
-        )
+        self._planner = UncertaintyPlanner(self.frame, self.config.discount)
 
     def observe(self, state: int, action: int, signal: np.ndarray) -> None:
         """Take in the signal the user produced after ``action`` was taken in ``state``."""
@@ -128,9 +127,10 @@ class TaskLearner:
         self._pending_target = None
         if beliefs.confident:
             action = greedy_action(self.world, state, beliefs.best_task, self.rng)
-            if action == GOAL:
+            declares = self.world.declares(state, action, beliefs.best_task)
+            if declares:
                 self._pending_target = beliefs.best_task
-            return Proposal(action, action == GOAL)
+            return Proposal(action, declares)
         return Proposal(self._explore(state, beliefs), False)
 
     def follow_declaration(self, task: int) -> None:
@@ -175,7 +175,7 @@ class TaskLearner:
     def _take_target_reached(self, state: int, action: int) -> int | None:
         """The declared target if this (state, action) performs it, and clear it."""
         target, self._pending_target = self._pending_target, None
-        if target is not None and action == GOAL and state == target:
+        if target is not None and self.world.declares(state, action, target):
             self.n_targets += 1
             return target
         return None
@@ -239,7 +239,7 @@ class CalibrationFreeLearner(TaskLearner):
 
     Parameters
     ----------
-    world : GridWorld
+    world : World
     config : LearnerConfig, optional
     rng : numpy Generator or seed, optional
         Used by the planners (random choices, tie breaks, sampled signals).
@@ -253,7 +253,7 @@ class CalibrationFreeLearner(TaskLearner):
 
     def __init__(
         self,
-        world: GridWorld,
+        world: World,
         config: LearnerConfig | None = None,
         rng: np.random.Generator | int | None = None,
     ) -> None:
@@ -282,7 +282,7 @@ class CalibrationFreeLearner(TaskLearner):
         if self._models is None or self._history is None:
             return None
         if label_weights is None:
-            label_weights = self._history.label_weights[task]
+            label_weights = self._history.task_label_weights(task)
         return self._models.balanced_accuracy(task, label_weights)
 
     @property
@@ -295,16 +295,15 @@ class CalibrationFreeLearner(TaskLearner):
         self._visits[state] += 1
         if self._history is None:
             self._history = TaskHistory(
-                self.world.n_tasks, self.frame.n_classes, x.shape[0], self.config.n_folds
+                self.world.n_tasks, self.frame.n_classes, x.shape[0], self.config.n_folds,
+                class_scatters=self._fit.class_scatters,
             )
-        expected = self.frame.label_distribution[:, state, action]
-        weights = self.frame.label_weights[:, state, action]
+        expected = self.frame.distribution_at(state, action)
+        frame_weights = weights = self.frame.weights_at(state, action)
         if self._models is not None:
             corrected = self._models.corrected_proba(x[None])[:, 0]
             weights = resolve_ambiguous_labels(weights, corrected)
-            expected = expect_the_chosen_label(
-                expected, self.frame.label_weights[:, state, action], weights
-            )
+            expected = expect_the_chosen_label(expected, frame_weights, weights)
             self.log_likelihood += np.log(match(expected, corrected))
         self._history.add(x, weights)
         self._power_sums += expected * float(x @ x)

@@ -10,8 +10,7 @@ DEFAULT_CONFUSION_SMOOTHING = 1.0
 
 
 def confusion_matrices(
-    label_weights: np.ndarray,
-    cv_proba: np.ndarray,
+    label_counts: np.ndarray,
     present: np.ndarray,
     smoothing: float,
     balanced: bool = True,
@@ -20,10 +19,10 @@ def confusion_matrices(
 
     Parameters
     ----------
-    label_weights : ndarray, shape (n_tasks, n_signals, n_classes)
-        Each task's (true) label of each signal, as class weights.
-    cv_proba : ndarray, shape (n_tasks, n_signals, n_classes)
-        Out-of-fold predicted class probabilities.
+    label_counts : ndarray, shape (n_tasks, n_classes, n_classes)
+        ``sum_i w_ik(t) p_ij(t)``: each task's (true) label weights of the signals against
+        their out-of-fold predicted class probabilities (see
+        :meth:`~calibration_free.task_decoders.TaskHistory.label_confusion_counts`).
     present : ndarray, shape (n_tasks, n_classes), bool
         Classes each task's decoder knows; the matrix is restricted to them (other rows
         and columns are 0).
@@ -41,7 +40,7 @@ def confusion_matrices(
         ``confusion[t, i, j] = p(true label i | predicted j)``.
     """
     mask = present[:, :, None] & present[:, None, :]
-    counts = np.where(mask, np.swapaxes(label_weights, -1, -2) @ cv_proba + smoothing, 0.0)
+    counts = np.where(mask, label_counts + smoothing, 0.0)
     if balanced:
         counts = counts / np.maximum(counts.sum(axis=2, keepdims=True), np.finfo(float).tiny)
     return counts / np.maximum(counts.sum(axis=1, keepdims=True), np.finfo(float).tiny)

@@ -1,34 +1,77 @@
 """The decoders of all task hypotheses, computed together from shared statistics.
 
 All T tasks see the same signals and differ only in their labels. :class:`TaskHistory`
-keeps, for every task, fold and class, the weighted count, sum and scatter of the signals,
-updated with one rank-one step per new signal. The full decoder of task t, and its k-fold
-decoders (trained on all folds but one), are then functions of these statistics
-(totals minus one fold), fitted for all tasks and folds in one batched solve: no task is
-ever refitted from its raw history. Fold ``f`` holds the signals ``i`` with
-``i % n_folds == f`` (0-based arrival order), so folds never move as the history grows.
+keeps, per fold, the signals' uncentred scatter matrix, sum and count, shared by every
+task, and per task, fold and class only the weighted count and sum of the signals, each
+updated in one step per new signal. Every task's full decoder and its k-fold decoders
+(trained on all folds but one) are functions of these (totals minus one fold): one
+eigendecomposition per training set and a K x K solve per task
+(:func:`~decoding.lda.fit_pooled_lda`); no task is ever refitted from its raw history.
+Fold ``f`` holds the signals ``i`` with ``i % n_folds == f`` (0-based arrival order), so
+folds never move as the history grows.
+
+The Student-t decoder needs each class's own scatter matrix: with it, the history also
+keeps per task, fold and class a d x d scatter (T x F x K x d^2 numbers, updated every
+step), the cost the shared form avoids.
+
+After a target, every task adopts that task's labels of the whole history (method.md
+§5). No per-task statistic is copied: each is kept as a part shared by all tasks (the
+adopted task's, up to the switch) plus each task's own part since the switch, which
+restarts at zero.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 
 from calibration_free.likelihood import confusion_matrices, corrected_proba
-from decoding.lda import fit_lda
-from decoding.statistics import BatchedDecoders, ClassStatistics, HeldOutStatistics, Statistics
+from decoding.lda import fit_pooled_lda
+from decoding.statistics import BatchedDecoders, ClassStatistics, PooledStatistics
 from decoding.student_t import fit_student_t
 
-DecoderFit = Callable[[Statistics], BatchedDecoders]
 DEFAULT_FOLDS = 10
 
 
-def decoder_fit(decoder: str, shrinkage: float) -> DecoderFit:
-    """The function fitting decoders of kind ``decoder`` ("lda" or "student_t")."""
-    fit = fit_student_t if decoder == "student_t" else fit_lda
-    return lambda statistics: fit(statistics, shrinkage)
+class FoldSums:
+    """Per-task sums of per-signal increments, per fold and in total.
+
+    Each task's value is a part shared by every task (what a target switch adopted) plus
+    the task's own part since that switch.
+
+    Parameters
+    ----------
+    n_tasks, n_folds : int
+    shape : tuple of int
+        Shape of one task's value in one fold.
+    """
+
+    def __init__(self, n_tasks: int, n_folds: int, shape: tuple[int, ...]) -> None:
+        self.shared = np.zeros((n_folds, *shape))
+        self.shared_total = np.zeros(shape)
+        self.own = np.zeros((n_folds, n_tasks, *shape))
+        self.own_total = np.zeros((n_tasks, *shape))
+
+    def add(self, fold: int, increment: np.ndarray) -> None:
+        """Add every task's ``increment`` (n_tasks, *shape) to ``fold``."""
+        self.own[fold] += increment
+        self.own_total += increment
+
+    def adopt(self, task: int) -> None:
+        """Give every task ``task``'s value: it becomes the shared part; own parts restart."""
+        self.shared += self.own[:, task]
+        self.shared_total += self.own_total[task]
+        self.own.fill(0.0)
+        self.own_total.fill(0.0)
+
+    def total(self) -> np.ndarray:
+        """Every task's total over the folds, shape (n_tasks, *shape)."""
+        return self.shared_total + self.own_total
+
+    def held_out(self) -> np.ndarray:
+        """Every task's total without each fold, shape (n_folds, n_tasks, *shape)."""
+        return (self.shared_total - self.shared)[:, None] + (self.own_total - self.own)
 
 
 class TaskHistory:
@@ -36,14 +79,19 @@ class TaskHistory:
 
     Parameters
     ----------
-    n_tasks : int
-    n_classes : int
-    n_features : int
+    n_tasks, n_classes, n_features : int
     n_folds : int, default 10
+    class_scatters : bool, default False
+        Also keep every task's per-class scatter matrices (the Student-t decoder).
     """
 
     def __init__(
-        self, n_tasks: int, n_classes: int, n_features: int, n_folds: int = DEFAULT_FOLDS
+        self,
+        n_tasks: int,
+        n_classes: int,
+        n_features: int,
+        n_folds: int = DEFAULT_FOLDS,
+        class_scatters: bool = False,
     ) -> None:
         if n_folds < 2:
             raise ValueError(f"n_folds must be >= 2; got {n_folds}")
@@ -53,17 +101,21 @@ class TaskHistory:
             n_features,
             n_folds,
         )
-        self._signals = np.empty((64, n_features))
-        self._weights = np.empty((n_tasks, 64, n_classes))
         self.n_signals = 0
-        shape = (n_tasks, n_folds, n_classes)
-        self._per_fold = ClassStatistics(
-            np.zeros(shape),
-            np.zeros((*shape, n_features)),
-            np.zeros((*shape, n_features, n_features)),
-        )
-        self._totals = ClassStatistics(
-            *(np.zeros((n_tasks, *a.shape[2:])) for a in self._per_fold.arrays())
+        self._signals = np.empty((64, n_features))
+        # Label weights: rows before the last switch are shared, later ones per task.
+        self._shared_weights = np.empty((64, n_classes))
+        self._own_weights = np.empty((n_tasks, 64, n_classes))
+        self._n_shared = 0
+        self._scatter = np.zeros((n_folds, n_features, n_features))
+        self._signal_sum = np.zeros((n_folds, n_features))
+        self._fold_size = np.zeros(n_folds)
+        self._counts = FoldSums(n_tasks, n_folds, (n_classes,))
+        self._sums = FoldSums(n_tasks, n_folds, (n_classes, n_features))
+        self._scatters = (
+            FoldSums(n_tasks, n_folds, (n_classes, n_features, n_features))
+            if class_scatters
+            else None
         )
 
     @property
@@ -71,47 +123,109 @@ class TaskHistory:
         """Signals in arrival order, shape (n_signals, n_features), float64."""
         return self._signals[: self.n_signals]
 
+    def task_label_weights(self, task: int) -> np.ndarray:
+        """``task``'s label weights of every signal, shape (n_signals, n_classes)."""
+        return np.concatenate(
+            [self._shared_weights[: self._n_shared], self._own_weights[task, : self._n_own]]
+        )
+
     @property
     def label_weights(self) -> np.ndarray:
-        """Each task's label weights, shape (n_tasks, n_signals, n_classes)."""
-        return self._weights[:, : self.n_signals]
+        """Every task's label weights, shape (n_tasks, n_signals, n_classes) (a copy)."""
+        shared = np.broadcast_to(
+            self._shared_weights[: self._n_shared], (self.n_tasks, self._n_shared, self.n_classes)
+        )
+        return np.concatenate([shared, self._own_weights[:, : self._n_own]], axis=1)
+
+    @property
+    def _n_own(self) -> int:
+        return self.n_signals - self._n_shared
 
     def add(self, signal: np.ndarray, weights: np.ndarray) -> None:
         """Append ``signal`` (n_features,) with every task's label weights (n_tasks, K)."""
         if self.n_signals == len(self._signals):
             self._signals = np.concatenate([self._signals, np.empty_like(self._signals)])
-            self._weights = np.concatenate([self._weights, np.empty_like(self._weights)], axis=1)
+        if self._n_own == self._own_weights.shape[1]:
+            self._own_weights = np.concatenate(
+                [self._own_weights, np.empty_like(self._own_weights)], axis=1
+            )
         index = self.n_signals
         self._signals[index] = signal
-        self._weights[:, index] = weights
+        self._own_weights[:, self._n_own] = weights
         fold = index % self.n_folds
-        increments = (
-            weights,
-            weights[:, :, None] * signal,
-            np.multiply.outer(weights, np.outer(signal, signal)),
-        )
-        for per_fold, total, increment in zip(
-            self._per_fold.arrays(), self._totals.arrays(), increments, strict=True
-        ):
-            per_fold[:, fold] += increment
-            total += increment
+        self._scatter[fold] += np.outer(signal, signal)
+        self._signal_sum[fold] += signal
+        self._fold_size[fold] += 1
+        self._counts.add(fold, weights)
+        self._sums.add(fold, weights[:, :, None] * signal)
+        if self._scatters is not None:
+            self._scatters.add(fold, np.multiply.outer(weights, np.outer(signal, signal)))
         self.n_signals += 1
 
     def relabel(self, task: int) -> None:
-        """Give every task the labels of ``task`` on the whole history (method.md §5)."""
-        for array in (*self._per_fold.arrays(), *self._totals.arrays()):
-            array[:] = array[task]
-        self._weights[:, : self.n_signals] = self._weights[task, : self.n_signals]
+        """Give every task the labels of ``task`` on the whole history (method.md §5).
 
-    def statistics(self) -> tuple[ClassStatistics, HeldOutStatistics]:
-        """Class statistics of the whole history (n_tasks, ...) and of each fold's
-        training set, i.e. all signals but that fold's (n_tasks, n_folds, ...)."""
-        return self._totals, HeldOutStatistics(self._totals, self._per_fold)
+        Without copying any per-task statistic: ``task``'s part since the last switch
+        joins the shared part, and every task's own part restarts.
+        """
+        own = self._own_weights[task, : self._n_own]
+        end = self._n_shared + len(own)
+        if end > len(self._shared_weights):
+            grown = np.empty((2 * end, self.n_classes))
+            grown[: self._n_shared] = self._shared_weights[: self._n_shared]
+            self._shared_weights = grown
+        self._shared_weights[self._n_shared : end] = own
+        self._n_shared = end
+        for sums in (self._counts, self._sums, self._scatters):
+            if sums is not None:
+                sums.adopt(task)
+
+    def pooled_statistics(self) -> PooledStatistics:
+        """The pooled statistics of every fold's training set (all signals but that
+        fold's), then of the whole history: batch shape (n_folds + 1, n_tasks)."""
+
+        def with_whole(held_out: np.ndarray, whole: np.ndarray) -> np.ndarray:
+            return np.concatenate([held_out, whole[None]])
+
+        def shared(per_fold: np.ndarray) -> np.ndarray:
+            total = per_fold.sum(axis=0)
+            return with_whole(total - per_fold, total)
+
+        return PooledStatistics(
+            scatter=shared(self._scatter),
+            n_signals=shared(self._fold_size),
+            signal_sum=shared(self._signal_sum),
+            counts=with_whole(self._counts.held_out(), self._counts.total()),
+            sums=with_whole(self._sums.held_out(), self._sums.total()),
+        )
+
+    def class_statistics(self) -> tuple[ClassStatistics, ClassStatistics]:
+        """Per-class statistics of the whole history (n_tasks, ...) and of each fold's
+        training set (n_folds, n_tasks, ...); needs ``class_scatters``."""
+        if self._scatters is None:
+            raise RuntimeError("this history keeps no per-class scatter matrices")
+        parts = (self._counts, self._sums, self._scatters)
+        return (
+            ClassStatistics(*(part.total() for part in parts)),
+            ClassStatistics(*(part.held_out() for part in parts)),
+        )
+
+    def label_confusion_counts(self, proba: np.ndarray) -> np.ndarray:
+        """``sum_i w_i(t) p_i(t)^T`` for every task: (n_tasks, K, K).
+
+        ``proba`` (n_tasks, n_signals, K), e.g. out-of-fold predictions; row ``k`` of the
+        result is the predictions summed over the signals with task ``t``'s label
+        weight ``w_ik(t)``.
+        """
+        n_shared = self._n_shared
+        shared = self._shared_weights[:n_shared].T @ proba[:, :n_shared]
+        own = np.swapaxes(self._own_weights[:, : self._n_own], -1, -2) @ proba[:, n_shared:]
+        return shared + own
 
     def cross_validated_proba(self, fold_decoders: BatchedDecoders) -> np.ndarray:
         """Out-of-fold class probabilities, shape (n_tasks, n_signals, n_classes).
 
-        ``fold_decoders`` has batch shape (n_tasks, n_folds). Signal ``i`` is in fold
+        ``fold_decoders`` has batch shape (n_folds, n_tasks). Signal ``i`` is in fold
         ``i % n_folds`` at position ``i // n_folds``, so the signals, zero-padded to a
         multiple of ``n_folds``, reshape to (n_folds, per_fold, n_features) and every
         fold's decoders score their own fold in one batched call.
@@ -123,9 +237,47 @@ class TaskHistory:
         by_fold = np.ascontiguousarray(
             padded.reshape(per_fold, n_folds, self.n_features).swapaxes(0, 1)
         )
-        log_proba = fold_decoders.log_proba(by_fold)  # (n_tasks, n_folds, per_fold, K)
-        in_order = log_proba.swapaxes(1, 2).reshape(self.n_tasks, -1, self.n_classes)
-        return np.exp(in_order[:, :n_signals])
+        proba = fold_decoders.proba(by_fold[:, None])  # (n_folds, T, per_fold, K)
+        in_order = proba.transpose(1, 2, 0, 3).reshape(self.n_tasks, -1, self.n_classes)
+        return in_order[:, :n_signals]
+
+
+@dataclass(frozen=True)
+class DecoderFit:
+    """How every task's decoders are fitted on a :class:`TaskHistory`.
+
+    Attributes
+    ----------
+    kind : {"lda", "student_t"}
+        Pooled-covariance shrinkage LDA on the shared statistics, or the Student-t
+        predictive on per-class statistics.
+    shrinkage : float
+    """
+
+    kind: str
+    shrinkage: float
+
+    @property
+    def class_scatters(self) -> bool:
+        """Whether the history must keep per-class scatter matrices."""
+        return self.kind == "student_t"
+
+    def __call__(self, history: TaskHistory) -> tuple[BatchedDecoders, BatchedDecoders]:
+        """Every task's full decoder (batch (n_tasks,)) and fold decoders (batch
+        (n_folds, n_tasks))."""
+        if self.kind == "student_t":
+            whole, training = history.class_statistics()
+            return (
+                fit_student_t(whole, self.shrinkage),
+                fit_student_t(training, self.shrinkage),
+            )
+        decoders = fit_pooled_lda(history.pooled_statistics(), self.shrinkage)
+        return decoders.select(-1), decoders.select(slice(0, -1))
+
+
+def decoder_fit(decoder: str, shrinkage: float) -> DecoderFit:
+    """The fitting of decoders of kind ``decoder`` ("lda" or "student_t")."""
+    return DecoderFit(decoder, shrinkage)
 
 
 @dataclass(frozen=True)
@@ -153,11 +305,10 @@ class TaskModels:
 
         ``smoothing`` and ``balanced``: see :func:`~calibration_free.likelihood.confusion_matrices`.
         """
-        totals, training = history.statistics()
-        decoders = fit(totals)
-        cv_proba = history.cross_validated_proba(fit(training))
+        decoders, fold_decoders = fit(history)
+        cv_proba = history.cross_validated_proba(fold_decoders)
         confusion = confusion_matrices(
-            history.label_weights, cv_proba, decoders.present, smoothing, balanced
+            history.label_confusion_counts(cv_proba), decoders.present, smoothing, balanced
         )
         return cls(decoders=decoders, confusion=confusion, cv_proba=cv_proba)
 
@@ -193,7 +344,7 @@ class TaskModels:
         class gets ``1 / K``. A decoder that cannot tell its classes apart thus gives 1/K
         everywhere, like an uninformative one, whatever the number of classes it knows.
         """
-        q = corrected_proba(self.confusion, np.exp(self.decoders.log_proba(signals)))
+        q = corrected_proba(self.confusion, self.decoders.proba(signals))
         n_classes = q.shape[-1]
         known = self.decoders.present & self.informative[:, None]
         share = known.sum(axis=1)[:, None, None] / n_classes

@@ -1,5 +1,5 @@
 """The ``cfbci`` command line: ``simulate``, ``bench``, ``serve``, ``source``, ``session``,
-``recover``, ``replay``, ``report``."""
+``recover``, ``replay``, ``report``, ``sweep``, ``export``."""
 
 from __future__ import annotations
 
@@ -10,16 +10,25 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+import zenoh
 from rich.console import Console
 
-from acquisition.sources import DEFAULT_SYNTHETIC_ACCURACY, DataSpec
+from acquisition.sources import DEFAULT_SYNTHETIC_ACCURACY, SYNTHETIC_KINDS, DataSpec
 from acquisition.synthetic import ACCURACY_RANGE
 from calibration_free.baseline import DEFAULT_CALIBRATION_TRIALS
 from calibration_free.config import LearnerConfig
 from calibration_free.frames import FRAMES
 from calibration_free.planning import PLANNERS
+from cfbci import router
+from cfbci.export import add_export_command
+from cfbci.make_datasets import add_datasets_command
 from cfbci.memory import keep_freed_memory
+from cfbci.parallel import Scheduler, add_scheduler_options
 from cfbci.simulation import BASELINES, SessionConfig
+from cfbci.soak import add_soak_parser
+from cfbci.sweep import add_sweep_command
+from cfbci.view import add_view_command
+from cfbci.world_check import add_world_command
 
 
 def parse_settings(pairs: Sequence[str]) -> dict[str, Any]:
@@ -45,8 +54,20 @@ def _add_data_options(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--synthetic-accuracy", type=float, default=DEFAULT_SYNTHETIC_ACCURACY,
-        help=f"synthetic difficulty as nominal balanced LDA accuracy, in {list(ACCURACY_RANGE)}",
+        help=f"synthetic difficulty as nominal balanced LDA accuracy, in {list(ACCURACY_RANGE)} "
+        "(ErrP); for Gaussian signals the Bayes-optimal balanced accuracy",
     )
+    p.add_argument(
+        "--synthetic", choices=SYNTHETIC_KINDS, default="errp",
+        help="synthetic generator: ErrP EEG epochs (feedback), or Gaussian signals with as many "
+        "classes as the frame needs (default errp)",
+    )
+    p.add_argument("--dims", type=int, default=2, help="dimensions of a Gaussian signal")
+
+
+def data_spec(args: argparse.Namespace) -> DataSpec:
+    """The :class:`DataSpec` of the options of :func:`_add_data_options`."""
+    return DataSpec(args.dataset, args.synthetic_accuracy, args.synthetic, args.dims)
 
 
 def _add_simulate(commands: argparse._SubParsersAction) -> None:
@@ -73,7 +94,7 @@ def _add_simulate(commands: argparse._SubParsersAction) -> None:
         "--set", action="append", default=[], metavar="KEY=VALUE",
         help="any other learner setting (see calibration_free.config.LearnerConfig)",
     )
-    p.add_argument("--jobs", type=int, default=0, help="worker processes (default: all cores)")
+    add_scheduler_options(p)
     p.add_argument("--json", type=Path, help="write the report as JSON")
     p.add_argument("--trace", type=Path, help="write one JSON line per step")
     p.set_defaults(run=_run_simulate)
@@ -93,10 +114,11 @@ def _run_simulate(args: argparse.Namespace, console: Console) -> int:
         calibration_trials=args.calibration_trials,
         user_error_rate=args.user_error_rate,
     )
-    data = DataSpec(args.dataset, args.synthetic_accuracy)
+    data = data_spec(args)
     seeds = list(range(args.first_seed, args.first_seed + args.seeds))
+    scheduler = Scheduler.from_options(args.scheduler, args.jobs)
     report = simulate(
-        config, data, seeds, jobs=_jobs(args.jobs), console=console, trace_path=args.trace
+        config, data, seeds, scheduler=scheduler, console=console, trace_path=args.trace
     )
     print_report(report, console)
     if args.json:
@@ -107,17 +129,9 @@ def _run_simulate(args: argparse.Namespace, console: Console) -> int:
 def _add_bench(commands: argparse._SubParsersAction) -> None:
     p = commands.add_parser("bench", help="benchmarks")
     which = p.add_subparsers(dest="bench", required=True)
-    update = which.add_parser(
-        "update",
-        help="the learner's per-step cost against a naive scikit-learn reference",
-    )
-    update.add_argument("--grids", type=int, nargs="+", default=[5, 10, 20])
-    update.add_argument("--histories", type=int, nargs="+", default=[100, 500, 1000])
-    update.add_argument("--measured-steps", type=int, default=30)
-    update.add_argument("--naive-repeats", type=int, default=5)
-    update.add_argument("--seed", type=int, default=0)
-    update.add_argument("--json", type=Path, help="write the rows as JSON")
-    update.set_defaults(run=_run_bench_update)
+    from cfbci.bench import add_bench_parsers  # update, simulate
+
+    add_bench_parsers(which)
     latency = which.add_parser(
         "latency",
         help="end-to-end latency over Zenoh (source to service and back) and the learner's share",
@@ -132,22 +146,7 @@ def _add_bench(commands: argparse._SubParsersAction) -> None:
     latency.add_argument("--seed", type=int, default=0, help="session seed (default 0)")
     latency.add_argument("--json", type=Path, help="write the figures (ms) as JSON")
     latency.set_defaults(run=_run_bench_latency)
-
-
-def _run_bench_update(args: argparse.Namespace, console: Console) -> int:
-    from dataclasses import asdict
-
-    from cfbci.bench import bench_update, print_rows
-
-    rows = bench_update(
-        tuple(args.grids), tuple(sorted(args.histories)),
-        measured_steps=args.measured_steps, naive_repeats=args.naive_repeats,
-        seed=args.seed, console=console,
-    )
-    print_rows(rows, console)
-    if args.json:
-        args.json.write_text(json.dumps({"rows": [asdict(r) for r in rows]}, indent=2) + "\n")
-    return 0
+    add_soak_parser(which)
 
 
 def _run_bench_latency(args: argparse.Namespace, console: Console) -> int:
@@ -165,6 +164,14 @@ def _add_endpoints(p: argparse.ArgumentParser, listen_help: str, connect_help: s
     p.add_argument("--connect", action="append", default=[], metavar="EP", help=connect_help)
 
 
+def _add_zenoh_config(p: argparse.ArgumentParser | argparse._ArgumentGroup) -> None:
+    p.add_argument(
+        "--zenoh-config", type=Path, metavar="FILE",
+        help="Zenoh JSON5 configuration merged over the defaults (peer mode, multicast "
+        "scouting off); --listen/--connect replace its endpoints (docs/deployment.md)",
+    )
+
+
 def _add_serve(commands: argparse._SubParsersAction) -> None:
     p = commands.add_parser(
         "serve",
@@ -176,6 +183,7 @@ def _add_serve(commands: argparse._SubParsersAction) -> None:
         p, "Zenoh endpoint to listen on, e.g. tcp/127.0.0.1:7447 (repeatable)",
         "Zenoh endpoint to connect to (repeatable)",
     )
+    _add_zenoh_config(p)
     p.add_argument("--record-dir", type=Path, help="write one <session>.mcap per session here")
     p.set_defaults(run=_run_serve)
 
@@ -183,9 +191,9 @@ def _add_serve(commands: argparse._SubParsersAction) -> None:
 def _run_serve(args: argparse.Namespace, console: Console) -> int:
     from cfbci.service import serve
 
-    if not args.listen and not args.connect:
-        raise ValueError("give at least one --listen or --connect endpoint")
-    serve(args.listen, args.connect, args.record_dir)
+    if not args.listen and not args.connect and args.zenoh_config is None:
+        raise ValueError("give at least one --listen or --connect endpoint (or --zenoh-config)")
+    serve(args.listen, args.connect, args.record_dir, zenoh_config=args.zenoh_config)
     return 0
 
 
@@ -217,7 +225,7 @@ def _source_settings(args: argparse.Namespace, session: str) -> Any:
     learner = parse_settings(args.set)
     LearnerConfig.from_dict({"frame": args.frame, **learner})  # fail early on a bad setting
     return SourceSettings(
-        session=session, data=DataSpec(args.dataset, args.synthetic_accuracy), seed=args.seed,
+        session=session, data=data_spec(args), seed=args.seed,
         steps=args.steps, grid=args.grid, frame=args.frame, learner=learner,
         interval=args.interval, user_error_rate=args.user_error_rate,
     )
@@ -235,13 +243,16 @@ def _add_source(commands: argparse._SubParsersAction) -> None:
         p, "Zenoh endpoint to listen on (repeatable)",
         "Zenoh endpoint of the service, e.g. tcp/127.0.0.1:7447 (repeatable)",
     )
+    _add_zenoh_config(p)
     p.set_defaults(run=_run_source)
 
 
 def _run_source(args: argparse.Namespace, console: Console) -> int:
     from acquisition.replay_source import run_source
 
-    summary = run_source(_source_settings(args, args.session), args.listen, args.connect)
+    summary = run_source(
+        _source_settings(args, args.session), args.listen, args.connect, args.zenoh_config
+    )
     console.print(
         f"session {summary.session!r}: {summary.steps} steps, first target "
         f"{summary.first_target_step or '-'}, correct {summary.correct_targets}, "
@@ -266,6 +277,7 @@ def _add_session(commands: argparse._SubParsersAction) -> None:
         p, "endpoint the service listens on (default a free tcp/127.0.0.1 port; repeatable)",
         "endpoint the service connects to (repeatable)",
     )
+    _add_zenoh_config(p)
     p.set_defaults(run=_run_session)
 
 
@@ -285,7 +297,8 @@ def _run_session(args: argparse.Namespace, console: Console) -> int:
     start = time.monotonic()
     try:
         result = run_live_session(
-            settings, record, listen=args.listen, connect=args.connect, console=console
+            settings, record, listen=args.listen, connect=args.connect, console=console,
+            zenoh_config=args.zenoh_config,
         )
     except (TimeoutError, RuntimeError) as error:
         Console(stderr=True).print(f"[bold red]error:[/] {error}")
@@ -383,6 +396,7 @@ def _add_replay(commands: argparse._SubParsersAction) -> None:
         publish, "Zenoh endpoint to listen on (repeatable)",
         "Zenoh endpoint of the service, e.g. tcp/127.0.0.1:7447 (repeatable)",
     )
+    _add_zenoh_config(publish)
     p.add_argument("--json", type=Path, help="write the result as JSON")
     p.set_defaults(run=_run_replay)
 
@@ -409,7 +423,7 @@ def _run_replay(args: argparse.Namespace, console: Console) -> int:
     publish_only = {
         "--speed": args.speed is not None, "--session": args.session is not None,
         "--timeout": args.timeout is not None, "--listen": bool(args.listen),
-        "--connect": bool(args.connect),
+        "--connect": bool(args.connect), "--zenoh-config": args.zenoh_config is not None,
     }
     analysis = {"--option": bool(args.option), "--compare": bool(args.compare),
                 "--per-step": args.per_step}
@@ -463,8 +477,8 @@ def _replay_publish(args: argparse.Namespace, console: Console) -> int:
         raise ValueError(f"--timeout must be positive; got {timeout}")
     try:
         result = run_publish(
-            args.file, args.listen, args.connect, session_id=args.session, speed=speed,
-            timeout=timeout,
+            args.file, args.listen, args.connect, args.zenoh_config, session_id=args.session,
+            speed=speed, timeout=timeout,
         )
     except (TimeoutError, RuntimeError) as error:
         Console(stderr=True).print(f"[bold red]error:[/] {error}")
@@ -487,26 +501,21 @@ def _add_report(commands: argparse._SubParsersAction) -> None:
     )
     p.add_argument("files", type=Path, nargs="+", metavar="FILE", help="recordings (.mcap)")
     p.add_argument("--out", type=Path, required=True, metavar="DIR", help="output directory")
-    p.add_argument("--jobs", type=int, default=0, help="worker processes (default: all cores)")
+    add_scheduler_options(p)
     p.set_defaults(run=_run_report)
 
 
 def _run_report(args: argparse.Namespace, console: Console) -> int:
     from cfbci.report import print_summary, run_report
 
-    reports = run_report(args.files, args.out, jobs=_jobs(args.jobs), console=console)
+    scheduler = Scheduler.from_options(args.scheduler, args.jobs)
+    reports = run_report(args.files, args.out, scheduler=scheduler, console=console)
     print_summary(reports, console)
     errors = [r.error for r in reports if r.error]
     for error in errors:
         Console(stderr=True).print(f"[bold red]error:[/] {error}", soft_wrap=True)
     console.print(f"report: {args.out / 'index.html'} (metrics {args.out / 'metrics.json'})")
     return 1 if errors else 0
-
-
-def _jobs(requested: int) -> int:
-    import os
-
-    return requested if requested > 0 else (os.cpu_count() or 1)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -522,6 +531,15 @@ def build_parser() -> argparse.ArgumentParser:
     _add_recover(commands)
     _add_replay(commands)
     _add_report(commands)
+    router.add_parser(commands)
+    add_sweep_command(commands)
+    add_export_command(commands)
+    add_datasets_command(commands)
+    add_view_command(commands)
+    add_world_command(commands)
+    from cfbci.lsl_commands import add_lsl_commands  # here: it imports this module's helpers
+
+    add_lsl_commands(commands)
     return parser
 
 
@@ -535,6 +553,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     except (ValueError, FileNotFoundError) as error:
         Console(stderr=True).print(f"[bold red]error:[/] {error}")
         return 2
+    except zenoh.ZError as error:  # e.g. nobody at the endpoints, or credentials refused
+        Console(stderr=True).print(
+            f"[bold red]error:[/] Zenoh: {error}\n(check the endpoints, and the credentials "
+            "and certificates of --zenoh-config)", soft_wrap=True,
+        )
+        return 1
 
 
 if __name__ == "__main__":

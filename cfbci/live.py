@@ -131,6 +131,7 @@ def run_live_session(
     listen: Sequence[str] = (),
     connect: Sequence[str] = (),
     console: Console,
+    zenoh_config: Path | None = None,
 ) -> dict[str, Any]:
     """Run one live session with a display; return the JSON summary.
 
@@ -146,6 +147,9 @@ def run_live_session(
     connect : sequence of str
         Endpoints the service connects to.
     console : Console
+    zenoh_config : Path or None
+        Zenoh JSON5 configuration merged over the defaults, for the service, the source
+        and the display alike (the endpoints stay the ones above).
 
     Returns
     -------
@@ -159,17 +163,19 @@ def run_live_session(
     record.parent.mkdir(parents=True, exist_ok=True)
     # The display listens before the others start, so they reach it at once and it misses
     # nothing; the source reaches the service through the service's endpoints.
-    with zenoh.open(peer_config([display_endpoint], ())) as session:
+    with zenoh.open(peer_config([display_endpoint], (), zenoh_config)) as session:
         service = context.Process(
             target=serve,
             args=(service_endpoints, [display_endpoint, *connect], record.parent),
+            kwargs={"zenoh_config": zenoh_config},
             name="cfbci-service",
         )
         service.start()
         try:
             with ProcessPoolExecutor(1, mp_context=context) as pool:
                 future = pool.submit(
-                    run_source, settings, [], [*service_endpoints, display_endpoint]
+                    run_source, settings, [], [*service_endpoints, display_endpoint],
+                    zenoh_config,
                 )
                 summary = _display(session, settings, future, console)
         finally:

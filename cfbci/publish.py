@@ -52,6 +52,7 @@ from wire.transport import (
     Outbox,
     Pump,
     Received,
+    Resender,
     decode_from_service,
     wait_for_subscribers,
 )
@@ -61,6 +62,8 @@ log = logging.getLogger("cfbci.publish")
 
 #: Seconds without any message from the service after which publishing gives up.
 DEFAULT_TIMEOUT = 30.0
+#: Seconds between two sendings of an unanswered config or epoch.
+RESEND_INTERVAL = 1.0
 _KINDS = ("move", "state", "event")
 
 
@@ -225,6 +228,8 @@ class _Answers:
     """The service's messages on our session, as they arrive."""
 
     sid: str
+    resender: Resender
+    config_t_ns: int = -1
     trackers: dict[str, SequenceTracker] = field(
         default_factory=lambda: {kind: SequenceTracker() for kind in _KINDS}
     )
@@ -239,24 +244,33 @@ class _Answers:
         message = decode_from_service(received, self.trackers, log)
         if message is None:
             return
-        fields = message.fields
+        fields, pending = message.fields, self.resender.pending
         if message.kind == "move":
-            self.moves[fields["step"]] = fields
-            self.move_ns[fields["step"]] = received.t_ns
+            if fields["step"] not in self.moves:  # a move sent again is the same move
+                self.moves[fields["step"]] = fields
+                self.move_ns[fields["step"]] = received.t_ns
+            if pending is not None and pending.kind == "epoch" and (
+                fields["step"] > pending.fields["step"]
+            ):
+                self.resender.answered()
         elif message.kind == "state":
             assert message.payload is not None
-            self.states.append({**fields, "confidence": [float(x) for x in message.payload]})
-        elif fields["event"] == "session_started":
+            if fields["n_signals"] == len(self.states):  # not a state sent again
+                self.states.append({**fields, "confidence": [float(x) for x in message.payload]})
+        elif fields["config_t_ns"] == self.config_t_ns and fields["event"] == "session_started":
             self.started = True
+            if pending is not None and pending.kind == "config":
+                self.resender.answered()
+        elif fields["config_t_ns"] == self.config_t_ns and fields["event"] == "session_rejected":
+            raise RuntimeError(f"the service rejected session {self.sid!r}: {fields['message']}")
         elif fields["event"] == "session_ended":
             self.ended = True
         elif fields["event"] == "target_reached":
             self.target_events.append(fields["message"])
-        elif fields["event"] == "error":
-            raise RuntimeError(f"the service rejected a message of session {self.sid!r}: "
-                               f"{fields['message']}")
-        else:
-            log.info("%s: %s", fields["event"], fields["message"])
+        else:  # errors about single messages, information, others' sessions on this id
+            (log.warning if fields["event"] == "error" else log.info)(
+                "%s: %s", fields["event"], fields["message"]
+            )
 
 
 def publish_recording(
@@ -266,6 +280,7 @@ def publish_recording(
     session_id: str | None = None,
     speed: float = 1.0,
     timeout: float = DEFAULT_TIMEOUT,
+    resend_interval: float = RESEND_INTERVAL,
 ) -> PublishResult:
     """Publish a recorded session to the service reachable through ``session``.
 
@@ -279,6 +294,8 @@ def publish_recording(
         Pace factor (see the module docstring); 0 or ``inf``: as fast as possible.
     timeout : float
         Seconds without any message from the service before giving up (a failure guard).
+    resend_interval : float
+        Seconds between two sendings of the unanswered config or epoch.
 
     Raises
     ------
@@ -287,7 +304,8 @@ def publish_recording(
     TimeoutError
         If no service subscribes to the config, or the service falls silent.
     RuntimeError
-        If the service rejects the config or an epoch (an ``error`` event).
+        If the service rejects the session (a ``session_rejected`` event answering its
+        config); ``error`` events about single messages are only logged.
     """
     if not isinstance(recording, Recording):
         recording = read_recording(recording)
@@ -298,18 +316,24 @@ def publish_recording(
     inbox: queue.SimpleQueue[Received] = queue.SimpleQueue()
     pumps = [Pump(session, protocol.key(sid, kind), kind, inbox) for kind in _KINDS]
     outbox = Outbox(session)
-    answers = _Answers(sid)
+    resender = Resender(outbox, resend_interval)
+    answers = _Answers(sid, resender)
+    heard_ns = time.monotonic_ns()
 
     def receive(deadline_ns: int | None = None) -> None:
-        """Take one message; until ``deadline_ns`` (monotonic) at most, if given."""
+        """Take one message, or re-send what is due; until ``deadline_ns`` (monotonic) at
+        most, if given."""
+        nonlocal heard_ns
         wait = timeout if deadline_ns is None else (deadline_ns - time.monotonic_ns()) / 1e9
         try:
-            answers.take(inbox.get(timeout=max(wait, 0.0)))
+            answers.take(inbox.get(timeout=resender.wait(max(wait, 0.0))))
+            heard_ns = time.monotonic_ns()
         except queue.Empty:
-            if deadline_ns is None:
+            if deadline_ns is None and time.monotonic_ns() - heard_ns >= timeout * 1e9:
                 raise TimeoutError(
                     f"session {sid!r}: no message from the service for {timeout} s"
                 ) from None
+        resender.poll()
 
     sent_ns: dict[int, int] = {}
     try:
@@ -317,7 +341,7 @@ def publish_recording(
             raise TimeoutError(
                 f"no service subscribed to {protocol.key(sid, 'config')} within {timeout} s"
             )
-        outbox.send("config", sid, published.config)
+        answers.config_t_ns = resender.send("config", sid, published.config).t_ns
         while not answers.started:
             receive()
         truths = 0
@@ -329,9 +353,9 @@ def publish_recording(
                 due = sent_ns[step - 1] + int(gap_ns / speed)
                 while time.monotonic_ns() < due:
                     receive(due)
-            sent_ns[step] = outbox.send("epoch", sid, fields, payload).t_ns
+            sent_ns[step] = resender.send("epoch", sid, fields, payload).t_ns
             if step in published.truths:
-                outbox.send("truth", sid, published.truths[step])
+                resender.send("truth", sid, published.truths[step], companion=True)
                 truths += 1
         n = len(published.epochs)
         while not (answers.ended and len(answers.states) == n + 1):
@@ -370,13 +394,15 @@ def run_publish(
     path: str | os.PathLike[str],
     listen: Sequence[str] = (),
     connect: Sequence[str] = (),
+    zenoh_config: os.PathLike[str] | None = None,
     **options: Any,
 ) -> PublishResult:
-    """Open a Zenoh peer on the endpoints and :func:`publish_recording` ``path``."""
-    if not listen and not connect:
+    """Open a Zenoh peer on the endpoints (``zenoh_config``: a Zenoh JSON5 file merged over
+    the defaults) and :func:`publish_recording` ``path``."""
+    if not listen and not connect and zenoh_config is None:
         raise ValueError("give at least one --connect (the service's endpoint) or --listen")
     recording = read_recording(path)  # a bad file fails before the network is touched
-    with zenoh.open(peer_config(listen, connect)) as session:
+    with zenoh.open(peer_config(listen, connect, zenoh_config)) as session:
         return publish_recording(session, recording, **options)
 
 

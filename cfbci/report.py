@@ -1,9 +1,10 @@
 """``cfbci report FILE.mcap [...] --out DIR``: metrics, figures and an HTML report of sessions.
 
-Every recording is one job (:func:`report_session`, run in spawned worker processes by
-:func:`cfbci.parallel.run_parallel`): read it (a truncated file gives what it holds), measure
-it (:mod:`replay.metrics`, which re-runs the learner), and draw its figures
-(:mod:`replay.figures`, ``DIR/<stem>_<kind>.png``). This process then writes
+Every recording is one job (:func:`report_session`, run on Dask by
+:func:`cfbci.parallel.run_parallel`; on an existing cluster its workers must see the
+recordings and the output directory at the same paths): read it (a truncated file gives
+what it holds), measure it (:mod:`replay.metrics`, which re-runs the learner), and draw its
+figures (:mod:`replay.figures`, ``DIR/<stem>_<kind>.png``). This process then writes
 ``DIR/metrics.json`` (per session and aggregate) and ``DIR/index.html``
 (:mod:`replay.html_report`), and prints a summary. A file that cannot be processed (missing,
 not MCAP, no configuration, ...) is reported by name; the others are still processed.
@@ -22,7 +23,7 @@ from rich.console import Console
 from rich.markup import escape
 from rich.table import Table
 
-from cfbci.parallel import run_parallel
+from cfbci.parallel import Scheduler, run_parallel
 from replay.figures import session_figures
 from replay.html_report import SessionReport, write_html
 from replay.metrics import aggregate, session_metrics
@@ -52,7 +53,7 @@ def unique_stems(paths: list[Path]) -> list[str]:
 
 
 def report_session(job: ReportJob) -> SessionReport:
-    """Measure and draw one recording (a top-level function: a spawned worker's job).
+    """Measure and draw one recording (a module-level function: a Dask worker's job).
 
     Never raises for a bad file: the returned report then holds the error, naming the file.
     """
@@ -157,15 +158,15 @@ def print_summary(reports: list[SessionReport], console: Console) -> None:
 
 
 def run_report(
-    files: list[Path], out_dir: Path, *, jobs: int, console: Console
+    files: list[Path], out_dir: Path, *, scheduler: Scheduler, console: Console
 ) -> list[SessionReport]:
-    """Report every file into ``out_dir`` (see the module docstring); return the reports."""
+    """Report every file into ``out_dir`` (see the module docstring), the files' jobs run
+    where ``scheduler`` says; return the reports."""
     out_dir.mkdir(parents=True, exist_ok=True)
     stems = unique_stems(files)
     work = [ReportJob(str(f), str(out_dir), s) for f, s in zip(files, stems, strict=True)]
     reports = run_parallel(
-        report_session, work, workers=min(jobs, len(work)), description="reporting",
-        console=console,
+        report_session, work, scheduler=scheduler, description="reporting", console=console
     )
     document = metrics_document(reports, out_dir)
     (out_dir / "metrics.json").write_text(json.dumps(document, indent=1) + "\n")

@@ -4,7 +4,22 @@
 one :class:`_Session` per session id: the learner, the agent's cell, the step of the last
 move and the sequence tracker of the epochs. It answers every accepted epoch with the next
 ``move`` and a ``state`` (docs/protocol.md), and every message it cannot accept with an
-``error`` event; a rejected message never reaches the learner.
+``error`` event; a rejected message never reaches the learner. A session it cannot run,
+or stops running (a limit of :class:`cfbci.limits.ServiceLimits` exceeded, no subscriber,
+idle), gets a ``session_rejected`` event instead.
+
+**Isolation.** Messages wait in a :class:`wire.intake.Intake` (bounded, one FIFO per running
+session served round-robin, per-session rate limit); the loop never blocks on anything but
+the intake: a config whose source has not subscribed to its events yet waits as a
+:class:`_Pending` entry, started by :meth:`PipelineService.housekeeping` once it has.
+
+**Restart and resume.** Started on a record directory, the service resumes every session
+recorded there that neither ended nor was rejected: it re-runs the learner over the
+recorded epochs (:class:`replay.rerun.Rerun`, as ``cfbci replay`` does), checks that the
+re-run reproduces the recorded moves, rewrites the recording in place and continues it
+(one file, every step once), and publishes the current move and state again. The source
+re-sends its unanswered epoch until the next move arrives; a re-sent epoch already
+answered (same step, ``seq`` and ``t_ns``) is answered again, unrecorded.
 
 **Labels never reach the learner.** The service does not subscribe to ``truth`` for
 itself: a separate :class:`Recordings` object, which holds the session recorders and no
@@ -20,12 +35,13 @@ The agent's start cell is the first draw of the session's *user* stream
 from __future__ import annotations
 
 import logging
+import os
 import signal
 import time
+from collections import Counter
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from queue import SimpleQueue
 from typing import Any
 
 import numpy as np
@@ -33,25 +49,29 @@ import zenoh
 
 from calibration_free.learner import CalibrationFreeLearner
 from calibration_free.session import session_streams, start_cell
-from calibration_free.world import GridWorld
+from calibration_free.world import ACTIONS, GridWorld
+from cfbci.limits import ServiceLimits, session_memory_bytes
 from cfbci.memory import keep_freed_memory
 from decoding.features import ErrPFeatures
-from replay.recording import SessionRecorder
+from replay.recording import Recording, SessionRecorder, decode_array, read_recording
+from replay.rerun import STATE_FIELDS, Rerun, move_divergence, recorded_signals, signal_extractor
 from wire import protocol
+from wire.intake import Intake, session_of
 from wire.messages import learner_settings, move_fields, state_fields
 from wire.protocol import NO_SESSION, ProtocolError, SequenceTracker
-from wire.transport import Outbox, Pump, Received, wait_for_subscribers
+from wire.transport import Outbox, Pump, Received
 from wire.zenoh_config import peer_config
 
 log = logging.getLogger("cfbci.service")
 
-#: Seconds the service waits for a new session's source to be subscribed to its events.
-SUBSCRIBER_TIMEOUT = 5.0
-#: Largest grid side the service accepts (the world's tables grow as grid ** 4).
-MAX_GRID = 32
+#: Seconds the loop waits for a message while a session waits for its source to subscribe.
+TICK = 0.02
+#: Seconds the loop waits for a message otherwise (between two idle checks).
+IDLE_TICK = 0.5
+#: Error events published per session id per second; further ones are only counted.
+ERRORS_PER_SECOND = 20
 #: foxglove.Log levels of the event kinds.
-_LOG_LEVELS = {"error": 4, "info": 2}
-_STOP = None  # queue sentinel: shut the service down
+_LOG_LEVELS = {"error": 4, "session_rejected": 4, "info": 2}
 
 
 class Recordings:
@@ -84,6 +104,34 @@ class Recordings:
         self._recorders[session] = recorder
         return recorder
 
+    def resume(self, recording: Recording) -> SessionRecorder | None:
+        """Continue an unfinished recording in place (None when not recording).
+
+        Its messages are written again, in log-time order, to a new file that then replaces
+        it (so a crash meanwhile leaves the original intact); new messages follow them.
+        """
+        if self.directory is None:
+            return None
+        path = self.directory / f"{recording.session}.mcap"
+        partial = path.with_suffix(".mcap.resuming")
+        config = recording.config
+        recorder = SessionRecorder(partial, recording.session, config)
+        messages = sorted(
+            (log_time, order, index, topic, message)
+            for order, (topic, entries) in enumerate(recording.messages.items())
+            if topic != "/config"
+            for index, (log_time, message) in enumerate(entries)
+        )
+        for log_time, _, _, topic, message in messages:
+            recorder.record(topic, message, log_time)
+        os.replace(partial, path)
+        recorder.path = path
+        truths = recording.messages.get("/truth", [])
+        if truths:
+            self._last_truth[recording.session] = truths[-1][1]["step"]
+        self._recorders[recording.session] = recorder
+        return recorder
+
     def get(self, session: str) -> SessionRecorder | None:
         """The open recorder of a session, if any."""
         return self._recorders.get(session)
@@ -99,6 +147,8 @@ class Recordings:
         if recorder is None:
             log.debug("truth of session %r not recorded: no open recording", message.session)
             return
+        if message.fields["step"] <= self._last_truth.get(message.session, 0):
+            return  # re-sent with its epoch, or out of order: the step's truth is recorded
         record = {"seq": message.seq, "t_ns": message.t_ns, **message.fields}
         recorder.record("/truth", record, received.t_ns)
         self._last_truth[message.session] = message.fields["step"]
@@ -125,6 +175,26 @@ class Recordings:
             self._close(session)
 
 
+class Rejection(ProtocolError):
+    """A session the service cannot run, or stops running: a ``session_rejected`` event.
+
+    ``config_t_ns`` is the ``t_ns`` of the config it answers (see docs/protocol.md).
+    """
+
+    def __init__(self, problem: str, session: str, seq: int | None, config_t_ns: int) -> None:
+        super().__init__(problem, session, seq)
+        self.config_t_ns = config_t_ns
+
+
+@dataclass
+class _Pending:
+    """A started config whose source has not subscribed to the session's events yet."""
+
+    message: protocol.Message
+    publisher: zenoh.Publisher
+    deadline_ns: int
+
+
 @dataclass
 class _Session:
     """What the service knows of one running session (the learner's side: no labels).
@@ -134,17 +204,25 @@ class _Session:
     id : str
     config : dict
         The config message's fields.
+    config_t_ns : int
+        The config message's ``t_ns`` (which ``session_started`` and a rejection name).
     world : GridWorld
     learner : CalibrationFreeLearner
     state : int
         The agent's cell before the last move.
+    recorder : SessionRecorder or None
+    active_ns : int
+        ``time.monotonic_ns()`` of the start, the last accepted epoch or the resumption.
     action : int
         The last move's action (index into ACTIONS).
     step : int
         The last move's step (1-based): the step the next epoch must carry.
     epochs : SequenceTracker
-        Sequence numbers of the session's epochs.
-    recorder : SessionRecorder or None
+        Sequence numbers of the session's accepted epochs.
+    last_epoch : tuple of int or None
+        ``(step, seq, t_ns)`` of the last accepted epoch: a re-send of it is answered again.
+    answer : tuple or None
+        The last move's fields and the state that accompanied it (fields, confidence).
     extractor : ErrPFeatures or None
         Fitted on the first raw epoch (``signal`` "epochs").
     shape : tuple of int or None
@@ -156,13 +234,17 @@ class _Session:
 
     id: str
     config: dict[str, Any]
+    config_t_ns: int
     world: GridWorld
     learner: CalibrationFreeLearner
     state: int
     recorder: SessionRecorder | None
+    active_ns: int
     action: int = 0
     step: int = 0
     epochs: SequenceTracker = field(default_factory=SequenceTracker)
+    last_epoch: tuple[int, int, int] | None = None
+    answer: tuple[dict[str, Any], dict[str, Any], np.ndarray] | None = None
     extractor: ErrPFeatures | None = None
     shape: tuple[int, ...] | None = None
     update_ns: list[int] = field(default_factory=list)
@@ -170,6 +252,25 @@ class _Session:
 
 #: Called with a session's id and its :attr:`_Session.update_ns` when the session ends.
 SessionEndHook = Callable[[str, list[int]], None]
+
+
+class _ErrorBudget:
+    """At most :data:`ERRORS_PER_SECOND` error events per session id per second."""
+
+    def __init__(self) -> None:
+        self._window = 0
+        self._counts: Counter[str] = Counter()
+
+    def allows(self, session: str) -> bool:
+        window = int(time.monotonic())
+        if window != self._window:
+            suppressed = sum(max(0, n - ERRORS_PER_SECOND) for n in self._counts.values())
+            if suppressed:
+                log.warning("%d error events suppressed in the last second", suppressed)
+            self._window = window
+            self._counts.clear()
+        self._counts[session] += 1
+        return self._counts[session] <= ERRORS_PER_SECOND
 
 
 class PipelineService:
@@ -180,9 +281,9 @@ class PipelineService:
     session : zenoh.Session
         An open Zenoh session (the caller closes it, after :meth:`close`).
     record_dir : Path or None
-        Directory of the recordings, ``<session>.mcap``; None: no recording.
-    subscriber_timeout : float
-        Seconds to wait for a new session's source to subscribe before starting it.
+        Directory of the recordings, ``<session>.mcap``; None: no recording. The
+        unfinished sessions recorded there are resumed (:meth:`resume`).
+    limits : ServiceLimits
     on_end : callable or None
         Called with ``(session id, update_ns)`` when a session ends normally: the learner's
         time per epoch in ns, as :attr:`_Session.update_ns` (``cfbci bench latency``).
@@ -194,22 +295,25 @@ class PipelineService:
         self,
         session: zenoh.Session,
         record_dir: Path | None = None,
-        subscriber_timeout: float = SUBSCRIBER_TIMEOUT,
+        limits: ServiceLimits | None = None,
         on_end: SessionEndHook | None = None,
     ) -> None:
-        self.queue: SimpleQueue[Received | None] = SimpleQueue()
+        self.limits = limits or ServiceLimits()
+        self.intake = Intake(self.limits.rate, self.limits.max_message_bytes)
         self.recordings = Recordings(record_dir)
-        self.subscriber_timeout = subscriber_timeout
         self.on_end = on_end
         self._outbox = Outbox(session)
         self._sessions: dict[str, _Session] = {}
-        self._config_seq: dict[str, SequenceTracker] = {}
+        self._pending: dict[str, _Pending] = {}
+        self._errors = _ErrorBudget()
+        self._stopped = False
+        if record_dir is not None:
+            self.resume(record_dir)
         prefix = protocol.PREFIX
         self._pumps = [
-            Pump(session, f"{prefix}/*/config", "config", self.queue),
-            Pump(session, f"{prefix}/*/epoch", "epoch", self.queue),
+            Pump(session, f"{prefix}/*/{kind}", kind, self.intake, self.intake.accepts_size)
             # Recorder-only: truth goes to self.recordings, never to a _Session.
-            Pump(session, f"{prefix}/*/truth", "truth", self.queue),
+            for kind in ("config", "epoch", "truth")
         ]
 
     @property
@@ -219,13 +323,18 @@ class PipelineService:
 
     def stop(self) -> None:
         """Make :meth:`run` return (safe to call from a signal handler)."""
-        self.queue.put(_STOP)
+        self._stopped = True
+        self.intake.stop()
 
     def run(self) -> None:
-        """Handle messages in arrival order until :meth:`stop`; then :meth:`close`."""
+        """Handle messages fairly (:class:`wire.intake.Intake`) until :meth:`stop`; start
+        the sessions whose source has subscribed, end idle ones; then :meth:`close`."""
         try:
-            while (received := self.queue.get()) is not _STOP:
-                self.handle(received)
+            while not self._stopped:
+                received = self.intake.get(TICK if self._pending else IDLE_TICK)
+                if received is not None:
+                    self.handle(received)
+                self.housekeeping()
         finally:
             self.close()
 
@@ -244,87 +353,234 @@ class PipelineService:
             elif received.tag == "config":
                 self._on_config(received)
             else:
-                self._on_epoch(received)
+                self._on_epoch(received, (time.monotonic_ns() - received.t_ns) / 1e6)
         except ProtocolError as error:
             self._reject(error)
         except Exception as exc:  # a bug must not stop the other sessions: report it
             log.exception("internal error on a message of %s", received.key_expr)
-            try:
-                session = protocol.split_key(received.key_expr)[0]
-            except ProtocolError:
-                session = None
+            session = session_of(received.key_expr)
+            session = session if protocol.TYPES["session"][1](session) else None
+            self._reject(ProtocolError(f"internal error: {exc!r}", session))
+
+    def housekeeping(self) -> None:
+        """Start the pending sessions whose source has subscribed, reject those that waited
+        too long, end the idle sessions, and log the messages the intake dropped."""
+        now = time.monotonic_ns()
+        for sid, pending in list(self._pending.items()):
+            if pending.publisher.matching_status.matching:
+                del self._pending[sid]
+                self._guarded(sid, lambda p=pending: self._start(p.message, p.publisher))
+            elif now >= pending.deadline_ns:
+                del self._pending[sid]
+                self._outbox.forget(sid)
+                self._reject(Rejection(
+                    f"no subscriber to the session's events within "
+                    f"{self.limits.subscriber_timeout:g} s", sid, pending.message.seq,
+                    pending.message.t_ns,
+                ))
+        idle_ns = int(self.limits.idle_timeout * 1e9)
+        for session in [s for s in self._sessions.values() if now - s.active_ns > idle_ns]:
+            self._abort(session, f"no epoch for {self.limits.idle_timeout:g} s: session ended")
+        drops = self.intake.take_drops()
+        if drops:
+            log.warning("intake dropped %s", dict(drops))
+
+    def _guarded(self, session: str, action: Callable[[], None]) -> None:
+        """Run ``action``; a rejection or a bug is reported on ``session``."""
+        try:
+            action()
+        except ProtocolError as error:
+            self._reject(error)
+        except Exception as exc:
+            log.exception("internal error on session %r", session)
             self._reject(ProtocolError(f"internal error: {exc!r}", session))
 
     # -- sessions ---------------------------------------------------------------------
 
     def _on_config(self, received: Received) -> None:
-        message = protocol.decode(received.data, key_expr=received.key_expr)
-        where = {"session": message.session, "seq": message.seq}
-        if message.session in self._sessions:
-            raise ProtocolError("a session with this id is already running", **where)
-        key_expr = protocol.key(message.session, "config")
-        gap = self._check_seq(self._config_seq.setdefault(key_expr, SequenceTracker()), where)
-        config = message.fields
-        if not 2 <= config["grid"] <= MAX_GRID:
-            raise ProtocolError(f"field 'grid' must be in 2..{MAX_GRID}", **where)
-        try:
-            world = GridWorld(config["grid"])
-            learner_config = learner_settings(config["learner"], config["frame"])
-            learner_rng = session_streams(config["seed"])[2]
-            start = start_cell(config["seed"], world.n_states)
-        except (ValueError, TypeError) as exc:
-            raise ProtocolError(f"bad config: {exc}", **where) from None
-        if config["steps"] < 1:
-            raise ProtocolError("field 'steps' must be at least 1", **where)
-        learner = CalibrationFreeLearner(world, learner_config, learner_rng)
-        event_publisher = self._outbox.publisher(protocol.key(message.session, "event"))
-        if not wait_for_subscribers(event_publisher, self.subscriber_timeout):
-            log.warning("session %r: no subscriber to its events; starting anyway", message.session)
-        recorder = self.recordings.open(
-            message.session, {"seq": message.seq, "t_ns": message.t_ns, **config}
+        message = protocol.decode(
+            received.data, key_expr=received.key_expr, max_bytes=self.limits.max_message_bytes
         )
-        session = _Session(message.session, config, world, learner, start, recorder)
-        self._sessions[session.id] = session
-        if gap is not None:
-            self._event(session.id, "info", gap)
+        sid, config = message.session, message.fields
+
+        def reject(problem: str) -> Rejection:
+            return Rejection(problem, sid, message.seq, message.t_ns)
+
+        running = self._sessions.get(sid)
+        if running is not None:
+            if running.config_t_ns == message.t_ns and running.config == config:
+                self._event(sid, "session_started", "session already started (config re-sent)",
+                            message.t_ns)
+                return
+            raise reject("a session with this id is already running")
+        if sid in self._pending:
+            if self._pending[sid].message.t_ns == message.t_ns:
+                return  # a re-send: the pending session starts once its source subscribes
+            raise reject("a session with this id is already waiting for its source")
+        limits = self.limits
+        if len(self._sessions) + len(self._pending) >= limits.max_sessions:
+            raise reject(f"the service runs its maximum of {limits.max_sessions} sessions")
+        if not 2 <= config["grid"] <= limits.max_grid:
+            raise reject(f"field 'grid' must be in 2..{limits.max_grid}; got {config['grid']}")
+        if not 1 <= config["steps"] <= limits.max_steps:
+            raise reject(f"field 'steps' must be in 1..{limits.max_steps}; got {config['steps']}")
+        if len(config.get("ch_names", ())) > limits.max_epoch_values:
+            raise reject(f"more than {limits.max_epoch_values} ch_names")
+        try:
+            learner_settings(config["learner"], config["frame"])
+        except (ValueError, TypeError) as exc:
+            raise reject(f"bad config: {exc}") from None
+        self._check_memory(sid, config, 0, lambda problem: reject(problem))
+        publisher = self._outbox.publisher(protocol.key(sid, "event"))
+        if publisher.matching_status.matching:
+            self._start(message, publisher)
+        else:  # never wait here: the loop starts it once its source subscribes
+            deadline = time.monotonic_ns() + int(limits.subscriber_timeout * 1e9)
+            self._pending[sid] = _Pending(message, publisher, deadline)
+
+    def _check_memory(
+        self,
+        sid: str,
+        config: dict[str, Any],
+        n_features: int,
+        reject: Callable[[str], Rejection],
+    ) -> None:
+        """Reject a session whose :func:`session_memory_bytes` is over the limit."""
+        n_classes = 2 if config["frame"] == "feedback" else 4
+        needed = session_memory_bytes(config["grid"], n_classes, config["steps"], n_features)
+        if needed > self.limits.max_session_mb * 2**20:
+            what = f"{n_features} features, " if n_features else ""
+            raise reject(
+                f"the session would commit about {needed / 2**20:.0f} MiB ({what}grid "
+                f"{config['grid']}, {config['steps']} steps), more than the limit of "
+                f"{self.limits.max_session_mb:g} MiB"
+            )
+
+    def _start(self, message: protocol.Message, publisher: zenoh.Publisher) -> None:
+        """Create the learner and the recording of a config; publish the first move."""
+        sid, config = message.session, message.fields
+        world = GridWorld(config["grid"])
+        learner_config = learner_settings(config["learner"], config["frame"])
+        learner = CalibrationFreeLearner(world, learner_config, session_streams(config["seed"])[2])
+        recorder = self.recordings.open(sid, {"seq": message.seq, "t_ns": message.t_ns, **config})
+        session = _Session(
+            sid, config, message.t_ns, world, learner, start_cell(config["seed"], world.n_states),
+            recorder, time.monotonic_ns(),
+        )
+        self._sessions[sid] = session
+        self.intake.open(sid)
         self._event(
-            session.id,
+            sid,
             "session_started",
-            f"session {session.id!r}: {config['steps']} steps on a {config['grid']} x "
+            f"session {sid!r}: {config['steps']} steps on a {config['grid']} x "
             f"{config['grid']} grid, {config['frame']} frame, {config['signal']}",
+            message.t_ns,
         )
         self._next_move(session)
 
-    def _on_epoch(self, received: Received) -> None:
-        message = protocol.decode(received.data, key_expr=received.key_expr)
+    def resume(self, record_dir: Path) -> None:
+        """Resume every unfinished session recorded in ``record_dir`` (see the module
+        docstring); a recording that cannot be resumed is named in the log and left as is."""
+        for path in sorted(record_dir.glob("*.mcap")):
+            if len(self._sessions) >= self.limits.max_sessions:
+                log.warning("not resuming %s: the service runs its maximum of sessions", path)
+                continue
+            try:
+                recording = read_recording(path)
+                if path.name == f"{recording.session}.mcap" and unfinished(recording):
+                    self._resume(recording)
+            except (ValueError, KeyError, TypeError) as exc:
+                log.warning("cannot resume %s: %s", path, exc)
+
+    def _resume(self, recording: Recording) -> None:
+        """Rebuild a session's learner by re-running it over its recording, and go on."""
+        config = {k: v for k, v in recording.config.items() if k not in ("seq", "t_ns")}
+        rerun = Rerun(config)
+        epochs = recording.accepted_epochs()
+        for signal_ in recorded_signals(recording)[: rerun.steps]:
+            rerun.observe(signal_)
+        recorded_moves = [m for _, m in recording.messages.get("/move", [])]
+        divergence = move_divergence(recorded_moves, rerun.moves[: len(recorded_moves)])
+        if divergence is not None or len(recorded_moves) < len(rerun.moves) - 1:
+            raise ValueError(f"the re-run does not reproduce the recording: {divergence}")
+        sid = recording.session
+        recorder = self.recordings.resume(recording)
+        session = _Session(
+            sid, config, recording.config["t_ns"], rerun.world, rerun.learner,
+            rerun.moves[-1]["from_state"], recorder, time.monotonic_ns(),
+            action=ACTIONS.index(rerun.moves[-1]["action"]), step=len(rerun.moves),
+        )
+        if epochs:
+            last = epochs[-1]
+            session.last_epoch = (last["step"], last["seq"], last["t_ns"])
+            session.epochs.expected = last["seq"] + 1  # later epochs continue its numbering
+            first = decode_array(epochs[0])
+            session.shape = first.shape
+            session.extractor = signal_extractor(config, first)
+        self._sessions[sid] = session
+        self.intake.open(sid)
+        recorded_states = len(recording.messages.get("/state", []))
+        self._event(sid, "info", f"session {sid!r} resumed at step {session.step} after a "
+                    f"restart, from its recording")
+        if rerun.finished:
+            state = rerun.states[-1]
+            self._send_state(session, record=recorded_states < len(rerun.states),
+                             beliefs=({k: state[k] for k in STATE_FIELDS}, state["confidence"]))
+            self._finish(session)
+            return
+        fields, state = rerun.moves[-1], rerun.states[len(rerun.moves) - 1]
+        confidence = np.asarray(state["confidence"], dtype=np.float32)
+        session.answer = (fields, {k: state[k] for k in STATE_FIELDS}, confidence)
+        self._send(session, "move", fields, record=len(recorded_moves) < len(rerun.moves))
+        self._send_state(session, record=recorded_states < len(rerun.moves),
+                         beliefs=session.answer[1:])
+
+    def _on_epoch(self, received: Received, queued_ms: float) -> None:
+        message = protocol.decode(
+            received.data, key_expr=received.key_expr, max_bytes=self.limits.max_message_bytes
+        )
         where = {"session": message.session, "seq": message.seq}
         session = self._sessions.get(message.session)
         if session is None:
-            raise ProtocolError(
-                "epoch for an unknown session (no running session has this id)", **where
-            )
+            problem = "before session_started" if message.session in self._pending else (
+                "for an unknown session (no running session has this id)")
+            raise ProtocolError(f"epoch {problem}", **where)
+        if session.last_epoch == (message.fields["step"], message.seq, message.t_ns):
+            self._answer_again(session)
+            return
+        signal_ = self._check_epoch(session, message, where)
         gap = self._check_seq(session.epochs, where)
         if gap is not None:
             self._event(session.id, "info", gap)
+        if session.shape is None:
+            self._check_memory(
+                session.id, session.config, signal_.shape[0],
+                lambda problem: Rejection(problem, session.id, message.seq, session.config_t_ns),
+            )
         assert message.payload is not None  # decode guarantees an epoch's payload
+        session.shape = message.payload.shape
+        session.last_epoch = (message.fields["step"], message.seq, message.t_ns)
+        session.active_ns = time.monotonic_ns()
         if session.recorder is not None:
             header = {"seq": message.seq, "t_ns": message.t_ns, "units": "uV", **message.fields}
             session.recorder.record_array("/epoch", header, message.payload, received.t_ns)
-        signal_ = self._check_epoch(session, message, where)
-        if session.recorder is not None:
             header = {"seq": message.seq, "t_ns": message.t_ns, "step": session.step}
             session.recorder.record_array("/features", header, signal_, received.t_ns)
         started_ns = time.perf_counter_ns()
         session.learner.observe(session.state, session.action, signal_)
         session.state = session.world.step(session.state, session.action)
         if session.step < session.config["steps"]:
-            self._next_move(session, started_ns)
+            self._next_move(session, started_ns, queued_ms)
             return
         self._send_state(session)
-        self._event(
-            session.id, "session_ended", f"session {session.id!r} ended after {session.step} steps"
-        )
-        self._end(session)
+        self._finish(session)
+
+    def _answer_again(self, session: _Session) -> None:
+        """A re-sent epoch already answered: publish its move and state again (unrecorded)."""
+        assert session.answer is not None
+        fields, state, confidence = session.answer
+        self._send(session, "move", fields, record=False)
+        self._send(session, "state", state, confidence, record=False)
 
     def _check_seq(self, tracker: SequenceTracker, where: dict[str, Any]) -> str | None:
         """The gap message of an in-order-or-later seq; a duplicate or late one is an error."""
@@ -362,39 +618,47 @@ class PipelineService:
                 f"{list(session.shape)}",
                 **where,
             )
+        limit = self.limits.max_epoch_values if fields["signal"] == "epochs" else (
+            self.limits.max_features)
+        if payload.size > limit:
+            raise ProtocolError(
+                f"epoch of {payload.size} values, more than the limit of {limit}", **where
+            )
         if fields["signal"] == "features":
-            signal_ = payload
-        else:
-            try:
-                if session.extractor is None:
-                    session.extractor = ErrPFeatures(
-                        session.config["sfreq"],
-                        session.config["tmin"],
-                        session.config["ch_names"],
-                    ).fit(payload[None])
-                signal_ = session.extractor.transform(payload[None])[0].astype(np.float32)
-            except ValueError as exc:
-                raise ProtocolError(f"cannot extract ErrP features: {exc}", **where) from None
-        session.shape = payload.shape
+            return payload
+        try:
+            extractor = session.extractor or ErrPFeatures(
+                session.config["sfreq"], session.config["tmin"], session.config["ch_names"]
+            ).fit(payload[None])
+            signal_ = extractor.transform(payload[None])[0].astype(np.float32)
+        except ValueError as exc:
+            raise ProtocolError(f"cannot extract ErrP features: {exc}", **where) from None
+        session.extractor = extractor
         return signal_
 
-    def _next_move(self, session: _Session, started_ns: int | None = None) -> None:
+    def _next_move(
+        self, session: _Session, started_ns: int | None = None, queued_ms: float | None = None
+    ) -> None:
         """Choose, publish and record the move of the next step, then its state.
 
         ``started_ns``: :func:`time.perf_counter_ns` before the learner observed the epoch
         that led here (None for the first move); the learner's time is then appended to
-        :attr:`_Session.update_ns`.
+        :attr:`_Session.update_ns`. ``queued_ms``: how long that epoch waited in the
+        intake. Both are recorded with the move (``update_ms``, ``queued_ms``).
         """
         proposal = session.learner.propose(session.state)
         timing = {}
         if started_ns is not None:
             session.update_ns.append(time.perf_counter_ns() - started_ns)
             timing["update_ms"] = session.update_ns[-1] / 1e6
+        if queued_ms is not None:
+            timing["queued_ms"] = queued_ms
         session.step += 1
         session.action = proposal.action
         fields = move_fields(session.world, session.step, session.state, proposal)
         self._send(session, "move", fields, recorded_only=timing)
-        self._send_state(session)
+        state, confidence = self._send_state(session)
+        session.answer = (fields, state, confidence)
         if proposal.declares_target:
             self._event(
                 session.id,
@@ -402,11 +666,20 @@ class PipelineService:
                 f"step {session.step}: target reached in cell {session.state}",
             )
 
-    def _send_state(self, session: _Session) -> None:
-        fields, confidence = state_fields(session.learner)
-        message = self._send(session, "state", fields, confidence)
-        if session.recorder is not None:
+    def _send_state(
+        self,
+        session: _Session,
+        record: bool = True,
+        beliefs: tuple[dict[str, Any], Any] | None = None,
+    ) -> tuple[dict[str, Any], np.ndarray]:
+        """Publish (and record) the state: the learner's, or ``beliefs`` (fields,
+        confidence) when given; return what was sent."""
+        fields, confidence = beliefs or state_fields(session.learner)
+        confidence = np.asarray(confidence, dtype=np.float32)
+        message = self._send(session, "state", fields, confidence, record=record)
+        if session.recorder is not None and record:
             session.recorder.record_belief(confidence, session.config["grid"], message.t_ns)
+        return fields, confidence
 
     def _send(
         self,
@@ -415,42 +688,82 @@ class PipelineService:
         fields: dict[str, Any],
         payload: Any = None,
         recorded_only: dict[str, Any] | None = None,
+        record: bool = True,
     ) -> protocol.Message:
-        """Publish a message of the session; record it with ``recorded_only`` fields added."""
+        """Publish a message of the session; record it (unless not ``record``) with
+        ``recorded_only`` fields added."""
         message = self._outbox.send(kind, session.id, fields, payload)
-        if session.recorder is not None:
-            record = {"seq": message.seq, "t_ns": message.t_ns, **fields, **(recorded_only or {})}
+        if session.recorder is not None and record:
+            record_ = {"seq": message.seq, "t_ns": message.t_ns, **fields, **(recorded_only or {})}
             if payload is not None:
-                record["confidence"] = [float(x) for x in payload]
-            session.recorder.record(f"/{kind}", record, message.t_ns)
+                record_["confidence"] = [float(x) for x in payload]
+            session.recorder.record(f"/{kind}", record_, message.t_ns)
         return message
 
-    def _end(self, session: _Session) -> None:
+    def _finish(self, session: _Session) -> None:
+        """The session's last epoch is in: ``session_ended``, and forget it."""
+        self._event(
+            session.id, "session_ended", f"session {session.id!r} ended after {session.step} steps"
+        )
         if self.on_end is not None:
             self.on_end(session.id, session.update_ns)
+        self._end(session, session.step)
+
+    def _abort(self, session: _Session, problem: str) -> None:
+        """End a session before its last step, with a ``session_rejected`` event."""
+        self._reject(Rejection(problem, session.id, None, session.config_t_ns))
+
+    def _end(self, session: _Session, last_epoch_step: int) -> None:
         del self._sessions[session.id]
-        self._config_seq.pop(protocol.key(session.id, "config"), None)
-        self.recordings.end(session.id, session.step)
+        self.intake.close(session.id)
+        self.recordings.end(session.id, last_epoch_step)
         self._outbox.forget(session.id)
 
     # -- events -----------------------------------------------------------------------
 
-    def _event(self, session: str, event: str, text: str) -> None:
+    def _event(
+        self, session: str, event: str, text: str, config_t_ns: int | None = None
+    ) -> None:
         """Publish an event on ``cfbci/<session>/event``; record and log it."""
-        message = self._outbox.send("event", session, {"event": event, "message": text})
-        (log.warning if event == "error" else log.info)("%s: %s", event, text)
+        fields = {"event": event, "message": text, "config_t_ns": config_t_ns}
+        message = self._outbox.send("event", session, fields)
+        (log.warning if event in ("error", "session_rejected") else log.info)(
+            "%s: %s", event, text
+        )
         recorder = self.recordings.get(session)
         if recorder is not None:
-            fields = {"seq": message.seq, "t_ns": message.t_ns, "event": event, "message": text}
-            recorder.record("/event", fields, message.t_ns)
+            recorder.record("/event", {"seq": message.seq, "t_ns": message.t_ns, **fields},
+                            message.t_ns)
             recorder.record_log(_LOG_LEVELS.get(event, 2), f"{event}: {text}", message.t_ns)
 
     def _reject(self, error: ProtocolError) -> None:
-        """Report a rejected message where the protocol says (its session, else ``_``)."""
+        """Report a rejected message where the protocol says (its session, else ``_``);
+        a :class:`Rejection` of a running session (the one its ``config_t_ns`` names) ends
+        it."""
         session = error.session if error.session is not None else NO_SESSION
-        self._event(session, "error", str(error))
-        if session not in self._sessions:
+        if isinstance(error, Rejection):
+            self._event(session, "session_rejected", str(error), error.config_t_ns)
+            running = self._sessions.get(session)
+            if running is not None and running.config_t_ns == error.config_t_ns:
+                self._end(running, running.step - 1)
+        elif self._errors.allows(session):
+            self._event(session, "error", str(error))
+        if session not in self._sessions and session not in self._pending:
             self._outbox.forget(session)
+
+
+def unfinished(recording: Recording) -> bool:
+    """Whether a recorded session started and neither ended nor was rejected (for its own
+    config): a session to resume."""
+    if not recording.config or not recording.messages.get("/move"):
+        return False
+    t_ns = recording.config.get("t_ns")
+    for _, event in recording.messages.get("/event", []):
+        if event["event"] == "session_ended" or (
+            event["event"] == "session_rejected" and event.get("config_t_ns") == t_ns
+        ):
+            return False
+    return True
 
 
 def serve(
@@ -458,6 +771,8 @@ def serve(
     connect: Sequence[str] = (),
     record_dir: Path | None = None,
     on_end: SessionEndHook | None = None,
+    limits: ServiceLimits | None = None,
+    zenoh_config: Path | None = None,
 ) -> None:
     """Run a :class:`PipelineService` until SIGINT or SIGTERM, then shut down cleanly.
 
@@ -469,14 +784,19 @@ def serve(
     listen, connect : sequence of str
         Zenoh endpoints (see :func:`wire.zenoh_config.peer_config`).
     record_dir : Path or None
-        Directory of the recordings (``<session>.mcap``); None records nothing.
+        Directory of the recordings (``<session>.mcap``); None records nothing. Unfinished
+        sessions recorded there are resumed.
     on_end : callable or None
         See :class:`PipelineService`.
+    limits : ServiceLimits or None
+        Default :class:`cfbci.limits.ServiceLimits`.
+    zenoh_config : Path or None
+        Zenoh JSON5 configuration merged over the defaults (``--zenoh-config``).
     """
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
     keep_freed_memory()
-    with zenoh.open(peer_config(listen, connect)) as session:
-        service = PipelineService(session, record_dir, on_end=on_end)
+    with zenoh.open(peer_config(listen, connect, zenoh_config)) as session:
+        service = PipelineService(session, record_dir, limits, on_end=on_end)
         for signum in (signal.SIGINT, signal.SIGTERM):
             signal.signal(signum, lambda *_: service.stop())
         log.info("serving on listen=%s connect=%s", list(listen), list(connect))

@@ -1,4 +1,4 @@
-"""``cfbci simulate``: many offline sessions, in parallel, summarised."""
+"""``cfbci simulate``: many offline sessions, on Dask (:mod:`cfbci.parallel`), summarised."""
 
 from __future__ import annotations
 
@@ -14,8 +14,7 @@ from rich.table import Table
 from acquisition.labelled import LabelledFeatures
 from acquisition.sources import DataFactory, DataSpec
 from calibration_free.session import StepRecord
-from cfbci.memory import keep_freed_memory
-from cfbci.parallel import run_parallel
+from cfbci.parallel import Scheduler, run_parallel
 from cfbci.simulation import SessionConfig, SessionResult, run_session, summarise
 
 
@@ -36,8 +35,7 @@ def _resolved(data: DataSpec, frame: str) -> LabelledFeatures | DataFactory:
 
 
 def run_job(job: SimulationJob) -> tuple[SessionResult, list[StepRecord]]:
-    """Run one session (in a worker process); its trace if asked."""
-    keep_freed_memory()
+    """Run one session (a job of :func:`cfbci.parallel.run_parallel`); its trace if asked."""
     trace: list[StepRecord] = []
     result = run_session(
         job.seed,
@@ -53,22 +51,28 @@ def simulate(
     data: DataSpec,
     seeds: list[int],
     *,
-    jobs: int,
+    scheduler: Scheduler,
     console: Console,
     trace_path: Path | None = None,
 ) -> dict[str, Any]:
-    """Run the sessions; write the trace; return the JSON report."""
+    """Run the sessions where ``scheduler`` says; write the trace; return the JSON report."""
     data.resolve(config.learner.frame)  # fail early, in this process, on a bad dataset
     work = [SimulationJob(seed, config, data, trace_path is not None) for seed in seeds]
     outcomes = run_parallel(
-        run_job, work, workers=jobs, description="sessions", console=console
+        run_job, work, scheduler=scheduler, description="sessions", console=console
     )
     if trace_path is not None:
         with trace_path.open("w") as stream:
             for _, trace in outcomes:
                 for record in trace:
                     stream.write(json.dumps(asdict(record)) + "\n")
-    results = [result for result, _ in outcomes]
+    return simulation_report(config, data, seeds, [result for result, _ in outcomes])
+
+
+def simulation_report(
+    config: SessionConfig, data: DataSpec, seeds: list[int], results: list[SessionResult]
+) -> dict[str, Any]:
+    """The JSON report of sessions: ``{"config": ..., "sessions": [...], "summary": ...}``."""
     return {
         "config": {
             "dataset": data.describe(),

@@ -1,11 +1,13 @@
 """Offline closed-loop sessions: the learner, a simulated user and a dataset, no network.
 
 A step is one device action (``goal`` included) answered by one signal. A target is
-reached when the device performs ``goal`` while confident, in the cell it is confident
-about; the user then picks a new target.
+reached when the device performs the world's declaration action (the grid's ``goal``)
+while confident, in the state of the task it is confident about; the user then picks a
+new target.
 
 Random streams: :mod:`calibration_free.session` (data, user and learner streams of a
-session seed).
+session seed); stochastic moves (the line world's edges) draw from the seed's world stream
+(:func:`calibration_free.world.transition_draws`), one number per step.
 """
 
 from __future__ import annotations
@@ -22,7 +24,9 @@ from calibration_free.baseline import DEFAULT_CALIBRATION_TRIALS, CalibratedBase
 from calibration_free.config import LearnerConfig
 from calibration_free.learner import CalibrationFreeLearner, TaskLearner
 from calibration_free.session import StepRecord, session_streams
-from calibration_free.world import ACTIONS, GridWorld
+from calibration_free.world import World, transition_draws
+from calibration_free.worlds import WORLDS, make_world
+from decoding.validation import check_option
 
 BASELINES: tuple[str, ...] = ("calibrated",)
 
@@ -36,7 +40,7 @@ class SessionConfig:
     steps : int
         Device actions in the session.
     grid : int
-        Side of the grid.
+        Side of the grid (grid world only).
     learner : LearnerConfig
     baseline : str or None
         None for the calibration-free learner, "calibrated" for the baseline.
@@ -44,6 +48,8 @@ class SessionConfig:
         Calibration actions of the baseline.
     user_error_rate : float
         Probability that the simulated user gives the wrong label.
+    world : {"grid", "line", "pick-and-place"}
+        The world (:func:`calibration_free.worlds.make_world`).
     """
 
     steps: int = 500
@@ -52,6 +58,14 @@ class SessionConfig:
     baseline: str | None = None
     calibration_trials: int = DEFAULT_CALIBRATION_TRIALS
     user_error_rate: float = 0.0
+    world: str = "grid"
+
+    def __post_init__(self) -> None:
+        check_option("world", self.world, WORLDS)
+
+    def make_world(self) -> World:
+        """The session's world (its large tables are built on first use)."""
+        return make_world(self.world, grid=self.grid)
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -70,7 +84,7 @@ class SessionResult:
 
 
 def make_learner(
-    config: SessionConfig, world: GridWorld, user: SimulatedUser, rng: np.random.Generator
+    config: SessionConfig, world: World, user: SimulatedUser, rng: np.random.Generator
 ) -> TaskLearner:
     """The calibration-free learner, or the calibrated baseline told the user's first target."""
     if config.baseline is None:
@@ -101,7 +115,8 @@ def run_session(
     data_rng, user_rng, learner_rng = session_streams(seed)
     dataset = data(data_rng) if callable(data) else data
     signals = np.asarray(dataset.features, dtype=np.float32)
-    world = GridWorld(config.grid)
+    world = config.make_world()
+    draws = transition_draws(seed)
     user = SimulatedUser(
         world, config.learner.frame, dataset.labels, user_rng, config.user_error_rate
     )
@@ -113,10 +128,11 @@ def run_session(
         beliefs = learner.beliefs()
         proposal = learner.propose(state)
         index, _ = user.answer(state, proposal.action)
-        next_state = world.step(state, proposal.action)
+        next_state = world.step(state, proposal.action, draws.uniform(step))
         event = None
         if proposal.declares_target:
-            event = "correct_target" if state == user.target else "wrong_target"
+            reached = state == world.task_states[user.target]
+            event = "correct_target" if reached else "wrong_target"
             first_target = first_target or step
             if event == "correct_target":
                 correct += 1
@@ -131,7 +147,7 @@ def run_session(
         if on_step is not None:
             on_step(
                 StepRecord(
-                    seed, step, state, ACTIONS[proposal.action], next_state,
+                    seed, step, state, world.action_names[proposal.action], next_state,
                     beliefs.confident, beliefs.best_task, event,
                 )
             )

@@ -1,13 +1,21 @@
-"""Shrinkage linear discriminant analysis, batched over label hypotheses.
+"""Shrinkage linear discriminant analysis with a pooled covariance, for many labellings of
+the same signals at once.
 
-The model is scikit-learn's ``LinearDiscriminantAnalysis(solver="lsqr",
-shrinkage=shrinkage, priors=<equal>)``: a covariance shared by the classes, the equally
-weighted mean of the class covariances, shrunk towards the identity scaled to their
-mean variance; linear scores ``x Sigma^-1 mu_k - mu_k Sigma^-1 mu_k / 2 + log(1 / K)``
-and a softmax.
-:func:`fit_lda` computes it from :class:`~decoding.statistics.ClassStatistics` with any
-leading batch shape, so the decoders of all tasks and all cross-validation folds are one
-batched linear solve.
+The model is the textbook Fisher LDA as scikit-learn fits it by default
+(``LinearDiscriminantAnalysis(solver="lsqr", shrinkage=shrinkage)``, empirical priors):
+the pooled within-class covariance ``W / N`` of the training set, shrunk towards the
+identity scaled to its mean variance, ``Sigma = (1 - lambda) W / N + lambda tr(W) / (N d)
+I``. Decisions are made with equal priors among the classes present:
+``log p(k | x) = log_softmax(x Sigma^-1 mu_k - mu_k Sigma^-1 mu_k / 2 + log(1 / K))``,
+i.e. scikit-learn's scores with ``log(1 / K) - log(prior_k)`` added.
+
+Why it is cheap for many labellings (tasks): with uncentred scatter ``S`` of the training
+set and class sums ``s_k`` and counts ``n_k``, ``W = S - sum_k s_k s_k^T / n_k``: one
+shared ``S`` minus a rank-K correction per task. One eigendecomposition ``S = V diag(e)
+V^T`` per training set makes ``c S + nu I`` (``c = (1 - lambda) / N``, ``nu`` a scalar
+per task) diagonal for every task, and the rank-K correction is a K x K solve per task
+(Woodbury identity). Decoders are kept in the basis ``V``: signals are projected once per
+training set, and every task's scores are then one matrix product.
 """
 
 from __future__ import annotations
@@ -17,85 +25,201 @@ from dataclasses import dataclass
 import numpy as np
 
 from decoding.estimator import StatisticsClassifier
-from decoding.statistics import (
-    BatchedDecoders,
-    Statistics,
-    log_softmax,
-    shrink_towards_identity,
-    solve_spd,
-)
+from decoding.statistics import BatchedDecoders, ClassStatistics, PooledStatistics, log_softmax
 
 DEFAULT_SHRINKAGE = 0.5
 #: A class needs this much (weighted) data before a decoder that uses it is informative.
 MIN_CLASS_COUNT = 2.0
+#: Weight below which a class (or the unlabelled rest of the signals) counts as empty.
+_EMPTY = 1e-9
+#: Relative size of the smallest eigenvalue of ``Sigma``'s diagonal part below which a
+#: decoder is solved by least squares instead (no shrinkage and fewer signals than
+#: features), as scikit-learn's ``lsqr`` solver does.
+_SINGULAR = 1e-12
 
 
 @dataclass(frozen=True)
-class LinearDecoders(BatchedDecoders):
-    """A batch of linear decoders ``log p(k | x) = log_softmax(x W + b)``.
+class PooledLinearDecoders(BatchedDecoders):
+    """A batch of linear decoders over shared training sets, kept in each set's basis.
+
+    ``log p(k | x) = log_softmax((x V) coef_k + intercept_k)``, batch shape ``(*J, *T)``
+    (training sets, then tasks).
 
     Attributes
     ----------
-    coef : ndarray, shape (*B, n_features, n_classes)
-    intercept : ndarray, shape (*B, n_classes)
-    present : ndarray, shape (*B, n_classes), bool
-        Classes with enough data to take part; the others get probability 0. A decoder
-        with fewer than two present classes is uninformative and predicts uniformly.
+    basis : ndarray, shape (*J, n_features, n_features)
+        Orthonormal eigenvectors ``V`` of each training set's scatter (columns).
+    coef : ndarray, shape (*J, n_features, *T, n_classes)
+        ``V^T Sigma^-1 mu_k`` per task and class (0 for absent classes).
+    intercept : ndarray, shape (*J, *T, n_classes)
+        ``-mu_k Sigma^-1 mu_k / 2 + log(1 / K_present)``; -inf for absent classes.
+    present : ndarray, shape (*J, *T, n_classes), bool
+        Classes with at least ``MIN_CLASS_COUNT`` weight; the others get probability 0.
+        A decoder with fewer than two present classes is uninformative (uniform).
     """
 
+    basis: np.ndarray
     coef: np.ndarray
     intercept: np.ndarray
     present: np.ndarray
 
+    def _scores(self, X: np.ndarray, coef: np.ndarray, intercept: np.ndarray) -> np.ndarray:
+        """``(X V) coef + intercept`` with tasks last: (*J, n, *T, C).
+
+        ``X`` (n, d), or (*J, 1.., n, d) with unit axes for the tasks; ``coef`` (*J, d,
+        *T, C), ``intercept`` (*J, *T, C). One matrix product per training set.
+        """
+        n_sets = self.basis.ndim - 2
+        X = np.asarray(X, dtype=float)
+        if X.ndim > 2:  # the task axes broadcast: drop them
+            X = X.reshape(*X.shape[: min(n_sets, X.ndim - 2)], *X.shape[-2:])
+        projected = X @ self.basis  # (*J, n, d)
+        flat = coef.reshape(*coef.shape[: n_sets + 1], -1)  # (*J, d, T*C)
+        scores = (projected @ flat).reshape(*projected.shape[:-1], *coef.shape[n_sets + 1 :])
+        scores += intercept[(*(slice(None),) * n_sets, None)]
+        return scores
+
     def _known_log_proba(self, X: np.ndarray) -> np.ndarray:
-        return log_softmax(X @ self.coef + self.intercept[..., None, :])
+        n_sets = self.basis.ndim - 2
+        scores = self._scores(X, self.coef, self.intercept)
+        return log_softmax(np.moveaxis(scores, n_sets, -2))  # (*J, *T, n, K)
+
+    def proba(self, X: np.ndarray) -> np.ndarray:
+        """As :meth:`log_proba`, exponentiated; with two classes, from the score
+        difference alone (half the products, one exponential)."""
+        if self.present.shape[-1] != 2:
+            return super().proba(X)
+        n_sets = self.basis.ndim - 2
+        # An informative two-class decoder knows both classes: every score is finite.
+        informative = self.informative
+        coef = self.coef[..., 1:] - self.coef[..., :1]
+        with np.errstate(invalid="ignore"):  # -inf - -inf where uninformative
+            difference = self.intercept[..., 1:] - self.intercept[..., :1]
+        intercept = np.where(informative[..., None], difference, 0.0)
+        difference = self._scores(X, coef, intercept)  # (*J, n, *T, 1)
+        uniform = ~informative[(*(slice(None),) * n_sets, None)][..., None]
+        error = np.exp(-difference, out=difference)
+        error += 1.0
+        np.reciprocal(error, out=error)  # p(class 1) = logistic(difference)
+        error[np.broadcast_to(uniform, error.shape)] = 0.5
+        proba = np.concatenate([1.0 - error, error], axis=-1)
+        return np.moveaxis(proba, n_sets, -2)  # (*J, *T, n, 2)
 
 
-def fit_lda(statistics: Statistics, shrinkage: float = DEFAULT_SHRINKAGE) -> LinearDecoders:
-    """Shrinkage-LDA decoders from class statistics (batched over leading axes).
+def fit_pooled_lda(
+    statistics: PooledStatistics, shrinkage: float = DEFAULT_SHRINKAGE
+) -> PooledLinearDecoders:
+    """Pooled-covariance shrinkage LDA for every training set and labelling at once.
 
-    Only the classes with at least ``MIN_CLASS_COUNT`` signals take part (equal priors
-    among them); the others get probability 0, as a scikit-learn model fitted on the
-    classes it has seen. A decoder with fewer than two such classes is uninformative.
+    Only the classes with at least ``MIN_CLASS_COUNT`` weight take part in the decisions
+    (equal priors among them); every class's within-class spread, and that of the
+    unlabelled signals around their own mean, make up the pooled covariance.
     """
-    counts = statistics.counts
-    present = counts >= MIN_CLASS_COUNT
-    n_present = present.sum(axis=-1)
-    informative = n_present >= 2
-    safe_counts = np.where(present, counts, 1.0)
-    means = np.where(present[..., None], statistics.sums / safe_counts[..., None], 0.0)
-    # The equally weighted mean of the present classes' covariances, without forming each:
-    # sum_k (scatter_k / n_k - mu_k mu_k^T) / K.
-    class_weights = np.where(present, 1.0 / np.maximum(n_present, 1)[..., None], 0.0)
-    n_features = means.shape[-1]
-    shared = statistics.weighted_scatter(class_weights / safe_counts)
-    shared -= np.swapaxes(means * class_weights[..., None], -1, -2) @ means
-    shared = shrink_towards_identity(shared, shrinkage)
-    # Uninformative decoders get a harmless identity system instead of a singular one.
-    shared[~informative] = np.eye(n_features)
-    coef = solve_spd(shared, np.swapaxes(means, -1, -2))
+    n_sets = statistics.n_signals.ndim
+    n_features = statistics.scatter.shape[-1]
+    n_classes = statistics.counts.shape[-1]
+    n_signals = statistics.per_task(np.asarray(statistics.n_signals, dtype=float), 0)
+    counts, sums = statistics.counts, statistics.sums
+    unlabelled = n_signals - counts.sum(axis=-1)
+    if np.any(unlabelled > _EMPTY):
+        rest = statistics.per_task(statistics.signal_sum, 1) - sums.sum(axis=-2)
+        counts = np.concatenate([counts, unlabelled[..., None]], axis=-1)
+        sums = np.concatenate([sums, rest[..., None, :]], axis=-2)
+    filled = counts > _EMPTY
+    scale = np.where(filled, 1.0 / np.sqrt(np.where(filled, counts, 1.0)), 0.0)
+    eigenvalues, basis = np.linalg.eigh(statistics.scatter)  # (*J, d), (*J, d, d)
+    # u_k = V^T s_k / sqrt(n_k): W = S - sum_k (V u_k)(V u_k)^T.
+    flat_sums = sums.reshape(*sums.shape[:n_sets], -1, n_features)
+    projected = (flat_sums @ basis).reshape(sums.shape) * scale[..., None]
+    within_trace = statistics.per_task(np.trace(statistics.scatter, axis1=-2, axis2=-1), 0)
+    within_trace = within_trace - np.sum(projected**2, axis=(-2, -1))
+    size = np.maximum(n_signals, 1.0)
+    c = (1.0 - shrinkage) / size
+    nu = shrinkage * within_trace / (size * n_features)
+    # Sigma in the basis: diag(a) - c U U^T, a = c e + nu.
+    diagonal = c[..., None] * statistics.per_task(eigenvalues, 1) + nu[..., None]
+    singular = diagonal.min(axis=-1) <= _SINGULAR * np.abs(diagonal).max(axis=-1)
+    safe_diagonal = np.where(singular[..., None], 1.0, diagonal)
+    scaled = projected / safe_diagonal[..., None, :]  # U^T A^-1
+    gram = scaled @ np.swapaxes(projected, -1, -2)  # H = U^T A^-1 U
+    identity = np.eye(counts.shape[-1])
+    system = np.where(singular[..., None, None], identity, identity - c[..., None, None] * gram)
+    # Sigma^-1 U = A^-1 U (I - c H)^-1, rows: (I - c H)^-1 U^T A^-1 (H is symmetric).
+    solved = _solve_small(system, scaled)
+    present = statistics.counts >= MIN_CLASS_COUNT
+    n_present = present.sum(axis=-1, keepdims=True)
+    singular &= n_present[..., 0] >= 2  # an uninformative decoder is never used
+    if np.any(singular):
+        solved[singular] = _least_squares(
+            diagonal[singular], projected[singular], np.broadcast_to(c, singular.shape)[singular]
+        )
+    coef = solved[..., :n_classes, :] * scale[..., :n_classes, None]  # V^T Sigma^-1 mu_k
+    quadratic = np.sum(coef * projected[..., :n_classes, :], axis=-1) * scale[..., :n_classes]
     with np.errstate(divide="ignore"):
-        log_priors = np.log(class_weights)
-    intercept = -0.5 * np.einsum("...kd,...dk->...k", means, coef) + log_priors
-    return LinearDecoders(coef=coef, intercept=intercept, present=present)
+        log_priors = np.where(present, -np.log(np.maximum(n_present, 1)), -np.inf)
+    coef = np.where(present[..., None], coef, 0.0)
+    return PooledLinearDecoders(
+        basis=basis,
+        coef=np.ascontiguousarray(np.moveaxis(coef, -1, n_sets)),
+        intercept=-0.5 * np.where(present, quadratic, 0.0) + log_priors,
+        present=present,
+    )
+
+
+def _solve_small(system: np.ndarray, rhs: np.ndarray) -> np.ndarray:
+    """``system^-1 rhs`` for a batch of small systems (*B, m, m), (*B, m, d).
+
+    Two classes (the feedback frame): the closed-form 2 x 2 inverse, elementwise over the
+    batch (LAPACK's per-matrix call would dominate the step); otherwise LAPACK.
+    """
+    if system.shape[-1] != 2:
+        return np.linalg.solve(system, rhs)
+    a, b = system[..., 0, 0, None], system[..., 0, 1, None]
+    c, d = system[..., 1, 0, None], system[..., 1, 1, None]
+    determinant = a * d - b * c
+    first = (d * rhs[..., 0, :] - b * rhs[..., 1, :]) / determinant
+    second = (a * rhs[..., 1, :] - c * rhs[..., 0, :]) / determinant
+    return np.stack([first, second], axis=-2)
+
+
+def _least_squares(diagonal: np.ndarray, projected: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """``Sigma^+ U`` rows for decoders whose covariance is singular: (m, K', d).
+
+    ``diagonal`` (m, d), ``projected`` (m, K', d), ``c`` (m,): ``Sigma = diag(a) -
+    c U U^T`` in the basis; the minimum-norm least-squares solution, as scikit-learn's.
+    """
+    out = np.empty_like(projected)
+    for i, (a, u, scale) in enumerate(zip(diagonal, projected, c, strict=True)):
+        sigma = np.diag(a) - scale * (u.T @ u)
+        out[i] = np.linalg.lstsq(sigma, u.T, rcond=None)[0].T
+    return out
+
+
+def fit_lda(
+    statistics: ClassStatistics, shrinkage: float = DEFAULT_SHRINKAGE
+) -> PooledLinearDecoders:
+    """Pooled LDA of labellings given by their class statistics (batch ``B`` as ``J``);
+    every signal must be fully labelled (weights summing to 1)."""
+    return fit_pooled_lda(PooledStatistics.from_class_statistics(statistics), shrinkage)
 
 
 class ShrinkageLDA(StatisticsClassifier):
-    """Shrinkage LDA with equal class priors, as used by every task hypothesis.
+    """Pooled-covariance shrinkage LDA with equal class priors, as used by every task.
 
-    Equivalent to ``LinearDiscriminantAnalysis(solver="lsqr", shrinkage=shrinkage,
-    priors=<equal>)``, computed from class statistics (see :func:`fit_lda`).
+    scikit-learn's ``LinearDiscriminantAnalysis(solver="lsqr", shrinkage=shrinkage)``
+    (empirical priors in the covariance) with the decision made under equal priors (see
+    :func:`fit_pooled_lda`), computed from class statistics.
 
     Parameters
     ----------
     shrinkage : float, default 0.5
-        Weight of the scaled-identity target in the shared covariance, in [0, 1].
+        Weight of the scaled-identity target in the pooled covariance, in [0, 1].
 
     Attributes
     ----------
     classes_ : ndarray, shape (n_classes,)
-    decoders_ : LinearDecoders
-        ``coef`` (n_features, n_classes) and ``intercept`` (n_classes,).
+    decoders_ : PooledLinearDecoders
+        The fitted decoder (no batch axes).
 
     Examples
     --------

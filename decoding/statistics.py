@@ -1,4 +1,5 @@
-"""Per-class sufficient statistics: weighted counts, sums and scatter matrices.
+"""Sufficient statistics of the decoders: per-class weighted counts, sums and scatters, and
+the pooled form that many labellings of the same signals share.
 
 Every decoder of the project is a function of these statistics only, so the decoders of
 many label hypotheses over the same signals can share and update them incrementally.
@@ -10,7 +11,6 @@ from dataclasses import dataclass, fields
 from typing import Self
 
 import numpy as np
-from scipy.linalg import lapack
 
 
 @dataclass(frozen=True)
@@ -31,26 +31,16 @@ class ClassStatistics:
     sums: np.ndarray
     scatters: np.ndarray
 
-    def arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(counts, sums, scatters)."""
-        return self.counts, self.sums, self.scatters
-
     @classmethod
     def from_signals(cls, X: np.ndarray, weights: np.ndarray) -> ClassStatistics:
-        """Statistics of signals ``X`` (n, d) with class weights ``weights`` (n, K)."""
+        """Statistics of signals ``X`` (n, d) with class weights ``weights`` (n, *B, K)."""
         X = np.asarray(X, dtype=float)
         weights = np.asarray(weights, dtype=float)
         return cls(
             counts=weights.sum(axis=0),
-            sums=weights.T @ X,
-            scatters=np.einsum("nk,ni,nj->kij", weights, X, X, optimize=True),
+            sums=np.einsum("n...k,ni->...ki", weights, X),
+            scatters=np.einsum("n...k,ni,nj->...kij", weights, X, X, optimize=True),
         )
-
-    def weighted_scatter(self, weights: np.ndarray) -> np.ndarray:
-        """``sum_k weights[..., k] * scatters[..., k, :, :]``: (*B, K) -> (*B, d, d)."""
-        n_features = self.scatters.shape[-1]
-        flat = self.scatters.reshape(*self.scatters.shape[:-2], n_features * n_features)
-        return (weights[..., None, :] @ flat).reshape(*weights.shape[:-1], n_features, n_features)
 
     def class_moments(self) -> tuple[np.ndarray, np.ndarray]:
         """Class means (*B, K, d) and biased class covariances (*B, K, d, d).
@@ -67,50 +57,59 @@ class ClassStatistics:
 
 
 @dataclass(frozen=True)
-class HeldOutStatistics:
-    """The statistics of a whole minus each of its parts, in turn (k-fold training sets).
+class PooledStatistics:
+    """What pooled-covariance decoders need of a batch of labellings of shared signals.
 
-    ``whole`` has batch shape ``B`` and ``parts`` ``(*B, n_parts)``; the result behaves as
-    :class:`ClassStatistics` of batch shape ``(*B, n_parts)``. :meth:`weighted_scatter`,
-    all a shrinkage LDA needs of the scatters, is computed from ``whole`` and ``parts``
-    without forming the held-out scatter matrices (one pass less over the largest array).
+    The signals of a training set are shared by every labelling (task hypothesis) of it;
+    only their split into classes differs. So the d x d statistic is one per training
+    set, and per labelling only class counts and sums are kept.
+
+    A signal's class weights sum to 1, or to less: the rest of its unit weight (all of it
+    for a signal a labelling gives no label) belongs to no class. Such signals form a
+    class of their own for the pooled covariance (their spread around their own mean
+    joins it) but no decoder class.
+
+    Attributes
+    ----------
+    scatter : ndarray, shape (*J, n_features, n_features)
+        Uncentred scatter ``sum_i x_i x_i^T`` of each training set's signals.
+    n_signals : ndarray, shape (*J,)
+        Number of signals of each training set.
+    signal_sum : ndarray, shape (*J, n_features)
+        Sum of each training set's signals.
+    counts : ndarray, shape (*J, *T, n_classes)
+        Per training set and labelling, the class weights summed over the signals.
+    sums : ndarray, shape (*J, *T, n_classes, n_features)
+        Per training set and labelling, the class-weighted sums of the signals.
     """
 
-    whole: ClassStatistics
-    parts: ClassStatistics
+    scatter: np.ndarray
+    n_signals: np.ndarray
+    signal_sum: np.ndarray
+    counts: np.ndarray
+    sums: np.ndarray
 
-    def _held_out(self, whole: np.ndarray, parts: np.ndarray) -> np.ndarray:
-        return np.expand_dims(whole, self.whole.counts.ndim - 1) - parts
-
-    @property
-    def counts(self) -> np.ndarray:
-        return self._held_out(self.whole.counts, self.parts.counts)
-
-    @property
-    def sums(self) -> np.ndarray:
-        return self._held_out(self.whole.sums, self.parts.sums)
-
-    @property
-    def scatters(self) -> np.ndarray:
-        return self._held_out(self.whole.scatters, self.parts.scatters)
-
-    def weighted_scatter(self, weights: np.ndarray) -> np.ndarray:
-        """As :meth:`ClassStatistics.weighted_scatter`, with ``weights`` (*B, n_parts, K)."""
-        whole = ClassStatistics(
-            np.expand_dims(self.whole.counts, -2),
-            np.expand_dims(self.whole.sums, -3),
-            np.expand_dims(self.whole.scatters, -4),
+    @classmethod
+    def from_class_statistics(cls, statistics: ClassStatistics) -> PooledStatistics:
+        """One labelling (no ``T`` axes) from its class statistics; every signal's weights
+        must sum to 1 (hard or soft labels, every signal labelled)."""
+        return cls(
+            scatter=statistics.scatters.sum(axis=-3),
+            n_signals=statistics.counts.sum(axis=-1),
+            signal_sum=statistics.sums.sum(axis=-2),
+            counts=statistics.counts,
+            sums=statistics.sums,
         )
-        result = whole.weighted_scatter(weights)
-        result -= self.parts.weighted_scatter(weights)
-        return result
 
-    def class_moments(self) -> tuple[np.ndarray, np.ndarray]:
-        """As :meth:`ClassStatistics.class_moments` (forms the held-out scatters)."""
-        return ClassStatistics(self.counts, self.sums, self.scatters).class_moments()
+    @property
+    def n_task_axes(self) -> int:
+        """Number of labelling axes ``T``."""
+        return self.counts.ndim - self.n_signals.ndim - 1
 
-
-Statistics = ClassStatistics | HeldOutStatistics
+    def per_task(self, shared: np.ndarray, trailing: int) -> np.ndarray:
+        """A shared array (*J, *trailing) with unit axes for ``T``: (*J, 1.., *trailing)."""
+        lead = shared.shape[: shared.ndim - trailing]
+        return shared.reshape((*lead, *(1,) * self.n_task_axes, *shared.shape[len(lead) :]))
 
 
 class BatchedDecoders:
@@ -130,16 +129,21 @@ class BatchedDecoders:
     def log_proba(self, X: np.ndarray) -> np.ndarray:
         """Log class probabilities of signals ``X`` (n, d) under every decoder: (*B, n, K).
 
-        ``X`` may also have leading axes that broadcast against ``B`` (e.g. (n_folds, n, d)
-        against B = (n_tasks, n_folds): each fold's decoders score their own signals).
+        ``X`` may also have leading axes that broadcast against ``B`` (e.g. (n_folds, 1,
+        n, d) against B = (n_folds, n_tasks): each fold's decoders score their own
+        signals).
 
         Absent classes get probability 0; uninformative decoders give uniform probabilities.
         """
         uniform = -np.log(self.present.shape[-1])
         return np.where(self.informative[..., None, None], self._known_log_proba(X), uniform)
 
+    def proba(self, X: np.ndarray) -> np.ndarray:
+        """Class probabilities, as :meth:`log_proba` (subclasses may compute them directly)."""
+        return np.exp(self.log_proba(X))
+
     def select(self, index: object) -> Self:
-        """The decoders at ``index`` of the batch axes (numpy indexing)."""
+        """The decoders at ``index`` of the leading batch axes (numpy indexing)."""
         return type(self)(*(getattr(self, f.name)[index] for f in fields(self)))
 
 
@@ -161,25 +165,6 @@ def shrink_towards_identity(covariance: np.ndarray, shrinkage: float) -> np.ndar
     index = np.arange(n_features)
     covariance[..., index, index] += shrinkage * mean_variance[..., None]
     return covariance
-
-
-def solve_spd(matrices: np.ndarray, rhs: np.ndarray) -> np.ndarray:
-    """Solve ``A X = B`` for a batch of symmetric positive definite ``A``.
-
-    ``matrices`` (*B, d, d), ``rhs`` (*B, d, k) -> (*B, d, k). LAPACK's Cholesky solver
-    (``dposv``) per matrix: half the work of numpy's batched LU, which is what the
-    per-step cost of the learner is made of. A matrix that is not numerically positive
-    definite falls back to least squares, as scikit-learn's ``lsqr`` solver does.
-    """
-    batch = matrices.shape[:-2]
-    flat_a = matrices.reshape(-1, *matrices.shape[-2:])
-    flat_b = rhs.reshape(-1, *rhs.shape[-2:])
-    out = np.empty(flat_b.shape)
-    for i, (a, b) in enumerate(zip(flat_a, flat_b, strict=True)):
-        # C-ordered and symmetric: the "lower" triangle LAPACK sees is our upper one.
-        _, x, info = lapack.dposv(a, b, lower=1)
-        out[i] = x if info == 0 else np.linalg.lstsq(a, b, rcond=None)[0]
-    return out.reshape(*batch, *rhs.shape[-2:])
 
 
 def _reduce_classes(ufunc: np.ufunc, values: np.ndarray) -> np.ndarray:

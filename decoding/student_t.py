@@ -21,7 +21,7 @@ from decoding.estimator import StatisticsClassifier
 from decoding.lda import DEFAULT_SHRINKAGE
 from decoding.statistics import (
     BatchedDecoders,
-    Statistics,
+    ClassStatistics,
     log_softmax,
     shrink_towards_identity,
 )
@@ -65,7 +65,7 @@ class StudentTDecoders(BatchedDecoders):
 
 
 def fit_student_t(
-    statistics: Statistics, shrinkage: float = DEFAULT_SHRINKAGE
+    statistics: ClassStatistics, shrinkage: float = DEFAULT_SHRINKAGE
 ) -> StudentTDecoders:
     """Student-t predictive decoders from class statistics (batched over leading axes)."""
     means, covariances = statistics.class_moments()

@@ -1,21 +1,27 @@
 """Session recordings: one MCAP file per live session, readable after the writer is killed.
 
-A :class:`SessionRecorder` writes every message as one complete, unchunked MCAP record
-(JSON message encoding, a JSON Schema per channel) and flushes it to the OS before
-:meth:`~SessionRecorder.record` returns. A killed writer therefore loses at most the message
-it was writing, and leaves a file without summary, index or footer; :func:`read_recording`
-parses such a file linearly from its start and stops at the first incomplete record, and
-:func:`recover` rewrites what it finds as a clean, indexed MCAP file. Flushing does not
-``fsync``: what a killed process had flushed is safe, but a power cut may lose what the OS
-had not yet written to the disk.
+A :class:`SessionRecorder` writes every message as its own uncompressed MCAP chunk (JSON
+message encoding, a JSON Schema per channel), followed by the chunk's message index, and
+flushes it to the OS before :meth:`~SessionRecorder.record` returns. A closed recording
+therefore has a chunk index for every message in its summary, which indexed readers need
+(``@mcap/core``'s ``McapIndexedReader``, on which Foxglove builds, reads no message of a
+file without chunks), and a killed writer loses at most the message it was writing: it
+leaves a file without summary, index or footer. :func:`read_recording` reads any recording,
+closed or cut, in one linear pass of the mcap library's ``StreamReader`` that stops at the
+first incomplete record (an indexed reader needs the footer and summary a killed writer
+never wrote), and :func:`recover` rewrites what it reads as a clean, indexed MCAP file.
+Flushing does not ``fsync``: what a killed process had flushed is safe, but a power cut may
+lose what the OS had not yet written to the disk.
 
 Crash safety was measured by killing (SIGKILL) a writer after it had reported ``k`` returned
 messages (k = 50, 500, 2000, 3 runs each; every 7th message a 32 x 256 epoch): unchunked
-records with a flush per message kept every reported message each time (plus, once, the
-message written but not yet reported); the mcap default (1 MiB zstd chunks, file flushed)
-lost up to 167 messages, all of them in short sessions; one chunk per message
-(``chunk_size=0``) was as safe but costs ~80 bytes more per message (a Chunk and a
-MessageIndex record, doubling a small JSON message). Hence ``use_chunking=False``.
+records and one chunk per message, flushed after each message, kept every reported message
+each time (plus, once, the message written but not yet reported); the mcap default (1 MiB
+zstd chunks, file flushed) lost up to 167 messages, all of them in short sessions. A chunk
+costs 163 bytes per message over an unchunked record (a Chunk header, a MessageIndex
+record and a ChunkIndex in the summary: +11.6 % on a 300-step synthetic session, 1,404 to
+1,567 bytes a message), about 140 us more per message to write and about 500 bytes of
+writer memory per message until the file is closed (the chunk indexes).
 
 Topics are the keys of :data:`SCHEMAS`. ``/belief`` is a ``foxglove.Grid`` whose cell
 ``s = row * n + col`` is the state of :class:`calibration_free.world.GridWorld` (Foxglove
@@ -28,7 +34,6 @@ import base64
 import io
 import json
 import os
-import struct
 import sys
 import time
 from dataclasses import dataclass
@@ -37,10 +42,9 @@ from types import TracebackType
 from typing import Any
 
 import numpy as np
-from mcap.data_stream import ReadDataStream
-from mcap.opcode import Opcode
-from mcap.records import Channel, Chunk, Header, McapRecord, Message, Metadata, Schema
-from mcap.stream_reader import breakup_chunk
+from mcap.exceptions import EndOfFile, McapError
+from mcap.records import Channel, DataEnd, Header, McapRecord, Message, Metadata, Schema
+from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 
 _MAGIC = b"\x89MCAP0\r\n"
@@ -190,7 +194,8 @@ class SessionRecorder:
         config_json = _to_json(config).decode()
         self.path = Path(path)
         self._file = open(self.path, "wb")
-        self._writer = Writer(self._file, use_chunking=False)
+        # chunk_size=0: every message closes its chunk (schemas and channels go into the first)
+        self._writer = Writer(self._file, chunk_size=0, compression=CompressionType.NONE)
         self._writer.start(profile="", library="cfbci")
         self._channels = {
             topic: self._writer.register_channel(
@@ -379,16 +384,31 @@ class Recording:
         return [message for message in epochs if message["seq"] in accepted]
 
 
-_PARSERS = {
-    Opcode.HEADER: Header.read,
-    Opcode.SCHEMA: Schema.read,
-    Opcode.CHANNEL: Channel.read,
-    Opcode.METADATA: Metadata.read,
-}
+_KEPT = (Header, Schema, Channel, Message, Metadata)
+
+
+class _WholeReads(io.BytesIO):
+    """A file's bytes in memory where a read past the end raises ``EndOfFile``.
+
+    The mcap library reads a record field by field and takes a short read for the data
+    itself (a cut field fails to unpack, a cut payload is padded over); refusing short reads
+    turns every cut record into ``EndOfFile`` before any part of it is parsed.
+    """
+
+    def read(self, size: int | None = -1) -> bytes:
+        data = super().read(size)
+        if size is not None and 0 <= size != len(data):
+            raise EndOfFile()
+        return data
 
 
 def _scan(path: Path) -> tuple[list[McapRecord], int, str | None]:
-    """Linear scan of an MCAP data section that ignores summary, index and footer.
+    """Linear pass over an MCAP data section with the mcap library's :class:`StreamReader`.
+
+    The reader yields a record only once all its bytes are read (the messages of a chunk
+    once the whole chunk is, its CRC checked); over :class:`_WholeReads` it raises
+    ``EndOfFile`` at the first incomplete record, so stopping there keeps every complete
+    record of a cut file.
 
     Returns the Header, Schema, Channel, Message and Metadata records in file order
     (messages of chunks in place of the chunks), the offset past the last complete record,
@@ -398,32 +418,30 @@ def _scan(path: Path) -> tuple[list[McapRecord], int, str | None]:
         raise FileNotFoundError(f"{path}: no such file")
     if not path.is_file():
         raise ValueError(f"{path}: is not a regular file (a directory?)")
-    data = path.read_bytes()
-    if not data.startswith(_MAGIC):
-        if _MAGIC.startswith(data):
+    stream = _WholeReads(path.read_bytes())
+    magic = stream.read1(len(_MAGIC))
+    if magic != _MAGIC:
+        if _MAGIC.startswith(magic):
             warning = f"{path}: truncated at byte 0 (in the MCAP magic); 0 complete messages read"
             return [], 0, warning
         raise ValueError(f"{path}: not an MCAP file (bad magic)")
     records: list[McapRecord] = []
-    offset = len(_MAGIC)
-    while offset + 9 <= len(data):
-        opcode, length = struct.unpack_from("<BQ", data, offset)
-        end = offset + 9 + length
-        if end > len(data):
-            break
-        content = ReadDataStream(io.BytesIO(data[offset + 9 : end]))
-        if opcode == Opcode.MESSAGE:
-            records.append(Message.read(content, length))
-        elif opcode == Opcode.CHUNK:
-            records.extend(breakup_chunk(Chunk.read(content), validate_crc=True))
-        elif opcode in _PARSERS:
-            records.append(_PARSERS[opcode](content))
-        offset = end
-        if opcode == Opcode.DATA_END:
-            return records, offset, None
+    offset = stream.tell()
+    try:
+        for record in StreamReader(stream, skip_magic=True, validate_crcs=True).records:
+            if isinstance(record, DataEnd):
+                return records, stream.tell(), None
+            if isinstance(record, _KEPT):
+                records.append(record)
+            offset = stream.tell()  # past the record (past its chunk, for a chunk's records)
+    except EndOfFile:
+        pass
+    except (McapError, ValueError) as error:  # a CRC mismatch, an impossible length
+        raise ValueError(f"{path}: corrupt MCAP record after byte {offset}: {error}") from error
     n_messages = sum(isinstance(record, Message) for record in records)
+    size = stream.getbuffer().nbytes
     warning = (
-        f"{path}: truncated at byte {offset} of {len(data)} (the writer did not close it); "
+        f"{path}: truncated at byte {offset} of {size} (the writer did not close it); "
         f"{n_messages} complete messages read"
     )
     return records, offset, warning

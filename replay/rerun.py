@@ -76,17 +76,84 @@ def recorded_learner(
     )
 
 
+def signal_extractor(config: dict[str, Any], first_epoch: np.ndarray) -> ErrPFeatures | None:
+    """The feature extractor of a session of raw epochs, fitted on its first epoch (as the
+    service fits it); None for a session of feature vectors."""
+    if config.get("signal") != "epochs":
+        return None
+    extractor = ErrPFeatures(config["sfreq"], config["tmin"], config["ch_names"])
+    return extractor.fit(first_epoch[None])
+
+
 def recorded_signals(recording: Recording) -> list[np.ndarray]:
     """The learner's inputs, float32, from the accepted recorded epochs (raw or features)."""
-    config = recording.config
     epochs = [decode_array(message) for message in recording.accepted_epochs()]
-    if config.get("signal") != "epochs":
-        return [np.asarray(e, dtype=np.float32) for e in epochs]
     if not epochs:
         return []
-    extractor = ErrPFeatures(config["sfreq"], config["tmin"], config["ch_names"])
-    extractor.fit(epochs[0][None])
+    extractor = signal_extractor(recording.config, epochs[0])
+    if extractor is None:
+        return [np.asarray(e, dtype=np.float32) for e in epochs]
     return [extractor.transform(e[None])[0].astype(np.float32) for e in epochs]
+
+
+class Rerun:
+    """The learner of a recorded configuration, stepped as the service steps it.
+
+    Built, it has chosen the move of step 1; each :meth:`observe` takes the epoch of the
+    last move's step and chooses the next move (none after the session's last step).
+
+    Attributes
+    ----------
+    learner : CalibrationFreeLearner
+    world : GridWorld
+    state : int
+        The agent's cell before the last move (after it, once the session is over).
+    action : int
+        The last move's action.
+    moves, states : list of dict
+        Moves and states (with ``confidence``) so far, as the service sends them.
+    events : list of str
+        Texts of the target events so far.
+    """
+
+    def __init__(self, config: dict[str, Any], settings: LearnerConfig | None = None) -> None:
+        self.steps = config["steps"]
+        self.learner = recorded_learner(config, settings)
+        self.world = self.learner.world
+        self.state = start_cell(config["seed"], self.world.n_states)
+        self.moves: list[dict] = []
+        self.states: list[dict] = []
+        self.events: list[str] = []
+        self.action = self._move()
+
+    @property
+    def finished(self) -> bool:
+        """Every step's epoch has been observed."""
+        return self.learner.n_signals >= self.steps
+
+    def _record_state(self) -> None:
+        fields, confidence = state_fields(self.learner)
+        self.states.append({**fields, "confidence": [float(x) for x in confidence]})
+
+    def _move(self) -> int:
+        proposal = self.learner.propose(self.state)
+        step = len(self.moves) + 1
+        self.moves.append(move_fields(self.world, step, self.state, proposal))
+        self._record_state()
+        if proposal.declares_target:
+            self.events.append(f"step {step}: target reached in cell {self.state}")
+        return proposal.action
+
+    def observe(self, signal: np.ndarray, on_observe: Observer | None = None) -> None:
+        """Observe the epoch of the last move's step; choose the next move if one is due."""
+        self.learner.observe(self.state, self.action, signal)
+        if on_observe is not None:
+            on_observe(self.learner.n_signals, self.learner)
+        self.state = self.world.step(self.state, self.action)
+        if self.finished:
+            self._record_state()
+        else:
+            self.action = self._move()
 
 
 def recompute(
@@ -104,39 +171,10 @@ def recompute(
         learner as the service had it then (if the re-run is identical). It must not
         change the learner.
     """
-    config = recording.config
-    learner = recorded_learner(config)
-    world = learner.world
-    state = start_cell(config["seed"], world.n_states)
-    signals = recorded_signals(recording)
-    moves: list[dict] = []
-    states: list[dict] = []
-    events: list[str] = []
-
-    def record_state() -> None:
-        fields, confidence = state_fields(learner)
-        states.append({**fields, "confidence": [float(x) for x in confidence]})
-
-    def move() -> int:
-        proposal = learner.propose(state)
-        step = len(moves) + 1
-        moves.append(move_fields(world, step, state, proposal))
-        record_state()
-        if proposal.declares_target:
-            events.append(f"step {step}: target reached in cell {state}")
-        return proposal.action
-
-    action = move()
-    for index, signal in enumerate(signals):
-        learner.observe(state, action, signal)
-        if on_observe is not None:
-            on_observe(index + 1, learner)
-        state = world.step(state, action)
-        if index + 1 < config["steps"]:
-            action = move()
-        else:
-            record_state()
-    return moves, states, events
+    rerun = Rerun(recording.config)
+    for signal in recorded_signals(recording)[: rerun.steps]:
+        rerun.observe(signal, on_observe)
+    return rerun.moves, rerun.states, rerun.events
 
 
 def replay_check(path: str | Path) -> ReplayResult:

@@ -1,29 +1,64 @@
-"""``cfbci bench update`` runs end to end and reports what it promises (no timing bounds)."""
+"""``cfbci bench update`` and ``bench simulate`` run end to end and report what they
+promise (no timing bounds)."""
 
 import json
 
+import numpy as np
+
+from cfbci.bench import NAIVE_TASKS, naive_slice
 from cfbci.cli import main
 
 
 def test_bench_update_reports_rows_with_the_naive_reference(tmp_path, capsys):
     out = tmp_path / "bench.json"
     code = main([
-        "bench", "update", "--grids", "3", "4", "--histories", "12", "20",
+        "bench", "update", "--grids", "3", "6", "--histories", "12", "20",
         "--measured-steps", "3", "--naive-repeats", "1", "--json", str(out),
     ])
     assert code == 0
     rows = json.loads(out.read_text())["rows"]
-    assert [(r["tasks"], r["history"]) for r in rows] == [(9, 12), (9, 20), (16, 12), (16, 20)]
+    assert [(r["tasks"], r["history"]) for r in rows] == [(9, 12), (9, 20), (36, 12), (36, 20)]
     for row in rows:
         assert set(row) == {
-            "tasks", "history", "median_ms", "p99_ms", "naive_median_ms", "speedup"
+            "tasks", "history", "median_ms", "p99_ms", "peak_memory_mb", "naive_median_ms",
+            "naive_measured_tasks", "speedup",
         }
         assert 0 < row["median_ms"] <= row["p99_ms"]
-    # The naive reference runs on the smallest grid given, and only there.
-    smallest = [r for r in rows if r["tasks"] == 9]
-    assert all(r["naive_median_ms"] > 0 and r["speedup"] > 0 for r in smallest)
-    assert all(r["naive_median_ms"] is None for r in rows if r["tasks"] == 16)
-    assert "speed-up" in capsys.readouterr().out
+        assert row["naive_median_ms"] > 0 and row["speedup"] > 0
+        assert row["peak_memory_mb"] > 10  # an interpreter with numpy at least
+    # Measured on every task of the small grid, on a 25-task slice of the larger one.
+    assert [r["naive_measured_tasks"] for r in rows] == [9, 9, NAIVE_TASKS, NAIVE_TASKS]
+    printed = capsys.readouterr().out
+    assert "speed-up" in printed and "extrapolated linearly" in printed
+
+
+def test_naive_slice_is_every_task_up_to_25_then_evenly_spaced():
+    assert naive_slice(9).tolist() == list(range(9))
+    assert naive_slice(25).tolist() == list(range(25))
+    big = naive_slice(400)
+    assert len(big) == NAIVE_TASKS and big[0] == 0 and big[-1] == 399
+    assert np.all(np.diff(big) > 0)
+
+
+def test_bench_simulate_reports_the_realtime_factor(tmp_path, capsys):
+    rng = np.random.default_rng(0)
+    labels = np.arange(120) % 2
+    dataset = tmp_path / "data.npz"
+    np.savez(dataset, features=rng.normal(size=(120, 4)) + labels[:, None], labels=labels)
+    out = tmp_path / "simulate.json"
+    code = main([
+        "bench", "simulate", "--dataset", str(dataset), "--seeds", "2", "--steps", "30",
+        "--json", str(out),
+    ])
+    assert code == 0
+    report = json.loads(out.read_text())
+    assert [s["seed"] for s in report["sessions"]] == [0, 1]
+    for session in report["sessions"]:
+        assert session["wall_s"] > 0
+        assert session["realtime_factor"] == 30 * 3.0 / session["wall_s"]
+    factors = [s["realtime_factor"] for s in report["sessions"]]
+    assert report["realtime_factor"] == np.median(factors)
+    assert "faster than real time" in capsys.readouterr().out
 
 
 def test_allocator_tuning_is_safe_to_repeat():

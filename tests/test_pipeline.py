@@ -52,6 +52,15 @@ def source_process(settings: SourceSettings, endpoint: str) -> Iterator[Future[S
         yield pool.submit(run_source, settings, [], [endpoint])
 
 
+@contextmanager
+def source_process_listening(
+    settings: SourceSettings, endpoint: str
+) -> Iterator[Future[SourceSummary]]:
+    """The source in a spawned process listening on ``endpoint`` (services connect to it)."""
+    with ProcessPoolExecutor(1, mp_context=SPAWN) as pool:
+        yield pool.submit(run_source, settings, [endpoint], [])
+
+
 def test_live_session_equals_simulation_and_is_recorded(tmp_path: Path) -> None:
     seed = 3
     endpoint = free_tcp_endpoint()
@@ -136,7 +145,8 @@ def _raw(header: dict, payload: bytes = b"") -> bytes:
 
 def _epoch_header(session: str, seq: int, shape: list[int]) -> dict:
     return {
-        "v": 1, "kind": "epoch", "session": session, "seq": seq, "t_ns": 1, "step": 1,
+        "v": protocol.VERSION, "kind": "epoch", "session": session, "seq": seq, "t_ns": 1,
+        "step": 1,
         "signal": "features", "shape": shape, "dtype": "float32", "units": "uV",
     }
 
@@ -150,10 +160,14 @@ def _wait_event(inbox: queue.SimpleQueue[Received], match: Callable[[str, dict],
             return message.fields
 
 
-def _error(session: str, *words: str) -> Callable[[str, dict], bool]:
-    return lambda s, f: s == session and f["event"] == "error" and all(
+def _error(session: str, *words: str, kind: str = "error") -> Callable[[str, dict], bool]:
+    return lambda s, f: s == session and f["event"] == kind and all(
         w in f["message"] for w in words
     )
+
+
+def _rejected(session: str, *words: str) -> Callable[[str, dict], bool]:
+    return _error(session, *words, kind="session_rejected")
 
 
 def test_malformed_messages_yield_errors_and_the_session_finishes(tmp_path: Path) -> None:
@@ -181,7 +195,7 @@ def test_malformed_messages_yield_errors_and_the_session_finishes(tmp_path: Path
 
             main_errors = []
             for data, expected in (
-                (_raw({**header, "v": 2}, np.zeros(2, "<f4").tobytes()), "protocol version 2"),
+                (_raw({**header, "v": 1}, np.zeros(2, "<f4").tobytes()), "protocol version 1"),
                 (_raw(header, np.array([1.0, np.nan], "<f4").tobytes()), "NaN"),
                 ((100).to_bytes(4, "little") + b'{"v":1', "truncated"),
                 (_raw(header, np.zeros(3, "<f4").tobytes()), "needs 8 payload bytes; got 12"),
@@ -213,12 +227,16 @@ def test_malformed_messages_yield_errors_and_the_session_finishes(tmp_path: Path
             _wait_event(inbox, _error("own", "shape [5]", "[4]"))
             epoch.put(_message("epoch", "own", 5, {**fields, "step": 2}, np.ones(4)))  # accepted
             gap = _wait_event(inbox, lambda s, f: s == "own" and f["event"] == "info")
-            assert gap["message"] == "gap: expected 3, got 5 (2 messages lost)"
-            own.send("config", "own", config)
-            _wait_event(inbox, _error("own", "already running"))
+            # Rejected epochs do not count: seq 1 and 2 were not accepted, so 1 is expected.
+            assert gap["message"] == "gap: expected 1, got 5 (4 messages lost)"
+            # A config that cannot be run is a session_rejected event naming that config;
+            # one for a running id leaves the running session alone.
+            second = own.send("config", "own", config)
+            rejected = _wait_event(inbox, _rejected("own", "already running"))
+            assert rejected["config_t_ns"] == second.t_ns
             bad_learner = {**config, "learner": {"eps": 0.9}}
             own.send("config", "own2", bad_learner)
-            _wait_event(inbox, _error("own2", "bad config", "eps"))
+            _wait_event(inbox, _rejected("own2", "bad config", "eps"))
             own.close()
 
             summary = future.result(TIMEOUT)
@@ -236,8 +254,7 @@ def test_malformed_messages_yield_errors_and_the_session_finishes(tmp_path: Path
     # with the two accepted epochs observed and every rejected one left out of the learner.
     own = read_recording(tmp_path / "own.mcap")
     assert not own.truncated
-    assert len(own.messages["/epoch"]) == 4  # as received: accepted, step 7, shape, accepted
-    assert len(own.messages["/features"]) == 2
+    assert len(own.messages["/epoch"]) == len(own.messages["/features"]) == 2  # accepted only
     assert [m["n_signals"] for _, m in own.messages["/state"]] == [0, 1, 2]
 
 

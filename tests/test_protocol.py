@@ -82,10 +82,12 @@ EXAMPLES: dict[str, Message] = {
         np.full(25, 0.5, dtype=np.float32),
     ),
     "event": Message(
-        "event", "s-01", 1, 3, {"event": "session_started", "message": "grid 5, 500 steps"}
+        "event", "s-01", 1, 3,
+        {"event": "session_started", "message": "grid 5, 500 steps", "config_t_ns": 1},
     ),
     "event_unusable_session": Message(
-        "event", "_", 0, 3, {"event": "error", "message": "session id 'a b' is invalid — é"}
+        "event", "_", 0, 3,
+        {"event": "error", "message": "session id 'a b' is invalid — é", "config_t_ns": None},
     ),
 }  # fmt: skip
 
@@ -163,7 +165,8 @@ def test_docs_print_the_specification_table():
 # Rejected messages ---------------------------------------------------------------------
 
 BAD_VALUES = {
-    "int": "1", "count": -1, "float": "250", "float/null": "x", "bool": 1, "str": 3,
+    "int": "1", "count": -1, "count/null": -2, "float": "250", "float/null": "x", "bool": 1,
+    "str": 3,
     "str[]": ["Fz", 1], "float[]": [1.0, "2"], "object": [], "shape": [0], "session": "a b",
 }  # fmt: skip
 
@@ -186,7 +189,7 @@ def framing_cases() -> list[tuple[bytes, str]]:
         (frame(b"[1, 2]"), "header must be a JSON object; got list"),
         (frame(b"[" * 100_000), "header is not valid JSON"),
         (frame({k: v for k, v in header.items() if k != "v"}), "missing field 'v'"),
-        (frame(header | {"v": 2}), "unknown protocol version 2; .* speaks version 1"),
+        (frame(header | {"v": 1}), "unknown protocol version 1; .* speaks version 2"),
         (frame(header | {"v": True}), "unknown protocol version true"),
         (frame(header | {"kind": "moves"}), 'unknown kind "moves"'),
         (frame(header | {"kind": ["move"]}), "unknown kind"),

@@ -18,6 +18,7 @@ import numpy as np
 import pytest
 from jsonschema import Draft202012Validator
 from mcap.reader import make_reader
+from mcap.records import ChunkIndex
 
 from replay.recording import (
     CONFIG_METADATA,
@@ -42,13 +43,12 @@ def schema_errors(instance: Any, schema: dict[str, Any]) -> list[str]:
     ]
 
 
-def write_session(path: Path) -> tuple[list[tuple[str, int, Any]], list[int]]:
+def write_session(path: Path) -> list[tuple[str, int, Any]]:
     """Record every topic; return what was recorded, ``(topic, log_time_ns, message or
-    (header, array))``, and the file size after each message (where its record ends)."""
+    (header, array))``."""
     rng = np.random.default_rng(0)
     recorded: list[tuple[str, int, Any]] = []
     with SessionRecorder(path, "s01", CONFIG) as recorder:
-        ends = [path.stat().st_size]  # the /config message
         for seq in range(3):
             epoch = rng.normal(scale=10.0, size=(4, 32)).astype(np.float32)
             epoch[0, :5] = [np.nan, -0.0, np.inf, 1e-45, -np.inf]  # bits, not just values
@@ -76,14 +76,21 @@ def write_session(path: Path) -> tuple[list[tuple[str, int, Any]], list[int]]:
                 log_time = T0 + seq * 500_000_000 + i
                 call(log_time)
                 recorded.append((topic, log_time, sent))
-                ends.append(path.stat().st_size)
-    return recorded, ends
+    return recorded
+
+
+def chunk_indexes(path: Path) -> list[ChunkIndex]:
+    """The chunk indexes of a closed file's summary, as the mcap library reads them."""
+    with path.open("rb") as file:
+        summary = make_reader(file).get_summary()
+    assert summary is not None
+    return summary.chunk_indexes
 
 
 @pytest.fixture
 def session(tmp_path: Path) -> tuple[Path, list[tuple[str, int, Any]]]:
     path = tmp_path / "session.mcap"
-    recorded, _ = write_session(path)
+    recorded = write_session(path)
     return path, recorded
 
 
@@ -133,7 +140,21 @@ def test_round_trip_of_every_topic(session: tuple[Path, list[tuple[str, int, Any
     check_recorded(recording, recorded)
 
 
-def test_the_official_reader_reads_a_closed_recording(
+def test_a_closed_recording_has_a_chunk_index_for_every_message(
+    session: tuple[Path, list[tuple[str, int, Any]]],
+) -> None:
+    path, recorded = session
+    indexes = chunk_indexes(path)
+    assert len(indexes) == 1 + len(recorded)
+    log_times = [index.message_start_time for index in indexes][1:]
+    assert log_times == [log_time for _, log_time, _ in recorded]
+    for index in indexes:  # one message, of one channel, with its message index
+        assert index.message_start_time == index.message_end_time
+        assert len(index.message_index_offsets) == 1 and index.message_index_length > 0
+        assert index.compression == "" and index.compressed_size == index.uncompressed_size
+
+
+def test_the_official_reader_reads_a_closed_recording_through_its_index(
     session: tuple[Path, list[tuple[str, int, Any]]],
 ) -> None:
     path, recorded = session
@@ -142,6 +163,7 @@ def test_the_official_reader_reads_a_closed_recording(
         assert reader.get_header().library == "cfbci" and reader.get_header().profile == ""
         summary = reader.get_summary()
         assert summary is not None and summary.statistics.message_count == 1 + len(recorded)
+        assert summary.chunk_indexes  # the seeking path reads the chunks it indexes
         topics = [channel.topic for _, channel, _ in reader.iter_messages(log_time_order=False)]
         [metadata] = list(reader.iter_metadata())
     assert topics[0] == "/config"
@@ -206,26 +228,43 @@ def test_the_recorder_rejects_bad_messages(tmp_path: Path) -> None:
 
 
 def test_a_cut_file_gives_every_complete_message_before_the_cut(tmp_path: Path) -> None:
+    """Cut anywhere (in the magic, a chunk, a message index after a chunk, at every record
+    boundary): every message whose chunk is whole is read, and nothing of the others."""
     path = tmp_path / "session.mcap"
-    _, ends = write_session(path)
+    write_session(path)
     data = path.read_bytes()
     closed = read_recording(path)
-    inside = [end - 1 for end in ends] + [(a + b) // 2 for a, b in pairwise(ends)]
-    cuts = sorted({0, 5, 8, 20, *ends, *inside, ends[-1] + 3})
+    indexes = chunk_indexes(path)
+    starts = [index.chunk_start_offset for index in indexes]
+    ends = [index.chunk_start_offset + index.chunk_length for index in indexes]
+    near = [at + d for at in (*starts, *ends) for d in (-1, 0, 1)]
+    inside = [(a + b) // 2 for a, b in pairwise(ends)]
+    cuts = sorted({0, 5, 8, 20, *near, *inside, ends[-1] + 3})
     cut = tmp_path / "cut.mcap"
     for at in cuts:
         cut.write_bytes(data[:at])
         recording = read_recording(cut)
-        complete = sum(end <= at for end in ends)  # the writer's own record boundaries
+        complete = sum(end <= at for end in ends)  # one message per chunk
         assert recording.truncated
         assert recording.n_messages == complete, at
         if complete:
-            assert recording.end_offset == ends[complete - 1]
+            assert ends[complete - 1] <= recording.end_offset
         assert recording.end_offset <= at
         assert f"byte {recording.end_offset}" in recording.warning
         assert f"{complete} complete messages" in recording.warning
         for topic, messages in recording.messages.items():
             assert messages == closed.messages[topic][: len(messages)]
+
+
+def test_a_corrupt_chunk_is_an_error_naming_the_file(tmp_path: Path) -> None:
+    path = tmp_path / "session.mcap"
+    write_session(path)
+    data = bytearray(path.read_bytes())
+    third = chunk_indexes(path)[2]
+    data[third.chunk_start_offset + third.chunk_length - 5] ^= 0xFF  # in its message's bytes
+    path.write_bytes(bytes(data))
+    with pytest.raises(ValueError, match=rf"{path}: corrupt MCAP record after byte \d+: crc"):
+        read_recording(path)
 
 
 def test_read_recording_rejects_a_file_that_is_not_mcap(tmp_path: Path) -> None:

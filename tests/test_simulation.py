@@ -121,14 +121,21 @@ def test_simulate_command_writes_report_and_trace(tmp_path, capsys):
     assert "median first target" in capsys.readouterr().out
 
 
-def test_simulate_is_the_same_in_parallel_and_in_one_process(tmp_path):
+def test_simulate_on_a_local_dask_cluster_equals_one_process(tmp_path):
+    """``--scheduler local`` (a real Dask LocalCluster of two worker processes) writes the
+    same JSON report and trace as ``--jobs 1`` (in this process) for the same seeds."""
     outputs = []
-    for jobs in ("1", "2"):
-        path = tmp_path / f"{jobs}.json"
-        main(["simulate", "--seeds", "2", "--steps", "40", "--grid", "3", "--jobs", jobs,
-              "--json", str(path)])
-        outputs.append(json.loads(path.read_text())["sessions"])
-    assert outputs[0] == outputs[1]
+    for name, options in (("one", ["--jobs", "1"]), ("dask", ["--scheduler", "local",
+                                                              "--jobs", "2"])):
+        report, trace = tmp_path / f"{name}.json", tmp_path / f"{name}.jsonl"
+        assert main(["simulate", "--seeds", "3", "--first-seed", "7", "--steps", "40",
+                     "--grid", "3", *options, "--json", str(report), "--trace", str(trace)]) == 0
+        outputs.append((json.loads(report.read_text()), trace.read_text()))
+    (one, one_trace), (dask, dask_trace) = outputs
+    assert dask == one
+    assert [s["seed"] for s in one["sessions"]] == [7, 8, 9]
+    assert any(s["first_target_step"] for s in one["sessions"])  # sessions that did something
+    assert dask_trace == one_trace and len(one_trace.splitlines()) == 3 * 40
 
 
 @pytest.mark.parametrize(
@@ -139,6 +146,8 @@ def test_simulate_is_the_same_in_parallel_and_in_one_process(tmp_path):
         (["--frame", "guidance"], "needs a 4-class dataset"),
         (["--synthetic-accuracy", "0.99"], "accuracy"),
         (["--dataset", "/nonexistent/file.mat"], "file.mat"),
+        (["--scheduler", "127.0.0.1:8786"], "tcp://HOST:PORT"),
+        (["--scheduler", "tcp://127.0.0.1:8786", "--jobs", "2"], "leave --jobs out"),
     ],
 )
 def test_simulate_reports_bad_options_clearly(arguments, message, capsys):

@@ -1,8 +1,21 @@
-"""The batched per-task computation equals a scikit-learn reference."""
+"""The shared-statistics decoders of all tasks equal plain references.
+
+Hard labels: scikit-learn's pooled-covariance LDA with the equal-prior correction
+(``reference.EqualPriorLDA``), refitted per task and per fold. Soft labels and signals a
+task gives no label (guidance): the same formulas written out with numpy.
+"""
+
+import tracemalloc
 
 import numpy as np
 import pytest
-from reference import lda, reference_log_match
+from reference import (
+    confusion,
+    lda,
+    reference_log_match,
+    weighted_cross_validated_proba,
+    weighted_lda_log_proba,
+)
 
 from calibration_free.config import LearnerConfig
 from calibration_free.learner import CalibrationFreeLearner
@@ -10,7 +23,8 @@ from calibration_free.likelihood import match
 from calibration_free.task_decoders import TaskHistory, TaskModels, decoder_fit
 from calibration_free.world import GridWorld
 from decoding.lda import ShrinkageLDA
-from decoding.statistics import one_hot
+from decoding.statistics import ClassStatistics, one_hot
+from decoding.student_t import fit_student_t
 
 
 def random_problem(rng, n_signals, n_features, n_tasks, n_classes):
@@ -21,18 +35,35 @@ def random_problem(rng, n_signals, n_features, n_tasks, n_classes):
     return history, labels, rng.normal(size=n_features), expected
 
 
+def soft_weights(rng, n_tasks, n_signals, n_classes, unlabelled_share=0.15):
+    """Soft labels (Dirichlet), some split over two classes only, some signals unlabelled
+    (all-zero weights, as guidance at a task's own cell)."""
+    weights = rng.dirichlet(np.full(n_classes, 0.5), size=(n_tasks, n_signals))
+    two = rng.random((n_tasks, n_signals)) < 0.3
+    weights[two, -1] = 0.0
+    weights /= weights.sum(axis=-1, keepdims=True)
+    weights[rng.random((n_tasks, n_signals)) < unlabelled_share] = 0.0
+    return weights
+
+
+def history_of(signals, weights, **kwargs):
+    tasks = TaskHistory(weights.shape[0], weights.shape[2], signals.shape[1], **kwargs)
+    for i, x in enumerate(signals):
+        tasks.add(x, weights[:, i])
+    return tasks
+
+
 @pytest.mark.parametrize(
     ("seed", "n_signals", "n_features", "n_classes", "shrinkage"),
-    [(0, 60, 4, 2, 0.5), (1, 83, 7, 2, 0.2), (2, 120, 5, 3, 0.5), (3, 97, 12, 2, 0.9)],
+    [(0, 60, 4, 2, 0.5), (1, 83, 7, 2, 0.2), (2, 120, 5, 3, 0.5), (3, 97, 12, 2, 0.9),
+     (4, 75, 6, 2, 0.0)],
 )
 def test_batched_update_equals_sklearn_lda_with_kfold(
     seed, n_signals, n_features, n_classes, shrinkage
 ):
     rng = np.random.default_rng(seed)
     history, labels, signal, expected = random_problem(rng, n_signals, n_features, 5, n_classes)
-    tasks = TaskHistory(len(labels), n_classes, n_features)
-    for i, x in enumerate(history):
-        tasks.add(x, one_hot(labels[:, i], n_classes))
+    tasks = history_of(history, one_hot(labels, n_classes))
     for balanced in (True, False):
         models = TaskModels.fit(tasks, decoder_fit("lda", shrinkage), 1.0, balanced)
         fast = np.log(match(expected, models.corrected_proba(signal[None])[:, 0]))
@@ -41,6 +72,54 @@ def test_batched_update_equals_sklearn_lda_with_kfold(
             balanced=balanced,
         )
         np.testing.assert_allclose(fast, reference, rtol=0, atol=1e-8)
+
+
+@pytest.mark.parametrize(
+    ("seed", "n_classes", "shrinkage"), [(0, 4, 0.5), (1, 2, 0.3), (2, 4, 0.8)]
+)
+def test_soft_and_unlabelled_weights_equal_the_weighted_numpy_reference(
+    seed, n_classes, shrinkage
+):
+    """Full decoders, fold decoders (out-of-fold predictions) and log-likelihood updates."""
+    rng = np.random.default_rng(seed)
+    n_signals, n_features, n_tasks = 90, 5, 4
+    signals = rng.normal(size=(n_signals, n_features)) + rng.normal(size=n_features)
+    weights = soft_weights(rng, n_tasks, n_signals, n_classes)
+    weights[0] = one_hot(np.arange(n_signals) % n_classes, n_classes)  # one hard task
+    new = rng.normal(size=(3, n_features))
+    models = TaskModels.fit(history_of(signals, weights), decoder_fit("lda", shrinkage), 1.0)
+    expected = rng.dirichlet(np.ones(n_classes), size=n_tasks)
+    for task in range(n_tasks):
+        full = weighted_lda_log_proba(signals, weights[task], shrinkage, new)
+        np.testing.assert_allclose(
+            np.exp(models.decoders.log_proba(new)[task]), np.exp(full), rtol=0, atol=1e-10
+        )
+        cv = weighted_cross_validated_proba(signals, weights[task], shrinkage)
+        np.testing.assert_allclose(models.cv_proba[task], cv, rtol=0, atol=1e-10)
+        q = confusion(weights[task], cv) @ np.exp(full[0])
+        np.testing.assert_allclose(
+            np.log(match(expected, models.corrected_proba(new[:1])[:, 0]))[task],
+            np.log(expected[task] @ q),
+            rtol=0,
+            atol=1e-8,
+        )
+
+
+def test_unlabelled_signals_widen_the_covariance_but_train_no_class():
+    """A task that labels no signal of a third cluster: its decoder equals the one
+    trained on the labelled signals with that cluster's within-class scatter added."""
+    rng = np.random.default_rng(8)
+    labelled = rng.normal(size=(40, 3)) + np.arange(40)[:, None] % 2
+    unlabelled = 5.0 + rng.normal(size=(15, 3)) * np.array([3.0, 0.1, 1.0])
+    signals = np.r_[labelled, unlabelled]
+    weights = np.r_[one_hot(np.arange(40) % 2, 2), np.zeros((15, 2))][None]
+    models = TaskModels.fit(history_of(signals, weights), decoder_fit("lda", 0.5), 1.0)
+    probe = rng.normal(size=(4, 3))
+    with_rest = weighted_lda_log_proba(signals, weights[0], 0.5, probe)
+    np.testing.assert_allclose(models.decoders.log_proba(probe)[0], with_rest, atol=1e-10)
+    # ... which is not the decoder of the labelled signals alone: the rest counts.
+    alone = weighted_lda_log_proba(labelled, weights[0, :40], 0.5, probe)
+    assert np.abs(with_rest - alone).max() > 1e-3
 
 
 def test_learner_updates_equal_the_reference_along_a_session():
@@ -94,16 +173,71 @@ def test_single_class_task_gives_no_information():
     assert np.allclose(q[0], 0.5) and not np.allclose(q[1], 0.5)
 
 
-def test_relabel_copies_one_task_onto_all():
+@pytest.mark.parametrize("decoder", ["lda", "student_t"])
+def test_relabelling_equals_copying_the_task_labels(decoder):
+    """Relabel at a switch, go on with per-task labels, switch again: every model equals
+    that of a history built from scratch with the copied labels."""
     rng = np.random.default_rng(1)
-    tasks = TaskHistory(3, 2, 4)
-    for _ in range(40):
-        tasks.add(rng.normal(size=4), one_hot(rng.integers(0, 2, size=3), 2))
-    tasks.relabel(2)
-    models = TaskModels.fit(tasks, decoder_fit("lda", 0.5), smoothing=1.0)
-    q = models.corrected_proba(rng.normal(size=(5, 4)))
-    np.testing.assert_allclose(q[0], q[2], atol=1e-12)
-    np.testing.assert_allclose(q[1], q[2], atol=1e-12)
+    n_tasks, n_features = 4, 3
+    signals = rng.normal(size=(110, n_features)) + 0.5
+    weights = soft_weights(rng, n_tasks, 110, 2, unlabelled_share=0.1)
+    switches = {40: 2, 75: 0}
+    fit = decoder_fit(decoder, 0.5)
+    tasks = TaskHistory(n_tasks, 2, n_features, class_scatters=fit.class_scatters)
+    copied = weights.copy()
+    for i, x in enumerate(signals):
+        tasks.add(x, weights[:, i])
+        if i + 1 in switches:
+            tasks.relabel(switches[i + 1])
+            copied[:, : i + 1] = copied[switches[i + 1], : i + 1]
+    np.testing.assert_array_equal(tasks.label_weights, copied)
+    for task in range(n_tasks):
+        np.testing.assert_array_equal(tasks.task_label_weights(task), copied[task])
+    fast = TaskModels.fit(tasks, fit, 1.0)
+    slow = TaskModels.fit(history_of(signals, copied, class_scatters=fit.class_scatters), fit, 1.0)
+    probe = rng.normal(size=(5, n_features))
+    np.testing.assert_allclose(fast.cv_proba, slow.cv_proba, rtol=0, atol=1e-10)
+    np.testing.assert_allclose(fast.confusion, slow.confusion, rtol=0, atol=1e-10)
+    np.testing.assert_allclose(
+        fast.corrected_proba(probe), slow.corrected_proba(probe), rtol=0, atol=1e-10
+    )
+
+
+def test_relabelling_allocates_no_per_task_statistics():
+    """A switch moves one task's statistics into the shared part: it allocates far less
+    than the per-task statistics (an in-place reset, no copy)."""
+    n_tasks, n_features = 400, 57
+    tasks = TaskHistory(n_tasks, 2, n_features)
+    rng = np.random.default_rng(2)
+    for _ in range(30):
+        tasks.add(rng.normal(size=n_features), one_hot(rng.integers(0, 2, size=n_tasks), 2))
+    per_task_bytes = tasks._sums.own.nbytes + tasks._counts.own.nbytes
+    tracemalloc.start()
+    tasks.relabel(7)
+    _, peak = tracemalloc.get_traced_memory()
+    tracemalloc.stop()
+    assert peak < per_task_bytes / 100
+
+
+def test_student_t_task_decoders_equal_one_at_a_time():
+    """The per-task path: full and fold decoders against fits on each task's own data."""
+    rng = np.random.default_rng(4)
+    signals = rng.normal(size=(80, 3))
+    labels = rng.integers(0, 2, size=(3, 80))
+    weights = one_hot(labels, 2)
+    fit = decoder_fit("student_t", 0.5)
+    full, folds = fit(history_of(signals, weights, class_scatters=True))
+    probe = rng.normal(size=(6, 3))
+    in_fold = np.arange(80) % 10
+    for task in range(3):
+        alone = fit_student_t(ClassStatistics.from_signals(signals, weights[task]))
+        np.testing.assert_allclose(full.log_proba(probe)[task], alone.log_proba(probe), atol=1e-10)
+        for f in (0, 7):
+            train = in_fold != f
+            held = fit_student_t(ClassStatistics.from_signals(signals[train], weights[task, train]))
+            np.testing.assert_allclose(
+                folds.log_proba(probe)[f, task], held.log_proba(probe), atol=1e-10
+            )
 
 
 @pytest.mark.parametrize("n_classes", [2, 4])
@@ -112,7 +246,7 @@ def test_shrinkage_lda_estimator_equals_sklearn(n_classes):
     y = np.arange(90) % n_classes
     X = rng.normal(size=(90, 6)) + y[:, None] * 0.5
     ours = ShrinkageLDA(shrinkage=0.3).fit(X, y)
-    theirs = lda(n_classes, 0.3).fit(X, y)
+    theirs = lda(0.3).fit(X, y)
     np.testing.assert_allclose(ours.predict_proba(X), theirs.predict_proba(X), atol=1e-12)
     assert (ours.predict(X) == theirs.predict(X)).all()
 
@@ -123,18 +257,16 @@ def test_balanced_accuracy_equals_sklearn_cross_validation():
 
     rng = np.random.default_rng(7)
     history, labels, _, _ = random_problem(rng, 90, 4, 3, 2)
-    tasks = TaskHistory(len(labels), 2, 4)
-    for i, x in enumerate(history):
-        tasks.add(x, one_hot(labels[:, i], 2))
+    tasks = history_of(history, one_hot(labels, 2))
     models = TaskModels.fit(tasks, decoder_fit("lda", 0.5), 1.0)
     order = np.lexsort((np.arange(90), np.arange(90) % 10))
     for task in range(len(labels)):
         predicted = np.empty(90, dtype=int)
         predicted[order] = cross_val_predict(
-            lda(2, 0.5), history[order], labels[task][order], cv=KFold(10)
+            lda(0.5), history[order], labels[task][order], cv=KFold(10)
         )
         expected = balanced_accuracy_score(labels[task], predicted)
-        assert models.balanced_accuracy(task, tasks.label_weights[task]) == pytest.approx(
+        assert models.balanced_accuracy(task, tasks.task_label_weights(task)) == pytest.approx(
             expected, abs=1e-12
         )
     assert models.balanced_accuracy(0, np.c_[np.ones(90), np.zeros(90)]) is None

@@ -1,10 +1,19 @@
-"""The grid world, the interaction frames and value iteration."""
+"""The worlds (grid, line, pick-and-place), the interaction frames and value iteration."""
 
 import numpy as np
 import pytest
 
 from calibration_free.frames import CORRECT, ERROR, Frame
-from calibration_free.world import ACTIONS, GOAL, GridWorld, value_iteration
+from calibration_free.session import session_streams
+from calibration_free.world import (
+    ACTIONS,
+    GOAL,
+    GridWorld,
+    optimal_actions,
+    transition_draws,
+    value_iteration,
+)
+from calibration_free.worlds import PickAndPlaceWorld, make_world
 
 UP, DOWN, LEFT, RIGHT = (ACTIONS.index(a) for a in ("up", "down", "left", "right"))
 
@@ -103,3 +112,137 @@ def test_frames_reject_bad_settings():
         Frame(GridWorld(3), "instruction")
     with pytest.raises(ValueError, match="eps"):
         Frame(GridWorld(3), "feedback", eps=0.7)
+
+
+# --- the world interface, the line and pick-and-place worlds ---------------------------
+
+
+@pytest.mark.parametrize("size", [2, 3, 5])
+def test_the_grid_closed_form_is_what_value_iteration_gives(size):
+    world = GridWorld(size)
+    reward = np.stack([world.task_reward(t) for t in range(world.n_tasks)])
+    assert np.array_equal(optimal_actions(reward, world.transitions, 0.9), world.optimal)
+    assert all(world.declares(t, GOAL, t) for t in range(world.n_tasks))
+    assert not world.declares(0, GOAL, 1) and not world.declares(0, UP, 0)
+
+
+def test_large_tables_are_built_on_first_use_only():
+    world = GridWorld(50)
+    frame = Frame(world, "feedback")
+    assert "optimal" not in vars(world) and "_tables" not in vars(frame)
+    assert frame.weights_at(0, GOAL).shape == (2500, 2)
+    assert "optimal" in vars(world) and frame.row_index.base is world.optimal
+
+
+def test_line_world_edges_bounce_and_no_move_is_optimal_only_at_the_goal():
+    world = make_world("line")
+    right, left, stay = (world.action_names.index(a) for a in ("right", "left", "no-move"))
+    assert world.n_states == 5 and world.n_tasks == 2 and list(world.task_states) == [0, 4]
+    assert world.step(2, right) == 3 and world.step(2, left) == 1 and world.step(2, stay) == 2
+    # Into the wall: back to the neighbour with probability 0.5, else stay.
+    outcomes = [world.step(4, right, u) for u in (0.1, 0.4, 0.6, 0.9)]
+    assert outcomes == [3, 3, 4, 4] and world.step(0, left, 0.2) == 1
+    with pytest.raises(ValueError, match="uniform draw"):
+        world.step(4, right)
+    optimal = world.optimal
+    # G1 (state 1): left everywhere but at the goal, where no-move is the unique optimum.
+    assert [set(np.flatnonzero(optimal[0, s])) for s in range(5)] == [
+        {stay}, {left}, {left}, {left}, {left}
+    ]
+    assert [set(np.flatnonzero(optimal[1, s])) for s in range(5)] == [
+        {right}, {right}, {right}, {right}, {stay}
+    ]
+    assert world.declares(0, stay, 0) and world.declares(4, stay, 1)
+    assert not world.declares(0, left, 0) and not world.declares(2, stay, 0)
+    assert world.start_state(np.random.default_rng(0)) == 2
+
+
+def test_line_world_without_no_move_has_nothing_to_declare_with():
+    world = make_world("line", actions=2)
+    assert world.action_names == ("right", "left") and world.declaration_action(0) is None
+    assert np.array_equal(world.optimal[0, :, 1], np.ones(5, bool))  # G1: always left
+    assert np.array_equal(world.optimal[1, :, 0], np.ones(5, bool))
+    with pytest.raises(ValueError, match="line world only"):
+        make_world("grid", actions=2)
+
+
+def test_pick_and_place_has_624_states_and_illegal_grasps_and_releases_do_nothing():
+    world = PickAndPlaceWorld()
+    assert world.n_states == 624 and world.n_tasks == 624 and world.n_actions == 4
+    index = {state: i for i, state in enumerate(world.states)}
+    grasp, release = world.GRASP, world.RELEASE
+    empty_column = next(
+        s for s, (holding, column, cubes) in enumerate(world.states)
+        if not holding and column not in cubes
+    )
+    assert world.step(empty_column, grasp) == empty_column  # nothing to grasp
+    assert world.step(empty_column, release) == empty_column  # nothing held
+    holding = next(
+        s for s, (held, column, cubes) in enumerate(world.states)
+        if held and column + 4 in cubes
+    )
+    assert world.step(holding, grasp) == holding  # the hand is full
+    assert world.step(holding, release) == holding  # the column is full
+    # Grasp takes the top cube; release puts it back where it was.
+    stacked = index[(False, 0, (0, 4, 2))]
+    taken = world.step(stacked, grasp)
+    assert world.states[taken] == (True, 0, (0, 8, 2))
+    assert world.step(taken, release) == stacked
+    # Move right, then release on the empty column's bottom.
+    assert world.states[world.step(world.step(taken, world.RIGHT), release)] == (
+        False, 1, (0, 1, 2)
+    )
+    assert world.step(index[(False, 3, (0, 1, 2))], world.RIGHT) == index[(False, 3, (0, 1, 2))]
+    # In its own state, every task's declaration action (the no-op) is optimal.
+    optimal = world.optimal
+    for task in range(0, world.n_tasks, 7):
+        assert optimal[task, task, world.declaration_action(task)]
+        assert world.step(task, world.declaration_action(task)) == task
+    assert optimal.any(axis=-1).all()
+    assert world.state_name(stacked).startswith("robot at column 1, hand empty; cube 1 on")
+
+
+def test_transition_draws_are_one_per_step_and_reproducible():
+    draws, again = transition_draws(7), transition_draws(7)
+    assert draws.uniform(3) == again.uniform(3) == draws.uniform(3)
+    assert [draws.uniform(k) for k in (1, 2)] == [again.uniform(k) for k in (1, 2)]
+    assert draws.uniform(1) != transition_draws(8).uniform(1)
+    # The fourth spawned stream of the seed, not one of the data, user or learner streams.
+    assert draws.uniform(1) not in [rng.random() for rng in session_streams(7)]
+    with pytest.raises(ValueError, match="from 1"):
+        draws.uniform(0)
+
+
+ALL_WORLDS = [GridWorld(3), GridWorld(4), make_world("line"), PickAndPlaceWorld()]
+
+
+@pytest.mark.parametrize("world", ALL_WORLDS, ids=lambda w: f"{w.name}{w.n_states}")
+@pytest.mark.parametrize("kind", ["feedback", "guidance"])
+@pytest.mark.parametrize("eps", [0.0, 0.1, 0.5])
+def test_label_distributions_sum_to_one_ties_included(world, kind, eps):
+    frame = Frame(world, kind, eps)
+    dist = frame.label_distribution
+    assert dist.shape == (world.n_tasks, world.n_states, world.n_actions, frame.n_classes)
+    assert np.allclose(dist.sum(axis=-1), 1.0) and (dist >= 0).all()
+    weights = frame.label_weights
+    trained = weights.sum(axis=-1)
+    assert np.allclose(trained[trained > 0], 1.0)
+    if kind == "guidance":
+        n_optimal = world.optimal[:, :, list(world.guidance_actions)].sum(axis=-1)
+        # Ties: the weight is split evenly over the optimal guidance actions.
+        tied = (n_optimal > 1) & (n_optimal < frame.n_classes)
+        assert tied.any() or world.name == "line"
+        assert np.allclose(weights.max(axis=-1)[tied], 1.0 / n_optimal[tied][:, None])
+    for state, action in [(0, 0), (world.n_states - 1, world.n_actions - 1)]:
+        assert np.array_equal(frame.weights_at(state, action), weights[:, state, action])
+        assert np.array_equal(frame.distribution_at(state, action), dist[:, state, action])
+
+
+def test_guidance_classes_are_the_worlds_guidance_actions():
+    assert Frame(make_world("line"), "guidance").class_names() == ("right", "left", "no-move")
+    assert Frame(PickAndPlaceWorld(), "guidance").class_names() == (
+        "right", "left", "grasp", "release"
+    )
+    line = Frame(make_world("line"), "guidance", eps=0.1)
+    assert np.allclose(line.distribution_at(0, 1)[0], [0.05, 0.05, 0.9])  # G1 at its goal
+    assert np.allclose(line.weights_at(2, 0), [[0, 1, 0], [1, 0, 0]])

@@ -64,7 +64,7 @@ def state_fields(learner: CalibrationFreeLearner) -> tuple[dict[str, Any], np.nd
     (float32, shape (n_tasks,))."""
     beliefs = learner.beliefs()
     counts = (
-        learner.history.label_weights[beliefs.best_task].sum(axis=0)
+        learner.history.task_label_weights(beliefs.best_task).sum(axis=0)
         if beliefs.n_signals
         else np.zeros(learner.frame.n_classes)
     )

@@ -26,12 +26,14 @@ import numpy as np
 from calibration_free.frames import FRAMES
 from calibration_free.world import ACTIONS
 
-VERSION: int = 1
+VERSION: int = 2
 PREFIX: str = "cfbci"
 MAX_BYTES: int = 16 * 2**20
 NO_SESSION: str = "_"  # key segment of the service's events about unusable session ids
 SIGNALS: tuple[str, ...] = ("epochs", "features")
-EVENTS: tuple[str, ...] = ("error", "target_reached", "session_started", "session_ended", "info")
+EVENTS: tuple[str, ...] = (
+    "error", "target_reached", "session_started", "session_ended", "session_rejected", "info",
+)
 
 _SESSION = re.compile(r"[A-Za-z0-9_-]{1,64}")
 _INT64 = 2**63
@@ -58,6 +60,9 @@ TYPES: dict[str, tuple[str, Callable[[Any], bool]]] = {
     "int": ("an integer in the int64 range", _is_int),
     "count": ("an integer >= 0 in the int64 range", _is_count),
     "float": ("a finite number", _is_float),
+    "count/null": (
+        "an integer >= 0 in the int64 range, or null", lambda x: x is None or _is_count(x)
+    ),
     "float/null": ("a finite number or null", lambda x: x is None or _is_float(x)),
     "bool": ("true or false", lambda x: isinstance(x, bool)),
     "str": ("a string", lambda x: isinstance(x, str)),
@@ -208,6 +213,11 @@ SPECS: dict[str, KindSpec] = {
         {
             "event": Field("str", "what happened", EVENTS),
             "message": Field("str", "human-readable explanation"),
+            "config_t_ns": Field(
+                "count/null",
+                "`session_started`, `session_rejected`: the `t_ns` of the config they answer "
+                "(the running session's for a rejection after the start); null otherwise",
+            ),
         },
     ),
 }

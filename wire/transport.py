@@ -11,9 +11,9 @@ from __future__ import annotations
 import logging
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
-from queue import SimpleQueue
-from typing import Any
+from typing import Any, Protocol
 
 import zenoh
 
@@ -90,6 +90,12 @@ def wait_for_subscribers(publisher: zenoh.Publisher, timeout: float) -> bool:
         listener.undeclare()
 
 
+class Sink(Protocol):
+    """Where a :class:`Pump` puts what it receives (a ``queue.SimpleQueue``, an intake)."""
+
+    def put(self, item: Received, /) -> Any: ...
+
+
 class Pump:
     """A subscriber whose samples a thread of ours moves into a queue, as :class:`Received`.
 
@@ -100,21 +106,29 @@ class Pump:
         What to subscribe to (wildcards allowed).
     tag : str
         Put in every :class:`Received`, to tell subscriptions apart in a shared queue.
-    queue : SimpleQueue
+    queue : Sink
         Where samples go, in the order the subscriber received them.
+    admit : callable, optional
+        ``admit(n_bytes)``: whether to take a sample of that many payload bytes; a sample
+        refused is dropped before its payload is copied.
 
     The thread ends when the subscriber is undeclared or the session closed
     (:meth:`close`).
     """
 
     def __init__(
-        self, session: zenoh.Session, key_expr: str, tag: str, queue: SimpleQueue[Any]
+        self,
+        session: zenoh.Session,
+        key_expr: str,
+        tag: str,
+        queue: Sink,
+        admit: Callable[[int], bool] | None = None,
     ) -> None:
         self._subscriber = session.declare_subscriber(
             key_expr, zenoh.handlers.FifoChannel(CHANNEL_CAPACITY)
         )
         self._handler = self._subscriber.handler
-        self._tag, self._queue = tag, queue
+        self._tag, self._queue, self._admit = tag, queue, admit
         self._thread = threading.Thread(target=self._run, name=f"pump {key_expr}", daemon=True)
         self._thread.start()
 
@@ -124,6 +138,8 @@ class Pump:
                 sample = self._handler.recv()
             except zenoh.ZError:  # the channel is closed: undeclared or session closed
                 return
+            if self._admit is not None and not self._admit(len(sample.payload)):
+                continue
             self._queue.put(
                 Received(
                     self._tag, str(sample.key_expr), sample.payload.to_bytes(), time.monotonic_ns()
@@ -187,6 +203,10 @@ class Outbox:
         self._seq[key_expr] = seq + 1
         return message
 
+    def repeat(self, message: protocol.Message) -> None:
+        """Publish a message sent before once more, unchanged (same ``seq`` and ``t_ns``)."""
+        self.publisher(protocol.key(message.session, message.kind)).put(protocol.encode(message))
+
     def forget(self, session: str) -> None:
         """Undeclare the publishers of a session's key expressions (not their numbering)."""
         prefix = f"{protocol.PREFIX}/{session}/"
@@ -198,3 +218,60 @@ class Outbox:
         for publisher in self._publishers.values():
             publisher.undeclare()
         self._publishers.clear()
+
+
+class Resender:
+    """A client's unanswered message, re-sent unchanged until its answer arrives.
+
+    The service may drop a message (over a limit) or restart; a client therefore re-sends
+    its config until the session starts, and an epoch (with the step's truth) until the
+    next move arrives (docs/protocol.md, "Re-sending"). The service answers a re-sent
+    message idempotently.
+
+    Parameters
+    ----------
+    outbox : Outbox
+    interval : float
+        Seconds between two sendings of the same messages.
+    """
+
+    def __init__(self, outbox: Outbox, interval: float) -> None:
+        self.outbox, self.interval = outbox, interval
+        self.pending: protocol.Message | None = None
+        self._group: list[protocol.Message] = []
+        self._due_ns = 0
+
+    def send(
+        self,
+        kind: str,
+        session: str,
+        fields: dict[str, Any],
+        payload: Any = None,
+        companion: bool = False,
+    ) -> protocol.Message:
+        """Send a message (see :meth:`Outbox.send`) and await its answer; a ``companion``
+        is re-sent with the pending message and needs no answer of its own."""
+        message = self.outbox.send(kind, session, fields, payload)
+        if companion:
+            self._group.append(message)
+        else:
+            self.pending, self._group = message, [message]
+            self._due_ns = time.monotonic_ns() + int(self.interval * 1e9)
+        return message
+
+    def answered(self) -> None:
+        """The pending message is answered: stop re-sending it and its companions."""
+        self.pending, self._group = None, []
+
+    def wait(self, longest: float) -> float:
+        """Seconds to wait for a message before :meth:`poll` is due (at most ``longest``)."""
+        if self.pending is None:
+            return longest
+        return min(longest, max(0.0, (self._due_ns - time.monotonic_ns()) / 1e9))
+
+    def poll(self) -> None:
+        """Re-send the pending message and its companions if they are due."""
+        if self.pending is not None and time.monotonic_ns() >= self._due_ns:
+            for message in self._group:
+                self.outbox.repeat(message)
+            self._due_ns = time.monotonic_ns() + int(self.interval * 1e9)

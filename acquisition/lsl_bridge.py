@@ -1,0 +1,454 @@
+"""The LSL bridge: a Zenoh source whose epochs are cut from an amplifier's LSL stream.
+
+``cfbci lsl-bridge`` stands where the replay source stands in ``cfbci session``: it sends
+the session's ``config`` to the pipeline service, forwards every ``move`` of the service
+to the stimulus program (the LSL move stream, :func:`acquisition.lsl_streams.move_marker`)
+and answers it with the ``epoch`` cut from the continuous EEG around the stimulus
+program's onset marker of that step (docs/protocol.md). It publishes no ``truth``: in the
+lab nobody knows it; ``cfbci lsl-simulator`` publishes its own.
+
+Timing. Samples are placed by their LSL timestamps, markers by theirs; both are mapped to
+this machine's clock with the inlets' ``time_correction()`` (the marker time is then
+expressed in the EEG stream's clock). The onset is the EEG sample nearest the marker and
+the epoch the samples ``round(tmin * sfreq)`` to ``round(tmax * sfreq)`` around it (MNE's
+rule), corrected by ``baseline`` if one is given (none by default: the service's feature
+extraction band-passes every epoch, and the raw window stays identical to the samples
+the amplifier sent).
+
+Faults. A discontinuity of the EEG timestamps (samples dropped, a restarted stream) is
+reported and splits the buffer (:class:`acquisition.lsl_epochs.SampleBuffer`); an epoch
+is never cut across one. When the window of the awaited step is broken (by a gap, or by a
+marker so late that its samples have left the buffer) the bridge reports it and sends the
+move again with ``repeat`` incremented, and the stimulus program presents it again. An
+onset marker that arrives more than ``late_marker`` seconds after its own timestamp is
+reported (and used if its window is whole); one that names another step, precedes the
+move or comes when no move awaits an onset is reported and ignored. A stream that is lost
+is resolved again by name (a restarted source is found with its new uid).
+"""
+
+from __future__ import annotations
+
+import logging
+import queue
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import pylsl
+import zenoh
+from pylsl.util import LostError
+
+from acquisition.lsl_epochs import Epoch, Gap, Refusal, SampleBuffer, apply_baseline
+from acquisition.lsl_streams import (
+    StreamMeta,
+    as_float32,
+    eeg_stream_meta,
+    marker_outlet,
+    move_marker,
+    parse_onset_marker,
+    resolve_inlet,
+)
+from wire import protocol
+from wire.protocol import SequenceTracker
+from wire.transport import Outbox, Pump, Received, decode_from_service, wait_for_subscribers
+from wire.zenoh_config import peer_config
+
+log = logging.getLogger("cfbci.lsl_bridge")
+
+#: Name of the bridge's move stream (the stimulus program's input).
+DEFAULT_MOVES = "cfbci-moves"
+#: Seconds of EEG the bridge keeps.
+DEFAULT_BUFFER_SECONDS = 30.0
+#: Seconds one poll of the EEG inlet may wait for a sample.
+_POLL_SECONDS = 0.005
+#: Seconds without EEG after which the silence is reported.
+_SILENCE_SECONDS = 1.0
+
+
+@dataclass(frozen=True)
+class BridgeSettings:
+    """One session bridged from LSL.
+
+    Attributes
+    ----------
+    session : str
+        Session id.
+    eeg, markers : str
+        Names of the EEG stream and of the stimulus program's marker stream.
+    moves : str
+        Name of the move stream the bridge creates.
+    seed, steps, grid, frame, learner
+        The session's config (see :class:`acquisition.replay_source.SourceSettings`).
+    tmin, tmax : float
+        Epoch limits around the onset, s (rounded to samples as MNE does).
+    baseline : (float or None, float or None) or None
+        MNE-style baseline interval, s; None: no correction.
+    onset_marker : str
+        The marker word of an action onset (``"<word>"`` or ``"<word> <step>"``).
+    gap_tolerance : float
+        Deviation of a timestamp interval from the sample period, in periods, beyond
+        which it is a discontinuity.
+    buffer_seconds : float
+        EEG kept for markers that come late, s.
+    late_marker : float
+        An onset marker arriving more than this many seconds after its timestamp is
+        reported as late.
+    timeout : float
+        Seconds to find a stream, or without a message from the service or an onset from
+        the stimulus program, before giving up.
+    """
+
+    session: str
+    eeg: str
+    markers: str
+    moves: str = DEFAULT_MOVES
+    seed: int = 0
+    steps: int = 500
+    grid: int = 5
+    frame: str = "feedback"
+    learner: dict[str, Any] = field(default_factory=dict)
+    tmin: float = -0.2
+    tmax: float = 1.0
+    baseline: tuple[float | None, float | None] | None = None
+    onset_marker: str = "onset"
+    gap_tolerance: float = 0.5
+    buffer_seconds: float = DEFAULT_BUFFER_SECONDS
+    late_marker: float = 0.5
+    timeout: float = 30.0
+
+    def window(self, sfreq: float) -> tuple[int, int]:
+        """First and last sample of an epoch relative to its onset sample."""
+        first, last = round(self.tmin * sfreq), round(self.tmax * sfreq)
+        if last <= first:
+            raise ValueError(f"--tmax ({self.tmax} s) must be after --tmin ({self.tmin} s) by "
+                             f"at least a sample at {sfreq:g} Hz")
+        if (last - first + 1) / sfreq >= self.buffer_seconds / 2:
+            raise ValueError(f"the buffer ({self.buffer_seconds:g} s) must hold at least two "
+                             "epoch windows")
+        return first, last
+
+
+@dataclass
+class BridgeSummary:
+    """What the bridge did.
+
+    Attributes
+    ----------
+    session : str
+    epochs : list of dict
+        Every published epoch: ``step``, ``onset`` (its onset sample's timestamp, s),
+        ``repeat`` (how often its move had been sent again).
+    gaps : list of Gap
+        Discontinuities of the EEG, in order.
+    refused : list of dict
+        Windows that could not be cut: ``step``, ``reason``.
+    late_markers : list of dict
+        ``step`` and ``delay`` (s from the marker's timestamp to its arrival).
+    ignored_markers : list of str
+        Why each ignored onset marker was ignored.
+    reconnects : list of str
+        The streams resolved again after being lost, in order.
+    latency_ns : list of int
+        Per published epoch, from the arrival of its window's last sample to its
+        publication, ns of the monotonic clock.
+    age_s : list of float
+        Per published epoch, from its last sample's timestamp (mapped to this machine's
+        clock) to its publication, s: the latency above plus the amplifier's chunking and
+        LSL's transport.
+    """
+
+    session: str
+    epochs: list[dict[str, Any]] = field(default_factory=list)
+    gaps: list[Gap] = field(default_factory=list)
+    refused: list[dict[str, Any]] = field(default_factory=list)
+    late_markers: list[dict[str, Any]] = field(default_factory=list)
+    ignored_markers: list[str] = field(default_factory=list)
+    reconnects: list[str] = field(default_factory=list)
+    latency_ns: list[int] = field(default_factory=list)
+    age_s: list[float] = field(default_factory=list)
+
+    def to_json(self) -> dict[str, Any]:
+        """A JSON-ready dictionary, with the latencies' median, p99 and max in ms."""
+        return {
+            "session": self.session, "epochs": self.epochs,
+            "gaps": [vars(gap) for gap in self.gaps], "refused": self.refused,
+            "late_markers": self.late_markers, "ignored_markers": self.ignored_markers,
+            "reconnects": self.reconnects,
+            "latency_ms": _figures(np.asarray(self.latency_ns, dtype=float) / 1e6),
+            "age_ms": _figures(np.asarray(self.age_s) * 1e3),
+            "latency_ns": self.latency_ns, "age_s": self.age_s,
+        }
+
+
+def _figures(values_ms: np.ndarray) -> dict[str, float]:
+    """Median, p99 and max of some milliseconds ({} for none)."""
+    if not len(values_ms):
+        return {}
+    return {"median": float(np.median(values_ms)), "p99": float(np.percentile(values_ms, 99)),
+            "max": float(values_ms.max())}
+
+
+def run_bridge(
+    settings: BridgeSettings, listen: Sequence[str] = (), connect: Sequence[str] = (),
+    keep_running: Callable[[], bool] = lambda: True,
+) -> BridgeSummary:
+    """Open a Zenoh peer and bridge one session (see :func:`bridge_session`)."""
+    with zenoh.open(peer_config(listen, connect)) as session:
+        return bridge_session(session, settings, keep_running)
+
+
+class _Input:
+    """An LSL inlet resolved by name, resolved again when its stream is lost."""
+
+    def __init__(self, name: str, settings: BridgeSettings, summary: BridgeSummary,
+                 keep_running: Callable[[], bool]) -> None:
+        self.name, self.settings, self.summary = name, settings, summary
+        self.keep_running = keep_running
+        self.inlet = resolve_inlet(name, settings.timeout, keep_running=keep_running)
+        self.offset = 0.0
+
+    def pull(self, timeout: float, as_numpy: bool) -> tuple[Any, Any]:
+        """(samples, timestamps) available now or within ``timeout``; ([], []) after a
+        reconnection."""
+        try:
+            return self.inlet.pull_chunk(timeout=timeout, max_samples=1024, min_samples=1,
+                                         as_numpy=as_numpy)
+        except LostError:
+            log.warning("LSL stream %r lost; resolving it again", self.name)
+            self.inlet = resolve_inlet(self.name, self.settings.timeout,
+                                       keep_running=self.keep_running)
+            self.summary.reconnects.append(self.name)
+            log.warning("LSL stream %r reconnected", self.name)
+            return [], []
+
+    def clock_offset(self) -> float:
+        """Seconds to add to the stream's timestamps to get this machine's LSL clock."""
+        try:
+            self.offset = self.inlet.time_correction(timeout=2.0)
+        except (pylsl.util.TimeoutError, LostError) as error:
+            log.warning("no time correction for %r (%s); using the last one", self.name, error)
+        return self.offset
+
+
+@dataclass
+class _Awaited:
+    """The step whose epoch the bridge waits for."""
+
+    move: dict[str, Any]
+    sent_at: float  # this machine's LSL clock when its move was pushed, s
+    repeat: int = 0
+    onset: float | None = None  # onset in the EEG stream's clock, s
+
+    @property
+    def step(self) -> int:
+        return int(self.move["step"])
+
+
+def bridge_session(
+    session: zenoh.Session, settings: BridgeSettings,
+    keep_running: Callable[[], bool] = lambda: True,
+) -> BridgeSummary:
+    """Bridge one session between LSL and the service reachable through ``session``.
+
+    Raises
+    ------
+    TimeoutError
+        If a stream is not found, no stimulus program subscribes to the move stream, no
+        service subscribes to the config, or the service or the stimulus program falls
+        silent for ``settings.timeout`` s.
+    RuntimeError
+        If the service rejects the config.
+    ValueError
+        If the EEG stream's metadata do not describe EEG (see
+        :func:`acquisition.lsl_streams.eeg_stream_meta`).
+    """
+    summary = BridgeSummary(settings.session)
+    eeg = _Input(settings.eeg, settings, summary, keep_running)
+    meta = eeg_stream_meta(eeg.inlet.info())
+    first, last = settings.window(meta.sfreq)
+    markers = _Input(settings.markers, settings, summary, keep_running)
+    for stream in (eeg, markers):  # the first estimate takes a while: get it now
+        stream.clock_offset()
+    moves = marker_outlet(settings.moves, f"cfbci-bridge-{settings.session}-moves")
+    if not moves.wait_for_consumers(settings.timeout):
+        raise TimeoutError(f"no stimulus program subscribed to the move stream "
+                           f"{settings.moves!r} within {settings.timeout:g} s")
+    sid = settings.session
+    inbox: queue.SimpleQueue[Received] = queue.SimpleQueue()
+    pumps = [Pump(session, protocol.key(sid, kind), kind, inbox)
+             for kind in ("move", "state", "event")]
+    outbox = Outbox(session)
+    try:
+        if not wait_for_subscribers(outbox.publisher(protocol.key(sid, "config")),
+                                    settings.timeout):
+            raise TimeoutError(f"no service subscribed to {protocol.key(sid, 'config')} "
+                               f"within {settings.timeout:g} s")
+        outbox.send("config", sid, {
+            "seed": settings.seed, "grid": settings.grid, "frame": settings.frame,
+            "steps": settings.steps, "learner": settings.learner,
+            "dataset": {"description": f"LSL streams {settings.eeg!r} (EEG) and "
+                                       f"{settings.markers!r} (markers)"},
+            "signal": "epochs", "sfreq": meta.sfreq, "tmin": first / meta.sfreq,
+            "ch_names": list(meta.ch_names),
+        })
+        bridge = _Bridge(settings, meta, (first, last), eeg, markers, moves, outbox, summary)
+        while not bridge.ended and keep_running():
+            bridge.poll(inbox)
+        return summary
+    finally:
+        for pump in pumps:
+            pump.close()
+        outbox.close()
+
+
+class _Bridge:
+    """The bridge's loop: EEG in, markers in, moves out, epochs out."""
+
+    def __init__(
+        self, settings: BridgeSettings, meta: StreamMeta, window: tuple[int, int],
+        eeg: _Input, markers: _Input, moves: pylsl.StreamOutlet, outbox: Outbox,
+        summary: BridgeSummary,
+    ) -> None:
+        self.settings, self.meta, self.window = settings, meta, window
+        self.eeg, self.markers, self.moves, self.outbox = eeg, markers, moves, outbox
+        self.summary = summary
+        self.buffer = SampleBuffer(len(meta.ch_names), meta.sfreq, settings.buffer_seconds,
+                                   settings.gap_tolerance)
+        self.times = np.arange(window[0], window[1] + 1) / meta.sfreq
+        self.trackers = {kind: SequenceTracker() for kind in ("move", "state", "event")}
+        self.started = self.ended = False
+        self.awaited: _Awaited | None = None
+        # Last EEG sample, and last progress (a service message, an onset, an epoch), ns.
+        self.eeg_ns = self.progress_ns = time.monotonic_ns()
+        self.silent = False
+
+    def poll(self, inbox: queue.SimpleQueue[Received]) -> None:
+        """One round: take the EEG, the markers and the service's messages; cut what is due."""
+        self._take_eeg()
+        self._take_markers()
+        while True:
+            try:
+                self._on_service(inbox.get_nowait())
+            except queue.Empty:
+                break
+        if self.awaited is not None and self.awaited.onset is not None:
+            self._try_cut(self.awaited)
+        self._check_silence()
+
+    def _take_eeg(self) -> None:
+        samples, times = self.eeg.pull(_POLL_SECONDS, as_numpy=True)
+        if not len(times):
+            return
+        now = self.eeg_ns = time.monotonic_ns()
+        if self.silent:
+            log.warning("EEG stream %r: samples again", self.settings.eeg)
+            self.silent = False
+        for gap in self.buffer.append(as_float32(samples, self.meta.scale), times, now):
+            log.warning("EEG stream %r: %s", self.settings.eeg, gap.describe())
+            self.summary.gaps.append(gap)
+
+    def _take_markers(self) -> None:
+        values, times = self.markers.pull(0.0, as_numpy=False)
+        arrived = pylsl.local_clock()
+        for value, stamp in zip(values, times, strict=True):
+            is_onset, step = parse_onset_marker(value[0], self.settings.onset_marker)
+            if is_onset:
+                self._on_onset(float(stamp), step, arrived)
+            else:
+                log.debug("marker %r is no onset; ignored", value[0])
+
+    def _ignore(self, why: str) -> None:
+        log.warning("onset marker ignored: %s", why)
+        self.summary.ignored_markers.append(why)
+
+    def _on_onset(self, stamp: float, named_step: int | None, arrived: float) -> None:
+        """Take an onset marker (its timestamp, the step it names, when it was pulled in
+        this machine's LSL clock, s)."""
+        local = stamp + self.markers.clock_offset()
+        awaited = self.awaited
+        if awaited is None or awaited.onset is not None:
+            self._ignore(f"onset at t={local:.4f} s while no move awaits one")
+            return
+        if named_step is not None and named_step != awaited.step:
+            self._ignore(f"onset of step {named_step} while step {awaited.step} is awaited")
+            return
+        if local < awaited.sent_at:
+            self._ignore(f"onset at t={local:.4f} s precedes the move of step {awaited.step} "
+                         f"(sent at t={awaited.sent_at:.4f} s)")
+            return
+        delay = arrived - local
+        if delay > self.settings.late_marker:
+            log.warning("late marker: the onset of step %d arrived %.3f s after its timestamp",
+                        awaited.step, delay)
+            self.summary.late_markers.append({"step": awaited.step, "delay": delay})
+        awaited.onset = local - self.eeg.clock_offset()
+        self.progress_ns = time.monotonic_ns()
+
+    def _try_cut(self, awaited: _Awaited) -> None:
+        assert awaited.onset is not None
+        result = self.buffer.cut(awaited.onset, *self.window)
+        if result is None:
+            return
+        if isinstance(result, Refusal):
+            log.warning("step %d: no epoch: %s; asking for the action again", awaited.step,
+                        result.reason)
+            self.summary.refused.append({"step": awaited.step, "reason": result.reason})
+            awaited.repeat += 1
+            self._send_move(awaited)
+            return
+        self._publish(awaited, result)
+
+    def _publish(self, awaited: _Awaited, epoch: Epoch) -> None:
+        data = apply_baseline(epoch.data, self.times, self.settings.baseline)
+        fields = {"step": awaited.step, "signal": "epochs", "ch_names": list(self.meta.ch_names)}
+        self.outbox.send("epoch", self.settings.session, fields, data)
+        self.summary.latency_ns.append(time.monotonic_ns() - epoch.last_arrival_ns)
+        self.summary.age_s.append(pylsl.local_clock() - epoch.last_time - self.eeg.offset)
+        self.summary.epochs.append(
+            {"step": awaited.step, "onset": epoch.onset_time, "repeat": awaited.repeat}
+        )
+        self.awaited = None
+
+    def _send_move(self, awaited: _Awaited) -> None:
+        awaited.onset = None
+        awaited.sent_at = pylsl.local_clock()
+        self.moves.push_sample([move_marker(awaited.move, awaited.repeat)])
+
+    def _on_service(self, received: Received) -> None:
+        self.progress_ns = time.monotonic_ns()
+        message = decode_from_service(received, self.trackers, log)
+        if message is None or message.kind == "state":
+            return
+        if message.kind == "event":
+            event, text = message.fields["event"], message.fields["message"]
+            if event == "session_started":
+                self.started = True
+            elif event == "session_ended":
+                self.ended = True
+            elif event == "session_rejected" or (event == "error" and not self.started):
+                raise RuntimeError(f"the service rejected the session: {text}")
+            (log.warning if event == "error" else log.info)("%s: %s", event, text)
+            return
+        if self.awaited is not None:
+            log.warning("move of step %d while step %d awaits its epoch; following the service",
+                        message.fields["step"], self.awaited.step)
+        self.awaited = _Awaited(message.fields, 0.0)
+        self._send_move(self.awaited)
+
+    def _check_silence(self) -> None:
+        now = time.monotonic_ns()
+        if not self.silent and now - self.eeg_ns > _SILENCE_SECONDS * 1e9:
+            log.warning("EEG stream %r: no sample for %.1f s", self.settings.eeg,
+                        (now - self.eeg_ns) / 1e9)
+            self.silent = True
+        if now - self.progress_ns > self.settings.timeout * 1e9:
+            awaited = self.awaited
+            what = (
+                "a move of the service" if awaited is None
+                else f"the onset marker of step {awaited.step}" if awaited.onset is None
+                else f"the samples of step {awaited.step}'s window"
+            )
+            raise TimeoutError(f"session {self.settings.session!r}: waited "
+                               f"{self.settings.timeout:g} s for {what}")

@@ -1,0 +1,416 @@
+"""The LSL simulator: an amplifier, a stimulus program and a user, for tests and demos.
+
+``cfbci lsl-simulator`` plays the lab's side of ``cfbci lsl-bridge``:
+
+* an **EEG outlet** streaming continuous synthetic EEG in real time (float32 µV, one
+  timestamp per sample: ``t0 + n / sfreq`` on this machine's LSL clock, as an amplifier
+  driver stamps samples from its sample clock), at the rate of the user's epochs (256 Hz
+  for the synthetic generator);
+* a **stimulus loop**: it takes each move from the bridge's move stream, waits the onset
+  delay, sends the onset marker ``"onset <step>"`` (stamped with the onset sample's time)
+  on its **marker outlet**, and writes the simulated user's epoch for that move into the
+  continuous signal at that time: the epoch's samples *replace* the background from
+  ``onset + tmin`` to ``onset + tmax``, so the bridge's epoch can be compared sample for
+  sample with what was written (:func:`check_recording`);
+* the **truth** of every step (the user's target and the epoch's label) on Zenoh, as the
+  replay source publishes it, so that the service's recording has ``/truth``.
+
+The user is :class:`acquisition.user.SimulatedUser` with the random streams of
+:func:`calibration_free.session.session_streams`, and synthetic epochs come from the data
+stream as in :mod:`acquisition.replay_source`: with the bridge's ``--seed`` equal to the
+simulator's, a session over LSL makes the decisions of ``cfbci session`` with that seed.
+A move sent again (``repeat`` > 0, the bridge could not cut its epoch) is answered with
+the same epoch, and its truth is not sent again.
+
+Between epochs the signal is a simple continuous background (:class:`Background`).
+For tests, :class:`Drop` leaves samples of an epoch out of the stream (a gap in the
+timestamps) and ``restart_after`` closes the EEG outlet for ``outage`` seconds and opens
+it again (the stream vanishes and comes back with a new uid).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pylsl
+import scipy.signal
+import zenoh
+from pylsl.util import LostError
+
+from acquisition.labelled import LabelledEpochs
+from acquisition.loaders import load_epochs
+from acquisition.lsl_bridge import DEFAULT_MOVES
+from acquisition.lsl_streams import eeg_outlet, marker_outlet, parse_move_marker, resolve_inlet
+from acquisition.sources import DataSpec, synthetic_epochs
+from acquisition.user import SimulatedUser
+from calibration_free.session import session_streams
+from calibration_free.world import ACTIONS, GridWorld
+from replay.recording import decode_array, read_recording
+from wire import protocol
+from wire.transport import Outbox, wait_for_subscribers
+from wire.zenoh_config import peer_config
+
+log = logging.getLogger("cfbci.lsl_simulator")
+
+DEFAULT_EEG = "cfbci-sim-eeg"
+DEFAULT_MARKERS = "cfbci-sim-markers"
+#: Samples pushed per chunk (8 at 256 Hz: a chunk every 31 ms).
+CHUNK = 8
+
+
+@dataclass(frozen=True)
+class Drop:
+    """Samples of an epoch the simulator leaves out of the stream (a test of gaps).
+
+    Attributes
+    ----------
+    step : int
+        The step whose first epoch loses samples.
+    offset : int
+        First lost sample, in samples after the onset.
+    count : int
+        Samples lost.
+    """
+
+    step: int
+    offset: int
+    count: int
+
+
+@dataclass(frozen=True)
+class SimulatorSettings:
+    """One simulated session on LSL.
+
+    Attributes
+    ----------
+    session : str
+        Session id of the truth messages (the bridge's ``--session``).
+    data : DataSpec
+        Synthetic epochs, or a dataset of raw epochs (an epochs ``.npz``, a recording of
+        raw epochs).
+    seed, grid, frame, user_error_rate
+        As for the replay source; ``seed`` and ``grid`` must be the bridge's.
+    eeg, markers, moves : str
+        Names of the EEG and marker outlets, and of the bridge's move stream.
+    onset_delay : float
+        Seconds from a move's arrival to its onset; at least the epoch's pre-onset span.
+    drops : tuple of Drop
+    late_markers : tuple of (int, float)
+        ``(step, seconds)``: the onset marker of that step's first epoch is sent this many
+        seconds after its onset (still stamped with the onset's time).
+    restart_after : int or None
+        After the epoch of this step has been streamed, close the EEG outlet for
+        ``outage`` seconds, then open a new one.
+    outage : float
+        Seconds the EEG outlet stays closed.
+    timeout : float
+        Seconds to wait for the bridge's move stream.
+    """
+
+    session: str
+    data: DataSpec = field(default_factory=DataSpec)
+    seed: int = 0
+    grid: int = 5
+    frame: str = "feedback"
+    user_error_rate: float = 0.0
+    eeg: str = DEFAULT_EEG
+    markers: str = DEFAULT_MARKERS
+    moves: str = DEFAULT_MOVES
+    onset_delay: float = 1.0
+    drops: tuple[Drop, ...] = ()
+    late_markers: tuple[tuple[int, float], ...] = ()
+    restart_after: int | None = None
+    outage: float = 1.0
+    timeout: float = 30.0
+
+
+@dataclass
+class Written:
+    """One epoch written into the stream.
+
+    Attributes
+    ----------
+    step, repeat : int
+        The move it answers and how often that move had been sent again.
+    onset : int
+        Index of the onset sample (samples counted from the stream's start).
+    start : int
+        Index of the epoch's first sample.
+    epoch : ndarray, shape (n_channels, n_times), float32
+        The samples written, µV.
+    marked : int
+        Index of the sample after which its onset marker is sent (the onset, or later).
+    dropped : list of (int, int)
+        ``(first index, count)`` of the samples of this epoch left out of the stream.
+    """
+
+    step: int
+    repeat: int
+    onset: int
+    start: int
+    epoch: np.ndarray
+    marked: int
+    dropped: list[tuple[int, int]] = field(default_factory=list)
+
+    @property
+    def stop(self) -> int:
+        return self.start + self.epoch.shape[1]
+
+
+class Background:
+    """Continuous background EEG between the epochs, about 10 µV RMS per channel.
+
+    Low-pass noise (a first-order recursive filter with a 2 Hz corner on white noise),
+    60 % of its variance shared by all channels, plus a 10 Hz rhythm of 5 µV amplitude;
+    filter states and phase carry over from one call to the next.
+    """
+
+    def __init__(self, n_channels: int, sfreq: float, rng: np.random.Generator) -> None:
+        self.n_channels, self.sfreq, self.rng = n_channels, sfreq, rng
+        self.pole = np.exp(-2 * np.pi * 2.0 / sfreq)
+        self.state = np.zeros((1, n_channels + 1))
+        self.phase = rng.uniform(0, 2 * np.pi)
+
+    def next(self, n: int) -> np.ndarray:
+        """The next ``n`` samples, shape (n, n_channels), float32 µV."""
+        white = self.rng.standard_normal((n, self.n_channels + 1)) * 10 * np.sqrt(
+            1 - self.pole**2
+        )
+        noise, self.state = scipy.signal.lfilter([1.0], [1.0, -self.pole], white, axis=0,
+                                                 zi=self.state)
+        mixed = np.sqrt(0.6) * noise[:, :1] + np.sqrt(0.4) * noise[:, 1:]
+        phases = self.phase + 2 * np.pi * 10.0 * np.arange(n) / self.sfreq
+        self.phase = (phases[-1] + 2 * np.pi * 10.0 / self.sfreq) % (2 * np.pi)
+        return (mixed + 5.0 * np.sin(phases)[:, None]).astype(np.float32)
+
+
+def raw_epochs(data: DataSpec, frame: str, rng: np.random.Generator) -> LabelledEpochs:
+    """The user's epochs as float32 µV: synthetic (from ``rng``, the session's data
+    stream) or a dataset of raw epochs.
+
+    Raises
+    ------
+    ValueError
+        If the dataset holds feature vectors (nothing to write into an EEG stream).
+    """
+    if data.path is None:
+        data.resolve(frame)  # rejects synthetic guidance data
+        return synthetic_epochs(data.synthetic_accuracy, rng)
+    epochs = load_epochs(data.path, frame=frame)
+    return LabelledEpochs(
+        np.asarray(epochs.epochs, dtype=np.float32), epochs.sfreq, epochs.tmin,
+        epochs.ch_names, epochs.labels, epochs.n_classes, epochs.source,
+    )
+
+
+@dataclass(frozen=True)
+class Simulation:
+    """What the simulator streamed.
+
+    Attributes
+    ----------
+    written : list of Written
+        The epochs written into the stream, in order.
+    t0 : float
+        Timestamp of sample 0, s (sample n is stamped ``t0 + n / sfreq``).
+    targets : list of (int, bool)
+        Every declared target: its step and whether it was the user's target.
+    """
+
+    written: list[Written]
+    t0: float
+    targets: list[tuple[int, bool]]
+
+
+def run_simulator(
+    settings: SimulatorSettings, listen: Sequence[str] = (), connect: Sequence[str] = (),
+    keep_running: Callable[[], bool] = lambda: True,
+) -> Simulation:
+    """Open a Zenoh peer (for the truth) and simulate until the bridge's move stream ends
+    or ``keep_running()`` turns False."""
+    with zenoh.open(peer_config(listen, connect)) as session:
+        return _Simulator(session, settings).run(keep_running)
+
+
+class _Simulator:
+    def __init__(self, session: zenoh.Session, settings: SimulatorSettings) -> None:
+        self.settings = settings
+        data_rng, user_rng, _ = session_streams(settings.seed)
+        self.signals = raw_epochs(settings.data, settings.frame, data_rng)
+        self.sfreq = self.signals.sfreq
+        self.first = round(self.signals.tmin * self.sfreq)
+        self.delay = round(settings.onset_delay * self.sfreq)
+        if self.delay + self.first < CHUNK:
+            raise ValueError(
+                f"--onset-delay {settings.onset_delay:g} s is too short: the epoch starts "
+                f"{-self.signals.tmin:g} s before its onset, which must still be ahead"
+            )
+        self.world = GridWorld(settings.grid)
+        self.user = SimulatedUser(self.world, settings.frame, self.signals.labels, user_rng,
+                                  settings.user_error_rate)
+        background_seed = np.random.SeedSequence(settings.seed).spawn(4)[3]
+        self.background = Background(len(self.signals.ch_names), self.sfreq,
+                                     np.random.default_rng(background_seed))
+        self.outbox = Outbox(session)
+        self.truth_key = protocol.key(settings.session, "truth")
+        self.answers: dict[int, int] = {}  # step -> index of its epoch in the dataset
+        self.written: list[Written] = []
+        self.targets: list[tuple[int, bool]] = []  # declared targets: (step, correct)
+        self.pending: list[Written] = []  # written, not all streamed yet
+        self.marks: list[Written] = []  # onset marker not sent yet
+        self.next = 0  # index of the next sample to stream
+        self.outage_until: int | None = None  # sample at which the EEG outlet reopens
+        self.restart_after = settings.restart_after
+
+    def _open_eeg(self) -> pylsl.StreamOutlet:
+        return eeg_outlet(self.settings.eeg, self.signals.ch_names, self.sfreq,
+                          f"cfbci-sim-{self.settings.session}-eeg")
+
+    def run(self, keep_running: Callable[[], bool]) -> Simulation:
+        settings = self.settings
+        self.eeg: pylsl.StreamOutlet | None = self._open_eeg()
+        self.markers = marker_outlet(settings.markers, f"cfbci-sim-{settings.session}-markers")
+        moves = resolve_inlet(settings.moves, settings.timeout, keep_running=keep_running)
+        if not wait_for_subscribers(self.outbox.publisher(self.truth_key), settings.timeout):
+            log.warning("nobody subscribed to %s: the truth will not be recorded",
+                        self.truth_key)
+        self.t0 = pylsl.local_clock()
+        try:
+            while keep_running():
+                try:
+                    values, _ = moves.pull_chunk(timeout=0.0, as_numpy=False)
+                except LostError:
+                    log.info("the bridge's move stream ended")
+                    break
+                for value in values:
+                    self._on_move(parse_move_marker(value[0]))
+                self._stream()
+                wake = self.t0 + (self.next + CHUNK - 1) / self.sfreq  # the next chunk is due
+                time.sleep(max(0.0, wake - pylsl.local_clock()))
+        finally:
+            self.outbox.close()
+        return Simulation(self.written, self.t0, self.targets)
+
+    def _on_move(self, move: dict[str, Any]) -> None:
+        step = move["step"]
+        if step not in self.answers:
+            index, label = self.user.answer(move["from_state"], ACTIONS.index(move["action"]))
+            self.answers[step] = index
+            target = self.user.target
+            self.outbox.send("truth", self.settings.session,
+                             {"step": step, "target": target, "label": label})
+            if move["target_reached"]:
+                self.targets.append((step, move["from_state"] == target))
+                self.user.new_target()
+        onset = self.next + self.delay
+        epoch = self.signals.epochs[self.answers[step]]
+        first_time = move["repeat"] == 0
+        late = sum(s for k, s in self.settings.late_markers if k == step and first_time)
+        written = Written(step, move["repeat"], onset, onset + self.first, epoch,
+                          onset + round(late * self.sfreq))
+        for drop in self.settings.drops:
+            if drop.step == step and first_time:
+                written.dropped.append((onset + drop.offset, drop.count))
+        self.written.append(written)
+        self.pending.append(written)
+        self.marks.append(written)
+
+    def _stream(self) -> None:
+        """Stream the samples that are due; send the onset markers among them."""
+        due = int((pylsl.local_clock() - self.t0) * self.sfreq) + 1
+        if due <= self.next:
+            return
+        indices = np.arange(self.next, due)
+        block = self.background.next(len(indices))
+        keep = np.ones(len(indices), dtype=bool)
+        for written in self.pending:
+            inside = (indices >= written.start) & (indices < written.stop)
+            block[inside] = written.epoch[:, indices[inside] - written.start].T
+            for first, count in written.dropped:
+                keep &= (indices < first) | (indices >= first + count)
+        self._push(block[keep], indices[keep])
+        for written in [w for w in self.marks if w.marked < due]:
+            self.markers.push_sample([f"onset {written.step}"],
+                                     self.t0 + written.onset / self.sfreq)
+            self.marks.remove(written)
+        finished = [w for w in self.pending if w.stop <= due]
+        self.pending = [w for w in self.pending if w.stop > due]
+        self.next = due
+        if any(w.step == self.restart_after for w in finished):
+            log.info("closing the EEG outlet for %.1f s", self.settings.outage)
+            self.eeg = None  # pylsl destroys the outlet with its last reference
+            self.outage_until = due + round(self.settings.outage * self.sfreq)
+            self.restart_after = None  # once
+
+    def _push(self, block: np.ndarray, indices: np.ndarray) -> None:
+        if self.outage_until is not None and self.next >= self.outage_until:
+            self.eeg, self.outage_until = self._open_eeg(), None
+            log.info("EEG outlet open again")
+        if self.eeg is not None and len(indices):
+            self.eeg.push_chunk(block, list(self.t0 + indices / self.sfreq))
+
+
+def save_written(path: Path, simulation: Simulation) -> None:
+    """The epochs written, to an ``.npz``: ``steps``, ``repeats``, ``onsets`` and ``starts``
+    (sample indices), ``epochs`` float32 (n, n_channels, n_times) µV, ``dropped`` int
+    (k, 3) rows ``(write index, first sample, count)``, ``t0`` the timestamp of sample 0 (s,
+    so sample n is stamped ``t0 + n / sfreq``)."""
+    written = simulation.written
+    dropped = [(i, first, count) for i, w in enumerate(written) for first, count in w.dropped]
+    np.savez(
+        path,
+        steps=np.array([w.step for w in written], dtype=np.int64),
+        repeats=np.array([w.repeat for w in written], dtype=np.int64),
+        onsets=np.array([w.onset for w in written], dtype=np.int64),
+        starts=np.array([w.start for w in written], dtype=np.int64),
+        epochs=np.stack([w.epoch for w in written]) if written else np.zeros((0, 0, 0)),
+        dropped=np.array(dropped, dtype=np.int64).reshape(-1, 3),
+        t0=np.float64(simulation.t0),
+    )
+
+
+@dataclass(frozen=True)
+class Comparison:
+    """A recording's epochs against the epochs the simulator wrote.
+
+    Attributes
+    ----------
+    recorded : int
+        Epochs in the recording.
+    equal : int
+        Of those, the ones equal sample for sample (float32) to the last epoch written
+        for their step.
+    mismatches : list of str
+        What differs, per step.
+    """
+
+    recorded: int
+    equal: int
+    mismatches: list[str]
+
+
+def check_recording(written_path: Path, recording_path: Path) -> Comparison:
+    """Compare every ``/epoch`` of a recording with what the simulator wrote for its step."""
+    with np.load(written_path, allow_pickle=False) as arrays:
+        last = {int(step): arrays["epochs"][i] for i, step in enumerate(arrays["steps"])}
+    recording = read_recording(recording_path)
+    mismatches, equal = [], 0
+    epochs = recording.accepted_epochs()
+    for message in epochs:
+        step, data = message["step"], decode_array(message)
+        if step not in last:
+            mismatches.append(f"step {step}: recorded, never written")
+        elif data.shape != last[step].shape:
+            mismatches.append(f"step {step}: shape {data.shape}, written {last[step].shape}")
+        elif not np.array_equal(data, last[step]):
+            differ = int((data != last[step]).sum())
+            mismatches.append(f"step {step}: {differ} of {data.size} samples differ")
+        else:
+            equal += 1
+    return Comparison(len(epochs), equal, mismatches)

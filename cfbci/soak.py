@@ -1,0 +1,454 @@
+"""``cfbci bench soak``: a service left running, over one long session and many short ones.
+
+Each part gets a fresh service, spawned in its own process as ``cfbci serve`` runs it
+(recording on, to a temporary directory unless ``--record-dir``), with this process as the
+source over Zenoh on a loopback TCP endpoint (multicast off): the service's resident memory
+is then its own, not mixed with the source's, and every part of the service (transport,
+learner, recorder) is exercised. Synthetic raw epochs, 5 x 5 grid (T = 25), feedback frame,
+default learner, as fast as the service answers (no reaction time).
+
+* **Long session** (``--steps``, default 10,000): after every step's move and state have
+  arrived, the service's resident set size (``VmRSS`` of ``/proc/<pid>/status``, Linux) is
+  read; per step also the end-to-end time (epoch of step k published to the move of step
+  k + 1 received, the source's clock) and the learner's update inside the service
+  (:attr:`cfbci.service._Session.update_ns`, sent back through a pipe at the end). A row
+  per ``--every`` steps is printed as the session runs; the table at the end gives, per
+  window, the RSS and its growth and the median and 99th percentile of both times.
+  *Growth*: least-squares slopes of RSS (KB per step) and of the per-step times (ms per
+  1,000 steps) over the first and the second half of the session after its first window
+  (warm-up): for growth that is at most linear in the history, the second half's RSS slope
+  is no larger than the first's. Beside it, the recorder's own share, measured in this
+  process: the memory the MCAP writer keeps per message until the file is closed (its
+  chunk indexes), times the messages per step of the recording.
+* **Short sessions** (``--sessions``, default 200, of ``--session-steps`` steps each, one
+  after the other, distinct ids): the RSS before the first, after each. The growth from
+  the end of the first session to the end of the last, per session, is what a leak would
+  show (with glibc, :func:`cfbci.memory.keep_freed_memory` keeps freed memory in the heap,
+  so RSS holds the peak: memory a session freed is reused by the next, and does not make
+  the curve go down and up).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import multiprocessing
+import resource
+import tempfile
+import time
+import tracemalloc
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
+from dataclasses import dataclass
+from multiprocessing.connection import Connection
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import zenoh
+from mcap.reader import make_reader
+from rich.console import Console
+from rich.table import Table
+
+from acquisition.replay_source import SourceSettings, replay_session
+from calibration_free.session import StepRecord
+from cfbci.service import serve
+from replay.recording import SessionRecorder
+from wire.zenoh_config import free_tcp_endpoint, peer_config
+
+#: Grid side of the soak sessions (T = GRID ** 2 tasks).
+GRID = 5
+#: Seconds any one wait may take before the soak gives up (a failure guard).
+TIMEOUT = 60.0
+_MB = 2**20
+_LONG = "soak-long"
+
+
+def _service(listen: Sequence[str], record_dir: Path, results: Connection) -> None:
+    """The service process: sends ``(session, update_ns)`` on ``results`` per ended session."""
+    serve(listen, (), record_dir, on_end=lambda session, update_ns: results.send((session,
+                                                                                  update_ns)))
+
+
+def rss_bytes(pid: int) -> int:
+    """Resident set size of a process, bytes (``VmRSS`` in ``/proc/<pid>/status``)."""
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1]) * 1024
+    raise RuntimeError(f"/proc/{pid}/status has no VmRSS line")
+
+
+@dataclass
+class _Service:
+    """A running service process, the Zenoh session that reaches it, and its reports."""
+
+    pid: int
+    session: zenoh.Session
+    results: Connection
+
+    def update_ns(self, session: str) -> list[int]:
+        """The learner's per-epoch times of an ended session (see :mod:`cfbci.latency`)."""
+        if not self.results.poll(TIMEOUT):
+            raise TimeoutError(f"the service did not report session {session!r} in {TIMEOUT} s")
+        reported, update_ns = self.results.recv()
+        if reported != session:
+            raise RuntimeError(f"expected the timings of session {session!r}, got {reported!r}")
+        return update_ns
+
+
+@contextmanager
+def _running_service(record_dir: Path) -> Iterator[_Service]:
+    """A fresh service in a spawned process, stopped with SIGTERM (which must exit 0)."""
+    context = multiprocessing.get_context("spawn")
+    endpoint = free_tcp_endpoint()
+    receiver, sender = context.Pipe(duplex=False)
+    process = context.Process(
+        target=_service, args=([endpoint], record_dir, sender), name="cfbci-soak-service"
+    )
+    process.start()
+    assert process.pid is not None
+    try:
+        with zenoh.open(peer_config((), [endpoint])) as session:
+            yield _Service(process.pid, session, receiver)
+    finally:
+        process.terminate()
+        process.join(TIMEOUT)
+        if process.is_alive():
+            process.kill()
+            process.join()
+    if process.exitcode != 0:
+        raise RuntimeError(f"the soak's service exited with {process.exitcode}")
+
+
+def _settings(session: str, steps: int, seed: int) -> SourceSettings:
+    return SourceSettings(session, seed=seed, steps=steps, grid=GRID, timeout=TIMEOUT)
+
+
+def _slope(x: np.ndarray, y: np.ndarray) -> float:
+    """Least-squares slope of y against x."""
+    return float(np.polyfit(x, y, 1)[0])
+
+
+def _window_row(
+    end: int, every: int, rss: np.ndarray, end_to_end: np.ndarray, update: np.ndarray
+) -> dict[str, float]:
+    """Figures of steps ``end - every + 1 .. end`` (1-based; times of epochs in the window)."""
+    window = slice(end - every, end)
+    e2e, upd = end_to_end[window], update[window]
+    start_rss = rss[end - every - 1] if end > every else rss[0]
+    return {
+        "step": end,
+        "rss_mb": float(rss[end - 1]) / _MB,
+        "rss_growth_mb": float(rss[end - 1] - start_rss) / _MB,
+        "end_to_end_median_ms": float(np.median(e2e)) / 1e6,
+        "end_to_end_p99_ms": float(np.percentile(e2e, 99)) / 1e6,
+        "update_median_ms": float(np.median(upd)) / 1e6,
+        "update_p99_ms": float(np.percentile(upd, 99)) / 1e6,
+    }
+
+
+def _growth(rss: np.ndarray, end_to_end: np.ndarray, update: np.ndarray, every: int) -> dict:
+    """Slopes over the first and second half of the steps after the first window."""
+    steps = len(rss)
+    start = min(every, steps // 2)
+    middle = (start + steps) // 2
+    halves = {"first": (start, middle), "second": (middle, steps - 1)}
+    growth: dict[str, Any] = {"halves": {k: [a + 1, b + 1] for k, (a, b) in halves.items()}}
+    for name, values, scale in (
+        ("rss_kb_per_step", rss, 1 / 1024),
+        ("end_to_end_ms_per_1000_steps", end_to_end, 1000 / 1e6),
+        ("update_ms_per_1000_steps", update, 1000 / 1e6),
+    ):
+        growth[name] = {
+            half: _slope(np.arange(a, b), values[a:b]) * scale for half, (a, b) in halves.items()
+        }
+    return growth
+
+
+def _recorder_bytes_per_message(n_messages: int = 3000) -> float:
+    """Python memory a recorder holds per message until it is closed, bytes (tracemalloc)."""
+    header = {"seq": 0, "t_ns": 0, "step": 1, "action": "up", "update_ms": 1.0}
+    with tempfile.TemporaryDirectory() as directory:
+        with SessionRecorder(Path(directory) / "probe.mcap", "probe", {}) as recorder:
+            tracemalloc.start()
+            try:
+                before = tracemalloc.get_traced_memory()[0]
+                for seq in range(n_messages):
+                    recorder.record("/move", {**header, "seq": seq}, seq)
+                after = tracemalloc.get_traced_memory()[0]
+            finally:
+                tracemalloc.stop()
+    return (after - before) / n_messages
+
+
+def _messages_per_step(path: Path, steps: int) -> float:
+    """Messages of a closed recording (its statistics) per step."""
+    with path.open("rb") as file:
+        summary = make_reader(file).get_summary()
+    if summary is None or summary.statistics is None:
+        raise RuntimeError(f"{path}: the recording was not closed")
+    return summary.statistics.message_count / steps
+
+
+def soak_long(
+    steps: int, seed: int, every: int, record_dir: Path, console: Console
+) -> dict[str, Any]:
+    """Run the long session; return its per-step series, its windows and its growth.
+
+    Parameters
+    ----------
+    steps : int
+        Steps of the session (>= 2 * every).
+    seed : int
+    every : int
+        Steps per window (a printed row).
+    record_dir : Path
+        Where the service records.
+    console : Console
+        Where the rows go as the session runs.
+
+    Returns
+    -------
+    dict
+        ``{"steps", "every", "rss_idle_mb", "rss_mb": [steps], "end_to_end_ms": [steps - 1],
+        "update_ms": [steps - 1], "windows": [...], "growth": {...}, "recorder": {...}}``.
+    """
+    rss: list[int] = []
+    started = time.perf_counter()
+
+    with _running_service(record_dir) as service:
+
+        def on_step(record: StepRecord) -> None:
+            rss.append(rss_bytes(service.pid))
+            if record.step % every == 0:
+                console.print(
+                    f"step {record.step:>6}: service RSS {rss[-1] / _MB:7.1f} MB "
+                    f"({(rss[-1] - rss[max(0, record.step - every - 1)]) / _MB:+.1f} MB over "
+                    f"the last {every} steps), {time.perf_counter() - started:6.0f} s"
+                )
+
+        idle = rss_bytes(service.pid)
+        summary = replay_session(service.session, _settings(_LONG, steps, seed), on_step)
+        update_ns = service.update_ns(_LONG)
+    rss_array = np.asarray(rss, dtype=np.float64)
+    end_to_end = np.asarray(summary.latency_ns, dtype=np.float64)
+    update = np.asarray(update_ns, dtype=np.float64)
+    if not len(rss_array) == steps == len(end_to_end) + 1 == len(update) + 1:
+        raise RuntimeError(
+            f"expected {steps} steps; got {len(rss_array)} RSS samples, {len(end_to_end)} "
+            f"end-to-end and {len(update)} update times"
+        )
+    windows = [
+        _window_row(end, every, rss_array, end_to_end, update)
+        for end in range(every, steps + 1, every)
+    ]
+    per_message = _recorder_bytes_per_message()
+    per_step = _messages_per_step(record_dir / f"{_LONG}.mcap", steps)
+    return {
+        "steps": steps,
+        "every": every,
+        "seconds": time.perf_counter() - started,
+        "rss_idle_mb": idle / _MB,
+        "rss_mb": (rss_array / _MB).tolist(),
+        "end_to_end_ms": (end_to_end / 1e6).tolist(),
+        "update_ms": (update / 1e6).tolist(),
+        "windows": windows,
+        "growth": _growth(rss_array, end_to_end, update, every),
+        "recorder": {
+            "bytes_per_message": per_message,
+            "messages_per_step": per_step,
+            "kb_per_step": per_message * per_step / 1024,
+        },
+    }
+
+
+def soak_short(sessions: int, steps: int, seed: int, record_dir: Path) -> dict[str, Any]:
+    """Run ``sessions`` sessions of ``steps`` steps one after the other in one service.
+
+    Returns
+    -------
+    dict
+        ``{"sessions", "steps", "rss_before_mb", "rss_mb": [sessions] (after each),
+        "growth_mb" (after the last minus after the first), "per_session_kb"}``.
+    """
+    rss: list[int] = []
+    with _running_service(record_dir) as service:
+        before = rss_bytes(service.pid)
+        for i in range(sessions):
+            name = f"soak-short-{i:04d}"
+            replay_session(service.session, _settings(name, steps, seed + i))
+            service.update_ns(name)  # the session has ended in the service
+            rss.append(rss_bytes(service.pid))
+    growth = rss[-1] - rss[0]
+    return {
+        "sessions": sessions,
+        "steps": steps,
+        "rss_before_mb": before / _MB,
+        "rss_mb": [value / _MB for value in rss],
+        "growth_mb": growth / _MB,
+        "per_session_kb": growth / 1024 / max(1, sessions - 1),
+    }
+
+
+def bench_soak(
+    steps: int = 10_000,
+    sessions: int = 200,
+    session_steps: int = 20,
+    seed: int = 0,
+    every: int = 1000,
+    record_dir: Path | None = None,
+    console: Console | None = None,
+) -> dict[str, Any]:
+    """The long session, then the short sessions, each in a fresh service.
+
+    Parameters
+    ----------
+    steps : int
+        Steps of the long session (>= 2 * every).
+    sessions : int
+        Short sessions (>= 2).
+    session_steps : int
+        Steps of each short session (>= 1).
+    seed : int
+        Seed of the long session and of the first short one (the others count up).
+    every : int
+        Steps per window of the long session.
+    record_dir : Path or None
+        Where the services record; None: a temporary directory, removed afterwards.
+    console : Console or None
+        Progress output.
+
+    Returns
+    -------
+    dict
+        ``{"grid", "long": soak_long(...), "short": soak_short(...), "bench_peak_rss_mb"}``.
+    """
+    if every < 1 or steps < 2 * every:
+        raise ValueError(f"--steps ({steps}) must be at least twice --every ({every})")
+    if sessions < 2 or session_steps < 1:
+        raise ValueError(
+            f"--sessions must be at least 2 and --session-steps at least 1; got {sessions} "
+            f"and {session_steps}"
+        )
+    console = console or Console()
+    with tempfile.TemporaryDirectory(prefix="cfbci-soak-") as temporary:
+        directory = record_dir or Path(temporary)
+        console.print(f"long session: {steps} steps, T = {GRID * GRID}, recording to {directory}")
+        long = soak_long(steps, seed, every, directory, console)
+        console.print(f"{sessions} short sessions of {session_steps} steps")
+        short = soak_short(sessions, session_steps, seed, directory)
+    return {
+        "grid": GRID,
+        "long": long,
+        "short": short,
+        "bench_peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+    }
+
+
+def print_soak(report: dict[str, Any], console: Console) -> None:
+    """The long session's windows, its growth, and the short sessions' leak figures."""
+    long, short = report["long"], report["short"]
+    table = Table(title=f"bench soak: one session of {long['steps']} steps, "
+                        f"T = {report['grid'] ** 2} (service process)")
+    for column in ("step", "RSS MB", "growth MB", "end to end median / p99 ms",
+                   "learner update median / p99 ms"):
+        table.add_column(column, justify="right")
+    for row in long["windows"]:
+        table.add_row(
+            str(row["step"]), f"{row['rss_mb']:.1f}", f"{row['rss_growth_mb']:+.1f}",
+            f"{row['end_to_end_median_ms']:.2f} / {row['end_to_end_p99_ms']:.2f}",
+            f"{row['update_median_ms']:.2f} / {row['update_p99_ms']:.2f}",
+        )
+    console.print(table)
+    growth, recorder = long["growth"], long["recorder"]
+    first, second = growth["halves"]["first"], growth["halves"]["second"]
+    console.print(
+        f"slopes over steps {first[0]}-{first[1]} / {second[0]}-{second[1]}: RSS "
+        f"{growth['rss_kb_per_step']['first']:.2f} / {growth['rss_kb_per_step']['second']:.2f} "
+        "KB per step; end to end "
+        f"{growth['end_to_end_ms_per_1000_steps']['first']:+.2f} / "
+        f"{growth['end_to_end_ms_per_1000_steps']['second']:+.2f} ms per 1000 steps; learner "
+        f"{growth['update_ms_per_1000_steps']['first']:+.2f} / "
+        f"{growth['update_ms_per_1000_steps']['second']:+.2f} ms per 1000 steps",
+        soft_wrap=True,
+    )
+    console.print(
+        f"the recorder keeps {recorder['bytes_per_message']:.0f} bytes per message until the "
+        f"file is closed (chunk indexes), {recorder['messages_per_step']:.2f} messages per "
+        f"step: {recorder['kb_per_step']:.2f} KB per step", soft_wrap=True,
+    )
+    console.print(
+        f"{short['sessions']} short sessions of {short['steps']} steps: service RSS "
+        f"{short['rss_before_mb']:.1f} MB before, {short['rss_mb'][0]:.1f} MB after the first, "
+        f"{short['rss_mb'][-1]:.1f} MB after the last: {short['growth_mb']:+.2f} MB, "
+        f"{short['per_session_kb']:+.1f} KB per session", soft_wrap=True,
+    )
+
+
+def plot_soak(report: dict[str, Any], path: Path) -> None:
+    """Three panels: RSS and per-step times against step, RSS against short session."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from matplotlib.figure import Figure
+
+    long, short = report["long"], report["short"]
+    figure = Figure(figsize=(13, 4), layout="constrained")
+    memory, times, sessions = figure.subplots(1, 3)
+    steps = np.arange(1, long["steps"] + 1)
+    memory.plot(steps, long["rss_mb"], color="tab:blue")
+    memory.set(xlabel="step", ylabel="service RSS (MB)",
+               title=f"resident memory, one {long['steps']}-step session")
+    epochs = np.arange(1, long["steps"])
+    for key, label, colour in (("end_to_end_ms", "end to end", "tab:orange"),
+                               ("update_ms", "learner update", "tab:green")):
+        values = np.asarray(long[key])
+        times.plot(epochs, values, ",", color=colour, alpha=0.3)
+        window = min(101, len(values))
+        median = np.array([np.median(values[max(0, i - window // 2): i + window // 2 + 1])
+                           for i in range(len(values))])
+        times.plot(epochs, median, color=colour, label=f"{label} (running median)")
+    times.set(xlabel="step", ylabel="ms per step", title="per-step time",
+              ylim=(0, 2 * np.percentile(long["end_to_end_ms"], 99)))
+    times.legend(loc="upper left")
+    sessions.plot(np.arange(1, short["sessions"] + 1), short["rss_mb"], "o-", markersize=2)
+    sessions.set(xlabel="short session", ylabel="service RSS after it (MB)",
+                 title=f"{short['sessions']} sessions of {short['steps']} steps "
+                       f"(before the first: {short['rss_before_mb']:.0f} MB)")
+    figure.savefig(path, dpi=120)
+
+
+def add_soak_parser(which: argparse._SubParsersAction) -> None:
+    """Register ``cfbci bench soak`` among the ``bench`` subcommands."""
+    p = which.add_parser(
+        "soak",
+        help="a service left running: memory and step time over a long session, leaks "
+        "across many short ones",
+        description="One long session, then many short ones, each part in a fresh service "
+        "process over loopback Zenoh (recording on): service RSS and per-step times against "
+        "step, and RSS across the short sessions.",
+    )
+    p.add_argument("--steps", type=int, default=10_000, help="long session (default 10000)")
+    p.add_argument("--sessions", type=int, default=200, help="short sessions (default 200)")
+    p.add_argument("--session-steps", type=int, default=20, help="steps of a short one (20)")
+    p.add_argument("--every", type=int, default=1000, help="steps per row (default 1000)")
+    p.add_argument("--seed", type=int, default=0, help="seed (default 0)")
+    p.add_argument("--record-dir", type=Path, help="keep the recordings here")
+    p.add_argument("--json", type=Path, help="write every figure and series as JSON")
+    p.add_argument("--png", type=Path, help="write the curves as a PNG figure")
+    p.set_defaults(run=run_soak)
+
+
+def run_soak(args: argparse.Namespace, console: Console) -> int:
+    """``cfbci bench soak``: run, print, and write the JSON and the figure if asked."""
+    report = bench_soak(
+        args.steps, args.sessions, args.session_steps, args.seed, args.every,
+        args.record_dir, console,
+    )
+    print_soak(report, console)
+    if args.json:
+        args.json.write_text(json.dumps(report, indent=1) + "\n")
+    if args.png:
+        plot_soak(report, args.png)
+        console.print(f"figure: {args.png}")
+    return 0

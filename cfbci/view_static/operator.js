@@ -1,0 +1,136 @@
+"use strict";
+// The operator view: the world with the belief heat map, the ranked hypotheses, the best
+// task's confidence against the threshold, targets reached, the decoder's balanced accuracy,
+// the update latency and the session's events. /?session=ID follows ID; without it, the
+// newest running session (until one is picked).
+(() => {
+  const $ = (id) => document.getElementById(id);
+  const view = $("view");
+  const picker = $("picker");
+  const world = new cfbci.WorldView($("world"), true);
+  const COLOURS = {best: "#1f5fbf", threshold: "#c2410c", accuracy: "#0f766e", chance: "#6b7280",
+                   latency: "#7c3aed", correct: "#15803d", wrong: "#b91c1c", pending: "#9ca3af"};
+  let pinned = new URLSearchParams(location.search).get("session");
+  let model = null;
+  let frame = null;
+  cfbci.colourBar($("colorbar-canvas"));
+
+  const link = cfbci.connect({
+    link(up) {
+      $("link").textContent = up ? "live" : "disconnected";
+      $("link").className = up ? "badge on" : "badge off";
+    },
+    sessions(list) {
+      // Options are updated in place, so that an open drop-down stays open.
+      const chosen = cfbci.choose(list, pinned);
+      const wanted = list.map((s) => [s.session, `${s.session} (${s.status})`]);
+      if (chosen && !list.some((s) => s.session === chosen)) wanted.push([chosen, chosen]);
+      wanted.forEach(([value, text], i) => {
+        const option = picker.options[i] || picker.appendChild(new Option());
+        if (option.value !== value) option.value = value;
+        if (option.text !== text) option.text = text;
+      });
+      while (picker.options.length > wanted.length) picker.remove(wanted.length);
+      picker.value = chosen || "";
+      link.follow(chosen);
+    },
+    session(m) { model = m; if (!frame) frame = requestAnimationFrame(render); },
+  });
+  link.follow(pinned);
+  picker.onchange = () => {
+    pinned = picker.value;
+    history.replaceState(null, "", `?session=${encodeURIComponent(pinned)}`);
+    link.follow(pinned);
+  };
+  window.addEventListener("resize", () => { if (model && !frame) frame = requestAnimationFrame(render); });
+
+  const cellName = (m, task) => {
+    if (m.layout.kind !== "grid") return `hypothesis ${task}`;
+    const side = m.layout.side;
+    return `cell ${task} (row ${Math.floor(task / side)}, col ${task % side})`;
+  };
+  const percentile = (values, q) => {
+    const sorted = [...values].sort((a, b) => a - b);
+    return sorted[Math.min(sorted.length - 1, Math.floor(q * sorted.length))];
+  };
+  const count = (status) => model.targets.filter((t) => t.status === status).length;
+
+  function render() {
+    frame = null;
+    const m = model;
+    world.draw(m);
+    $("world-title").textContent = m.layout.kind !== "grid"
+      ? `Agent's state (${m.steps === null ? "config not seen" : "no grid in the config"})`
+      : `Belief over targets (${m.layout.side} × ${m.layout.side} grid`
+        + `${m.layout.inferred ? ", inferred: config not seen" : ""})`;
+    $("colorbar").style.display = $("legend").style.display = m.layout.kind === "grid" ? "" : "none";
+    $("status").textContent = m.status;
+    $("status").className = `badge ${m.status}`;
+    $("subject-link").href = `/subject?session=${encodeURIComponent(m.session)}`;
+
+    const correct = count("correct");
+    const wrong = count("wrong");
+    const pending = count("pending");
+    $("t-step").textContent = `${m.step}${m.steps ? ` / ${m.steps}` : ""}`;
+    $("t-targets").innerHTML = `<span class="ok">✓ ${correct}</span> <span class="bad">✗ ${wrong}</span>`
+      + (pending ? ` <span class="muted">(${pending} awaiting truth)</span>` : "");
+    $("t-best").textContent = m.best_task === null ? "–"
+      : `${m.best_task} · ${m.confidence[m.best_task].toFixed(3)}${m.confident ? " ✔" : ""}`;
+    $("t-bacc").textContent = m.balanced_accuracy === null ? "–" : m.balanced_accuracy.toFixed(3);
+    const ms = m.latency.map((p) => p[1]);
+    $("t-latency").textContent = ms.length
+      ? `${percentile(ms, 0.5).toFixed(1)} · ${percentile(ms, 0.9).toFixed(1)} ms` : "–";
+
+    const ranked = m.confidence.map((c, task) => [c, task]).sort((a, b) => b[0] - a[0])
+      .slice(0, m.layout.kind === "grid" ? 5 : 10);
+    $("ranking").replaceChildren(...ranked.map(([c, task]) => {
+      const item = document.createElement("li");
+      item.innerHTML = `<span class="name"></span><span class="bar"><i></i></span><span class="num"></span>`;
+      item.querySelector(".name").textContent = cellName(m, task);
+      item.querySelector(".bar i").style.width = `${(100 * c).toFixed(1)}%`;
+      item.querySelector(".num").textContent = c.toFixed(3);
+      item.dataset.task = task;
+      return item;
+    }));
+
+    const lastStep = Math.max(m.steps || 0, m.step, 10);
+    const marks = m.targets.map((t) => ({x: t.step, colour: COLOURS[t.status]}));
+    charts.draw($("c-confidence"), {
+      title: "Confidence of the best task", xLabel: "step (epochs observed)",
+      yLabel: "confidence", x: [0, lastStep], y: [0, 1],
+      lines: [{points: m.series.map((p) => [p[0], p[1]]), colour: COLOURS.best, label: "best task"}],
+      refs: [{y: m.threshold, colour: COLOURS.threshold,
+              label: `threshold β = ${m.threshold}${m.threshold_known ? "" : " (default)"}`}],
+      marks,
+      keys: [{colour: COLOURS.correct, label: "correct target"},
+             {colour: COLOURS.wrong, label: "wrong target"}],
+      empty: "no beliefs yet",
+    });
+    const chance = m.n_classes ? 1 / m.n_classes : null;
+    charts.draw($("c-accuracy"), {
+      title: "Decoder balanced accuracy (best task, 10-fold, self-estimate)",
+      xLabel: "step (epochs observed)", yLabel: "balanced accuracy", x: [0, lastStep], y: [0, 1],
+      lines: [{points: m.series.filter((p) => p[2] !== null).map((p) => [p[0], p[2]]),
+               colour: COLOURS.accuracy, label: "balanced accuracy"}],
+      refs: chance === null ? [] : [{y: chance, colour: COLOURS.chance, label: `chance ${chance}`}],
+      empty: "no decoder yet",
+    });
+    charts.draw($("c-latency"), {
+      title: "Update latency: epoch k received → move k + 1 received (by this view)",
+      xLabel: "step", yLabel: "latency (ms)", x: [0, lastStep],
+      y: [0, Math.max(1, ...ms) * 1.1],
+      lines: [{points: m.latency, colour: COLOURS.latency, label: "latency"}],
+      empty: "no epochs received by the view",
+    });
+
+    $("events").replaceChildren(...[...m.events].reverse().map((e) => {
+      const item = document.createElement("li");
+      item.className = e.event;
+      item.textContent = `${e.event}: ${e.message}`;
+      return item;
+    }));
+
+    cfbci.expose(view, m);
+    Object.assign(view.dataset, {correct, wrong, best: m.best_task === null ? "" : m.best_task});
+  }
+})();

@@ -1,0 +1,278 @@
+"""LSL in and out: the bridge's sample buffer, and whole sessions over LSL.
+
+The sessions run real processes (``cfbci serve``, ``cfbci lsl-simulator`` and
+``cfbci lsl-bridge``), talking over real LSL outlets and inlets kept on the loopback by
+an ``lsl_api.cfg`` of the test's own (``LSLAPICFG``; a session id per test, so parallel
+tests do not see each other's streams) and over loopback Zenoh. This process never
+calls liblsl's network functions.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pylsl
+import pytest
+
+from acquisition.lsl_epochs import Epoch, Refusal, SampleBuffer, apply_baseline
+from acquisition.lsl_simulator import check_recording
+from acquisition.lsl_streams import (
+    eeg_stream_meta,
+    loopback_config,
+    move_marker,
+    parse_move_marker,
+    parse_onset_marker,
+)
+from acquisition.sources import DataSpec
+from cfbci.simulation import SessionConfig, run_session
+from replay.recording import read_recording
+from wire.zenoh_config import free_tcp_endpoint
+
+SFREQ = 256.0
+TIMEOUT = 300  # failure guard, seconds
+
+
+def stream(n: int, start: int = 0, n_channels: int = 2) -> tuple[np.ndarray, np.ndarray]:
+    """Samples whose value is their index (every channel), stamped index / SFREQ."""
+    index = np.arange(start, start + n)
+    samples = np.repeat(index[:, None], n_channels, axis=1).astype(np.float32)
+    return samples, index / SFREQ
+
+
+# -- the sample buffer ------------------------------------------------------------------
+
+
+def test_cut_takes_the_nearest_onset_sample_and_waits_for_the_window() -> None:
+    buffer = SampleBuffer(2, SFREQ, seconds=10)
+    for start in range(0, 400, 8):  # in chunks, as an inlet delivers them
+        buffer.append(*stream(8, start), arrival_ns=start)
+        result = buffer.cut(100.4 / SFREQ, -51, 256)  # nearest sample: 100
+        if start + 8 <= 356:  # sample 356 not there yet
+            assert result is None
+    assert isinstance(result, Epoch)
+    assert result.data.dtype == np.float32 and result.data.shape == (2, 308)
+    np.testing.assert_array_equal(result.data[0], np.arange(49, 357))
+    assert result.onset_index == 100 and result.onset_time == 100 / SFREQ
+    assert result.last_arrival_ns == 352  # the chunk holding sample 356 arrived at "352"
+
+
+def test_dropped_samples_are_a_gap_and_no_window_spans_it() -> None:
+    buffer = SampleBuffer(2, SFREQ, seconds=10)
+    assert buffer.append(*stream(200), arrival_ns=0) == []
+    gaps = buffer.append(*stream(300, start=230), arrival_ns=1)  # 200..229 dropped
+    assert [(g.index, g.missing) for g in gaps] == [(200, 30)]
+    assert gaps[0].before == 199 / SFREQ and gaps[0].after == 230 / SFREQ
+    spanning = buffer.cut(150 / SFREQ, -20, 80)
+    assert isinstance(spanning, Refusal) and "spans the gap" in spanning.reason
+    reaching_back = buffer.cut(240 / SFREQ, -20, 80)
+    assert isinstance(reaching_back, Refusal) and "starts before the gap" in reaching_back.reason
+    in_gap = buffer.cut(215 / SFREQ, -20, 80)
+    assert isinstance(in_gap, Refusal) and "falls in a gap" in in_gap.reason
+    after = buffer.cut(300 / SFREQ, -20, 80)  # wholly after the gap: samples 280..380
+    assert isinstance(after, Epoch)
+    np.testing.assert_array_equal(after.data[1], np.arange(280, 381))
+    before = buffer.cut(100 / SFREQ, -20, 80)  # wholly before it
+    assert isinstance(before, Epoch)
+    np.testing.assert_array_equal(before.data[0], np.arange(80, 181))
+
+
+def test_jitter_within_tolerance_is_no_gap_but_backwards_timestamps_are() -> None:
+    buffer = SampleBuffer(1, SFREQ, seconds=10)
+    samples, times = stream(100, n_channels=1)
+    jitter = np.random.default_rng(0).uniform(-0.2, 0.2, 100) / SFREQ
+    assert buffer.append(samples, times + jitter, arrival_ns=0) == []
+    samples, times = stream(10, start=100, n_channels=1)
+    gaps = buffer.append(samples, times - 50 / SFREQ, arrival_ns=0)  # the clock went back
+    assert [(g.index, g.missing) for g in gaps] == [(100, -50)]
+    assert "out of order" in gaps[0].describe()
+
+
+def test_an_onset_older_than_the_buffer_is_refused() -> None:
+    buffer = SampleBuffer(2, SFREQ, seconds=1)  # 256 samples
+    buffer.append(*stream(1000), arrival_ns=0)
+    old = buffer.cut(700 / SFREQ, -10, 10)
+    assert isinstance(old, Refusal) and "before the oldest buffered sample" in old.reason
+    edge = buffer.cut(750 / SFREQ, -10, 10)  # the oldest sample kept is 744
+    assert isinstance(edge, Refusal) and "starts before the oldest" in edge.reason
+    recent = buffer.cut(900 / SFREQ, -10, 10)
+    assert isinstance(recent, Epoch)
+    np.testing.assert_array_equal(recent.data[0], np.arange(890, 911))
+
+
+def test_baseline_subtracts_the_interval_mean_as_mne() -> None:
+    epoch = np.random.default_rng(1).normal(size=(3, 308)).astype(np.float32)
+    times = np.arange(-51, 257) / SFREQ
+    assert apply_baseline(epoch, times, None) is epoch
+    corrected = apply_baseline(epoch, times, (None, 0.0))
+    mean = epoch[:, :52].astype(np.float64).mean(axis=1, keepdims=True)  # -51..0 included
+    np.testing.assert_array_equal(corrected, (epoch - mean).astype(np.float32))
+    with pytest.raises(ValueError, match="holds no sample"):
+        apply_baseline(epoch, times, (2.0, 3.0))
+
+
+def test_markers_and_metadata() -> None:
+    move = {"step": 3, "action": "up", "from_state": 7, "to_state": 2, "target_reached": False}
+    assert parse_move_marker(move_marker(move, 1)) == move | {"repeat": 1}
+    with pytest.raises(ValueError, match="exactly"):
+        parse_move_marker('{"step": 3}')
+    assert parse_onset_marker("onset 12", "onset") == (True, 12)
+    assert parse_onset_marker("onset", "onset") == (True, None)
+    assert parse_onset_marker("onsets 12", "onset") == (False, None)
+    info = pylsl.StreamInfo("amp", "EEG", 2, 500, pylsl.cf_float32, "amp-1")
+    with pytest.raises(ValueError, match="'amp' does not name every channel"):
+        eeg_stream_meta(info)
+    info.set_channel_labels(["Fz", "Cz"])
+    info.set_channel_units("volts")
+    meta = eeg_stream_meta(info)
+    assert (meta.sfreq, meta.ch_names, meta.scale) == (500.0, ("Fz", "Cz"), 1e6)
+
+
+# -- whole sessions over LSL --------------------------------------------------------------
+
+
+def test_a_missing_stream_is_an_error_naming_it(tmp_path: Path) -> None:
+    config = tmp_path / "lsl_api.cfg"
+    config.write_text(loopback_config(f"cfbci-test-{tmp_path.name[-40:]}"))
+    result = subprocess.run(
+        [sys.executable, "-m", "cfbci.cli", "lsl-bridge", "--eeg", "no-such-amplifier",
+         "--markers", "m", "--session", "s", "--connect", free_tcp_endpoint(),
+         "--timeout", "1"],
+        env=os.environ | {"LSLAPICFG": str(config)}, capture_output=True, text=True,
+        timeout=TIMEOUT,
+    )
+    assert result.returncode == 1
+    assert "no LSL stream named 'no-such-amplifier' found within 1 s" in result.stderr
+
+
+@dataclass(frozen=True)
+class LslSession:
+    bridge: dict
+    recording: Path
+    written_path: Path
+    written: dict[str, np.ndarray]
+    logs: dict[str, str]
+
+
+def lsl_session(
+    tmp_path: Path, steps: int, seed: int, simulator_options: list[str]
+) -> LslSession:
+    """``cfbci serve``, ``lsl-simulator`` and ``lsl-bridge`` as processes, to the end."""
+    name = tmp_path.name[-40:]
+    config = tmp_path / "lsl_api.cfg"
+    config.write_text(loopback_config(f"cfbci-test-{name}"))
+    env = os.environ | {"LSLAPICFG": str(config)}
+    endpoint = free_tcp_endpoint()
+    cfbci = [sys.executable, "-m", "cfbci.cli"]
+    common = ["--session", name, "--seed", str(seed), "--connect", endpoint,
+              "--moves", f"moves-{name}", "--timeout", "60"]
+    streams = {"eeg": f"eeg-{name}", "markers": f"markers-{name}"}
+    logs = {role: tmp_path / f"{role}.log" for role in ("serve", "simulator", "bridge")}
+
+    def start(role: str, *args: str) -> subprocess.Popen:
+        with logs[role].open("w") as log:
+            return subprocess.Popen([*cfbci, *args], env=env, stdout=log,
+                                    stderr=subprocess.STDOUT)
+
+    serve = start("serve", "serve", "--listen", endpoint, "--record-dir", str(tmp_path))
+    simulator = bridge = None
+    try:
+        simulator = start(
+            "simulator", "lsl-simulator", *common, "--eeg", streams["eeg"],
+            "--markers", streams["markers"], "--written", str(tmp_path / "written.npz"),
+            *simulator_options,
+        )
+        bridge = start(
+            "bridge", "lsl-bridge", *common, "--eeg", streams["eeg"],
+            "--markers", streams["markers"], "--steps", str(steps),
+            "--json", str(tmp_path / "bridge.json"),
+        )
+        assert bridge.wait(TIMEOUT) == 0, logs["bridge"].read_text()
+        assert simulator.wait(TIMEOUT) == 0, logs["simulator"].read_text()
+    finally:
+        for process in (bridge, simulator, serve):
+            if process is not None and process.poll() is None:
+                process.send_signal(signal.SIGTERM)
+                process.wait(TIMEOUT)
+    assert serve.returncode == 0, logs["serve"].read_text()
+    with np.load(tmp_path / "written.npz", allow_pickle=False) as arrays:
+        written = dict(arrays)
+    return LslSession(
+        json.loads((tmp_path / "bridge.json").read_text()), tmp_path / f"{name}.mcap",
+        tmp_path / "written.npz", written, {role: path.read_text() for role, path in logs.items()},
+    )
+
+
+def assert_session_is_the_simulation(session: LslSession, steps: int, seed: int) -> None:
+    """The recording: every epoch the simulator's, the truth, the moves of ``cfbci
+    simulate`` for the seed."""
+    comparison = check_recording(session.written_path, session.recording)
+    assert (comparison.recorded, comparison.equal, comparison.mismatches) == (steps, steps, [])
+    recording = read_recording(session.recording)
+    assert [m["step"] for m in recording.accepted_epochs()] == list(range(1, steps + 1))
+    assert [m["step"] for _, m in recording.messages["/truth"]] == list(range(1, steps + 1))
+    trace = []
+    run_session(seed, SessionConfig(steps=steps), DataSpec().resolve("feedback"), trace.append)
+    moves = [(m["from_state"], m["action"], m["to_state"]) for _, m in recording.messages["/move"]]
+    assert moves == [(r.state, r.action, r.next_state) for r in trace]
+
+
+def test_lsl_session_epochs_equal_what_the_simulator_wrote(tmp_path: Path) -> None:
+    steps, seed = 20, 4
+    session = lsl_session(tmp_path, steps, seed, ["--onset-delay", "0.3"])
+    assert_session_is_the_simulation(session, steps, seed)
+    bridge = session.bridge
+    assert [e["step"] for e in bridge["epochs"]] == list(range(1, steps + 1))
+    assert bridge["gaps"] == [] and bridge["refused"] == [] and bridge["reconnects"] == []
+    assert len(bridge["latency_ns"]) == len(bridge["age_s"]) == steps
+    assert bridge["latency_ms"]["p99"] > 0
+    # The bridge's onset sample is the simulator's: onset timestamps are sample stamps.
+    onsets = np.round((np.array([e["onset"] for e in bridge["epochs"]]) - session.written["t0"])
+                      * SFREQ).astype(np.int64)
+    np.testing.assert_array_equal(onsets, session.written["onsets"])
+
+
+def test_dropped_samples_and_a_vanished_stream_are_reported_and_never_cut_across(
+    tmp_path: Path,
+) -> None:
+    steps, seed = 12, 5
+    session = lsl_session(
+        tmp_path, steps, seed,
+        ["--onset-delay", "0.3", "--drop", "5:100:20", "--late-onset", "3:0.8",
+         "--restart-after", "8", "--outage", "1"],
+    )
+    written, bridge = session.written, session.bridge
+    # The simulator wrote step 5 twice: the first time with 20 samples left out.
+    (write, first, count), = written["dropped"].tolist()
+    assert written["steps"][write] == 5 and written["repeats"][write] == 0 and count == 20
+    assert first == written["onsets"][write] + 100
+    drop, outage = bridge["gaps"]
+    assert drop["missing"] == 20
+    assert round((drop["before"] - written["t0"]) * SFREQ) == first - 1
+    assert round((drop["after"] - written["t0"]) * SFREQ) == first + count
+    assert outage["missing"] >= SFREQ  # the EEG outlet was closed for 1 s
+    assert bridge["reconnects"] == [f"eeg-{tmp_path.name[-40:]}"]
+    assert bridge["refused"][0]["step"] == 5
+    assert "spans the gap" in bridge["refused"][0]["reason"]
+    assert "LSL stream" in session.logs["bridge"] and "lost" in session.logs["bridge"]
+    # A late marker is reported, and its epoch cut all the same (its samples are buffered).
+    (late,) = bridge["late_markers"]
+    assert late["step"] == 3 and late["delay"] >= 0.8
+    assert (bridge["epochs"][2]["step"], bridge["epochs"][2]["repeat"]) == (3, 0)
+    # No published epoch holds a dropped sample or the outage.
+    sample = np.round((np.array([e["onset"] for e in bridge["epochs"]]) - written["t0"]) * SFREQ)
+    missing = [(first, first + count)] + [
+        (round((g["before"] - written["t0"]) * SFREQ) + 1,
+         round((g["after"] - written["t0"]) * SFREQ)) for g in bridge["gaps"]
+    ]
+    for onset in sample:
+        for low, high in missing:
+            assert onset + 256 < low or onset - 51 >= high
+    # The repeated step got its epoch, the same the user gave: the session is unchanged.
+    assert_session_is_the_simulation(session, steps, seed)

@@ -1,0 +1,86 @@
+"""Restart and resume: a service killed with SIGKILL mid-session and started again on the
+same record directory resumes the session from its recording, and the session decides as
+an uninterrupted one would (real processes, real Zenoh over loopback, a real kill)."""
+
+from __future__ import annotations
+
+import os
+import queue
+import signal
+from collections import Counter
+from pathlib import Path
+
+import zenoh
+from live import SPAWN, TIMEOUT
+from test_pipeline import GRID, STEPS, simulated, source_process_listening
+
+from acquisition.replay_source import SourceSettings
+from cfbci.cli import main
+from cfbci.service import serve, unfinished
+from replay.recording import read_recording
+from replay.rerun import replay_check
+from wire import protocol
+from wire.transport import Pump, Received
+from wire.zenoh_config import free_tcp_endpoint, peer_config
+
+KILL_AT = 25  # the service is killed once the move of this step has been seen
+
+
+def test_a_killed_service_resumes_the_session_and_decides_as_if_never_killed(
+    tmp_path: Path,
+) -> None:
+    seed, sid = 4, "resumed"
+    endpoint, source_endpoint, observer_endpoint = (free_tcp_endpoint() for _ in range(3))
+    args = ([endpoint], [source_endpoint, observer_endpoint], tmp_path)
+    settings = SourceSettings(sid, seed=seed, steps=STEPS, grid=GRID, timeout=TIMEOUT,
+                              resend_interval=0.2)
+    inbox: queue.SimpleQueue[Received] = queue.SimpleQueue()
+    with zenoh.open(peer_config([observer_endpoint], ())) as observer:
+        moves = Pump(observer, protocol.key(sid, "move"), "move", inbox)
+        with source_process_listening(settings, source_endpoint) as future:
+            first = SPAWN.Process(target=serve, args=args)
+            first.start()
+            try:
+                while protocol.decode(inbox.get(timeout=TIMEOUT).data).fields["step"] < KILL_AT:
+                    pass
+            finally:
+                assert first.pid is not None
+                os.kill(first.pid, signal.SIGKILL)
+                first.join(TIMEOUT)
+            assert first.exitcode == -signal.SIGKILL
+            killed = read_recording(tmp_path / f"{sid}.mcap")
+            assert killed.truncated and unfinished(killed)
+            assert KILL_AT <= len(killed.messages["/move"]) < STEPS
+
+            second = SPAWN.Process(target=serve, args=args)  # same directory, same endpoints
+            second.start()
+            try:
+                summary = future.result(TIMEOUT)
+            finally:
+                second.terminate()
+                second.join(TIMEOUT)
+            assert second.exitcode == 0
+        moves.close()
+
+    trace, result = simulated(seed)
+    assert summary.records == trace  # every move, confident flag, best task and event
+    assert (summary.correct_targets, summary.wrong_targets) == (
+        result.correct_targets, result.wrong_targets,
+    )
+    # One file, every step once, and the offline re-run reproduces it exactly.
+    path = tmp_path / f"{sid}.mcap"
+    recording = read_recording(path)
+    assert not recording.truncated and not unfinished(recording)
+    assert sorted(p.name for p in tmp_path.iterdir()) == [f"{sid}.mcap"]
+    for topic in ("/move", "/truth"):
+        steps = [m["step"] for _, m in recording.messages[topic]]
+        assert steps == list(range(1, STEPS + 1)), topic
+    assert [m["step"] for _, m in recording.messages["/features"]] == list(range(1, STEPS + 1))
+    assert len(recording.messages["/epoch"]) == STEPS
+    assert [m["n_signals"] for _, m in recording.messages["/state"]] == list(range(STEPS + 1))
+    events = Counter(m["event"] for _, m in recording.messages["/event"])
+    assert events["session_started"] == events["session_ended"] == 1
+    assert any("resumed at step" in m["message"] for _, m in recording.messages["/event"])
+    check = replay_check(path)
+    assert check.divergence is None and check.moves == STEPS
+    assert main(["replay", str(path)]) == 0

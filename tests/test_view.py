@@ -1,0 +1,466 @@
+"""The live view (``cfbci view``) in a real headless browser: Debian's Chromium driven by
+Selenium through chromedriver, fed by a real service and source over Zenoh on loopback.
+
+The view runs in a spawned process listening on its own Zenoh endpoint; each test's
+service connects to it and each source connects to both, as ``cfbci view --listen`` is
+used. The pages tell what they show in ``data-*`` attributes of ``#view`` (session,
+status, step, agent, layout, correct, wrong, best), which the tests compare with the
+messages the service published. Without Chromium the tests fail (CI installs it).
+"""
+
+from __future__ import annotations
+
+import json
+import queue
+import shutil
+import urllib.request
+from collections.abc import Callable, Iterator
+from concurrent.futures import Future, ProcessPoolExecutor
+from dataclasses import dataclass
+from html.parser import HTMLParser
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+import zenoh
+from live import SPAWN, TIMEOUT, service_process
+from matplotlib.image import imread
+from selenium import webdriver
+from selenium.common.exceptions import TimeoutException
+from selenium.webdriver.chrome.service import Service as DriverService
+from selenium.webdriver.common.by import By
+from selenium.webdriver.support.ui import Select, WebDriverWait
+
+from acquisition.replay_source import SourceSettings, SourceSummary, run_source
+from cfbci.publish import publish_recording
+from cfbci.view_model import SessionView, layout_of
+from cfbci.view_server import STATIC, run_view
+from replay.recording import read_recording
+from wire import protocol
+from wire.transport import Outbox, Pump, Received
+from wire.zenoh_config import free_tcp_endpoint, peer_config
+
+WINDOW = (1440, 900)  # browser window, CSS pixels
+CHROME_FLAGS = (
+    "--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
+    "--disable-component-update", "--disable-sync", "--no-first-run", "--hide-scrollbars",
+)
+SEED = 3  # reaches targets early on the synthetic default (checked below: >= 1 target)
+STEPS = 120
+
+
+def _executable(name: str, debian_path: str) -> str:
+    found = shutil.which(name) or (debian_path if Path(debian_path).exists() else None)
+    if found is None:
+        pytest.fail(
+            f"{name} not found: the browser test of the live view needs Debian's chromium and "
+            "chromium-driver (apt-get install chromium chromium-driver; .ci/run installs them)"
+        )
+    return found
+
+
+def _view_process(listen: str, ready: Any) -> None:
+    run_view([listen], [], host="127.0.0.1", port=0, on_ready=lambda _, port: ready.put(port))
+
+
+@pytest.fixture(scope="module")
+def view() -> Iterator[tuple[str, str]]:
+    """The view in a spawned process: (its page address, its Zenoh endpoint)."""
+    endpoint = free_tcp_endpoint()
+    ready = SPAWN.Queue()
+    process = SPAWN.Process(target=_view_process, args=(endpoint, ready))
+    process.start()
+    try:
+        port = ready.get(timeout=TIMEOUT)
+        yield f"http://127.0.0.1:{port}", endpoint
+    finally:
+        process.terminate()  # SIGTERM: the view stops cleanly
+        process.join(TIMEOUT)
+        if process.is_alive():
+            process.kill()
+            process.join()
+    assert process.exitcode == 0
+
+
+@pytest.fixture(scope="module")
+def browser(tmp_path_factory: pytest.TempPathFactory) -> Iterator[webdriver.Chrome]:
+    """Headless Chromium with a fresh profile."""
+    options = webdriver.ChromeOptions()
+    options.binary_location = _executable("chromium", "/usr/bin/chromium")
+    for flag in CHROME_FLAGS:
+        options.add_argument(flag)
+    options.add_argument(f"--user-data-dir={tmp_path_factory.mktemp('chromium-profile')}")
+    options.add_argument(f"--window-size={WINDOW[0]},{WINDOW[1]}")
+    driver = webdriver.Chrome(
+        options=options, service=DriverService(_executable("chromedriver", "/usr/bin/chromedriver"))
+    )
+    try:
+        yield driver
+    finally:
+        driver.quit()
+
+
+@pytest.fixture(scope="module")
+def service(view: tuple[str, str], tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
+    """A service connected to the view; its endpoint, once it answers (see
+    :func:`_wait_for_service`). The tests' sessions have ids of their own."""
+    endpoint = free_tcp_endpoint()
+    with service_process(endpoint, tmp_path_factory.mktemp("recordings"), connect=(view[1],)):
+        _wait_for_service(endpoint)
+        yield endpoint
+
+
+@pytest.fixture(scope="module")
+def sources() -> Iterator[ProcessPoolExecutor]:
+    """Spawned processes to run sources in (two sessions at once)."""
+    with ProcessPoolExecutor(2, mp_context=SPAWN) as pool:
+        yield pool
+
+
+def _wait_for_service(endpoint: str) -> None:
+    """Publish epochs of an unknown session until the service answers with an error event.
+
+    The view subscribes to configs too, so a source's wait for a config subscriber does not
+    tell that the service is up; only the service answers an epoch.
+    """
+    with zenoh.open(peer_config((), [endpoint])) as session:
+        inbox: queue.SimpleQueue[Received] = queue.SimpleQueue()
+        pump = Pump(session, protocol.key("ping", "event"), "event", inbox)
+        outbox = Outbox(session)
+        try:
+            for _ in range(int(TIMEOUT / 0.25)):
+                outbox.send("epoch", "ping", {"step": 1, "signal": "features"},
+                            np.zeros(2, np.float32))
+                try:
+                    inbox.get(timeout=0.25)
+                    return
+                except queue.Empty:
+                    continue
+            raise TimeoutError(f"the service on {endpoint} did not answer")
+        finally:
+            pump.close()
+            outbox.close()
+
+
+class Published:
+    """The moves and states of some sessions, as the service published them."""
+
+    def __init__(self, endpoint: str, sessions: tuple[str, ...]) -> None:
+        self._inbox: queue.SimpleQueue[Received] = queue.SimpleQueue()
+        self._zenoh = zenoh.open(peer_config((), [endpoint]))
+        self._pumps = [
+            Pump(self._zenoh, protocol.key(sid, kind), kind, self._inbox)
+            for sid in sessions for kind in ("move", "state")
+        ]
+        self.moves: dict[str, dict[int, dict[str, Any]]] = {sid: {} for sid in sessions}
+        self.last_state: dict[str, protocol.Message] = {}
+
+    def collect(self) -> Published:
+        """Take in what has arrived."""
+        while not self._inbox.empty():
+            received = self._inbox.get()
+            message = protocol.decode(received.data, key_expr=received.key_expr)
+            if message.kind == "move":
+                self.moves[message.session][message.fields["step"]] = message.fields
+            else:
+                self.last_state[message.session] = message
+        return self
+
+    def close(self) -> None:
+        for pump in self._pumps:
+            pump.close()
+        self._zenoh.close()
+
+
+def _start_sources(
+    pool: ProcessPoolExecutor, settings: list[SourceSettings], endpoints: list[str]
+) -> list[Future[SourceSummary]]:
+    return [pool.submit(run_source, s, [], endpoints) for s in settings]
+
+
+def _shown(browser: webdriver.Chrome) -> dict[str, str]:
+    """The data-* attributes of the page's #view, read at once."""
+    return browser.execute_script(
+        "return Object.assign({}, document.getElementById('view').dataset)"
+    )
+
+
+def _wait(
+    browser: webdriver.Chrome, condition: Callable[[dict[str, str]], bool], what: str,
+    seen: list[dict[str, str]] | None = None,
+) -> dict[str, str]:
+    """Poll the page's attributes until ``condition`` holds (every reading kept in ``seen``)."""
+    last: dict[str, str] = {}
+
+    def check(driver: webdriver.Chrome) -> bool:
+        nonlocal last
+        last = _shown(driver)
+        if seen is not None:
+            seen.append(last)
+        return condition(last)
+
+    try:
+        WebDriverWait(browser, TIMEOUT, poll_frequency=0.02).until(check)
+    except TimeoutException:
+        pytest.fail(f"the page never showed {what}; last shown: {last}")
+    return last
+
+
+def _ended(sid: str, steps: int) -> Callable[[dict[str, str]], bool]:
+    return lambda shown: (
+        shown.get("session") == sid and shown.get("status") == "ended"
+        and shown.get("step") == str(steps)
+    )
+
+
+def _check_png(path: Path) -> None:
+    image = imread(path)
+    assert image.shape[1] == WINDOW[0] and image.shape[0] >= WINDOW[1] // 2, image.shape
+    colours = np.unique((image[..., :3] * 255).astype(np.uint8).reshape(-1, 3), axis=0)
+    assert len(colours) > 50, f"{path}: only {len(colours)} colours, a blank page?"
+
+
+@dataclass
+class Followed:
+    """A session a page followed: every reading of its attributes, the last one, the
+    source's summary, and what the service published."""
+
+    seen: list[dict[str, str]]
+    final: dict[str, str]
+    summary: SourceSummary
+    moves: dict[int, dict[str, Any]]
+    last_state: protocol.Message
+
+
+def _follow(
+    browser: webdriver.Chrome, page: str, settings: SourceSettings, service: str,
+    view_endpoint: str, sources: ProcessPoolExecutor,
+) -> Followed:
+    """Open ``page`` (which names the session), then run the session while reading it."""
+    sid = settings.session
+    browser.get(page)
+    _wait(browser, lambda shown: shown.get("session") == sid, "the session it was asked for")
+    published = Published(service, (sid,))
+    try:
+        [future] = _start_sources(sources, [settings], [service, view_endpoint])
+        seen: list[dict[str, str]] = []
+        final = _wait(browser, _ended(sid, settings.steps), f"the end of {sid}", seen)
+        summary = future.result(TIMEOUT)
+        published.collect()
+    finally:
+        published.close()
+    return Followed(seen, final, summary, published.moves[sid], published.last_state[sid])
+
+
+def _shown_steps(followed: Followed) -> dict[int, str]:
+    """Step -> agent cell, as the page showed them (steps >= 1), checked against the
+    service's moves: the agent shown at a step is where the move of that step put it."""
+    sid = followed.summary.session
+    shown = {int(s["step"]): s["agent"] for s in followed.seen
+             if s["session"] == sid and int(s["step"]) > 0}
+    for step, agent in shown.items():
+        assert agent == str(followed.moves[step]["to_state"]), f"step {step}"
+    return shown
+
+
+def test_operator_view_follows_a_live_session(
+    view: tuple[str, str], browser: webdriver.Chrome, service: str,
+    sources: ProcessPoolExecutor, tmp_path: Path,
+) -> None:
+    url, view_endpoint = view
+    settings = SourceSettings("live", seed=SEED, steps=STEPS, interval=0.03)
+    followed = _follow(browser, f"{url}/?session=live", settings, service, view_endpoint, sources)
+    final, summary = followed.final, followed.summary
+    assert sorted(followed.moves) == list(range(1, STEPS + 1))
+    # Followed as it ran: many intermediate steps shown, each matching the service's move.
+    assert len(_shown_steps(followed)) >= STEPS // 4
+    assert final["agent"] == str(followed.moves[STEPS]["to_state"])
+    assert final["layout"] == "grid"
+    # Targets: as many correct and wrong ones as the source counted from the truth.
+    assert summary.correct_targets >= 1
+    assert (final["correct"], final["wrong"]) == (
+        str(summary.correct_targets), str(summary.wrong_targets)
+    )
+    # The heat map and the ranking show the final state's beliefs.
+    best = str(followed.last_state.fields["best_task"])
+    assert final["best"] == best
+    cells = browser.find_elements(By.CSS_SELECTOR, "#world rect.cell")
+    assert len(cells) == 25
+    assert len({cell.value_of_css_property("fill") for cell in cells}) > 1  # a heat map
+    assert browser.find_element(By.CSS_SELECTOR, "#ranking li").get_attribute("data-task") == best
+    assert browser.find_elements(By.CSS_SELECTOR, "#events li")
+    screenshot = tmp_path / "operator-view.png"
+    assert browser.save_screenshot(str(screenshot))
+    _check_png(screenshot)
+
+
+def test_subject_view_shows_the_grid_and_the_agent_only(
+    view: tuple[str, str], browser: webdriver.Chrome, service: str,
+    sources: ProcessPoolExecutor, tmp_path: Path,
+) -> None:
+    url, view_endpoint = view
+    settings = SourceSettings("subject", seed=1, steps=30, interval=0.03)
+    followed = _follow(
+        browser, f"{url}/subject?session=subject", settings, service, view_endpoint, sources
+    )
+    assert len(_shown_steps(followed)) >= 30 // 4
+    assert followed.final["agent"] == str(followed.moves[30]["to_state"])
+    cells = browser.find_elements(By.CSS_SELECTOR, "#world rect.cell")
+    assert len(cells) == 25
+    assert len({cell.value_of_css_property("fill") for cell in cells}) == 1  # no heat map
+    for hidden in (".best", ".truth", ".path", "header", "#ranking", "canvas"):
+        assert browser.find_elements(By.CSS_SELECTOR, hidden) == [], hidden
+    assert len(browser.find_elements(By.CSS_SELECTOR, "#world circle.agent")) == 1
+    grid = browser.find_element(By.CSS_SELECTOR, "#world svg").rect
+    viewport = browser.execute_script("return [innerWidth, innerHeight]")
+    assert min(grid["width"], grid["height"]) >= 0.9 * min(viewport)  # fills the screen
+    screenshot = tmp_path / "subject-view.png"
+    assert browser.save_screenshot(str(screenshot))
+    _check_png(screenshot)
+
+
+def test_session_picker_switches_between_running_sessions(
+    view: tuple[str, str], browser: webdriver.Chrome, service: str,
+    sources: ProcessPoolExecutor,
+) -> None:
+    url, view_endpoint = view
+    sessions = {"pick-a": (11, 40), "pick-b": (12, 25)}  # id: (seed, steps)
+    browser.get(f"{url}/")
+    published = Published(service, tuple(sessions))
+    try:
+        futures = _start_sources(
+            sources,
+            [SourceSettings(sid, seed=seed, steps=steps, interval=0.03)
+             for sid, (seed, steps) in sessions.items()],
+            [service, view_endpoint],
+        )
+        picker = Select(browser.find_element(By.ID, "picker"))
+        WebDriverWait(browser, TIMEOUT, poll_frequency=0.05).until(
+            lambda driver: set(sessions) <= set(driver.execute_script(
+                "return [...document.getElementById('picker').options].map(o => o.value)"
+            ))
+        )
+        picker.select_by_value("pick-b")
+        final_b = _wait(browser, _ended("pick-b", 25), "the end of pick-b")
+        picker.select_by_value("pick-a")
+        final_a = _wait(browser, _ended("pick-a", 40), "the end of pick-a")
+        for future in futures:
+            future.result(TIMEOUT)
+        moves = published.collect().moves
+    finally:
+        published.close()
+    assert final_b["agent"] == str(moves["pick-b"][25]["to_state"])
+    assert final_a["agent"] == str(moves["pick-a"][40]["to_state"])
+    assert browser.current_url.endswith("?session=pick-a")
+
+
+def test_a_republished_recording_is_shown_as_it_was_recorded(
+    view: tuple[str, str], browser: webdriver.Chrome, service: str,
+    sources: ProcessPoolExecutor, tmp_path: Path,
+) -> None:
+    url, view_endpoint = view
+    steps = 80
+    recorded = tmp_path / "recorded"
+    first = free_tcp_endpoint()
+    with service_process(first, recorded, connect=(view_endpoint,)):  # closed: complete
+        _wait_for_service(first)
+        [future] = _start_sources(sources, [SourceSettings("rec", seed=SEED, steps=steps)],
+                                  [first, view_endpoint])
+        original = future.result(TIMEOUT)
+    recording = read_recording(recorded / "rec.mcap")
+    last_move = recording.messages["/move"][-1][1]
+    browser.get(f"{url}/?session=rec-replay")
+    with zenoh.open(peer_config((), [service, view_endpoint])) as session:
+        result = publish_recording(session, recording, session_id="rec-replay", speed=0)
+    assert result.moves_equal
+    final = _wait(browser, _ended("rec-replay", steps), "the end of rec-replay")
+    assert final["agent"] == str(last_move["to_state"])
+    assert (final["correct"], final["wrong"]) == (
+        str(original.correct_targets), str(original.wrong_targets)
+    )
+
+
+class _References(HTMLParser):
+    """The ``src`` and ``href`` of a page's elements."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.found: list[str] = []
+
+    def handle_starttag(self, tag: str, attrs: list[tuple[str, str | None]]) -> None:
+        self.found += [v for k, v in attrs if k in ("src", "href") and v]
+
+
+def test_every_file_a_page_loads_is_served_by_the_view(view: tuple[str, str]) -> None:
+    url, _ = view
+    for page in ("/", "/subject"):
+        with urllib.request.urlopen(url + page, timeout=TIMEOUT) as response:
+            parser = _References()
+            parser.feed(response.read().decode())
+        files = [ref for ref in parser.found if ref.startswith("/static/")]
+        others = [r for r in parser.found if r not in files and r not in ("/subject", "data:,")]
+        assert files and others == [], f"{page} loads {others} from elsewhere"
+        for ref in files:
+            assert (STATIC / ref.removeprefix("/static/")).is_file()
+            with urllib.request.urlopen(url + ref, timeout=TIMEOUT) as response:
+                assert response.status == 200 and response.read()
+
+
+def _message(kind: str, t_ns: int = 0, payload: Any = None, **fields: Any) -> protocol.Message:
+    """A real message, through the wire encoding and back."""
+    message = protocol.Message(kind, "s", 0, t_ns, fields, payload)
+    return protocol.decode(protocol.encode(message), key_expr=protocol.key("s", kind))
+
+
+def _move(step: int, cell: int, goal: bool = False) -> protocol.Message:
+    return _message("move", step=step, from_state=cell, action="goal" if goal else "up",
+                    to_state=cell, target_reached=goal)
+
+
+def test_targets_are_judged_by_the_truth_of_their_step_in_any_order() -> None:
+    view = SessionView("s")
+    view.update(_move(5, 7, goal=True), 0)
+    view.update(_message("truth", step=9, target=3, label=0), 0)
+    assert view.targets == [{"step": 5, "cell": 7, "status": "pending"}]
+    view.update(_message("truth", step=5, target=7, label=0), 0)  # late truth
+    view.update(_message("truth", step=12, target=3, label=0), 0)  # early truth
+    view.update(_move(12, 4, goal=True), 0)
+    assert [t["status"] for t in view.targets] == ["correct", "wrong"]
+
+
+def test_latency_pairs_each_epoch_with_the_next_move() -> None:
+    view = SessionView("s")
+    epoch = {"step": 1, "signal": "features"}
+    view.update(_move(1, 0), 1_000_000)
+    patch = view.update(_message("epoch", payload=np.zeros(2, np.float32), **epoch), 2_000_000)
+    assert patch is None  # move 2 not in yet
+    patch = view.update(_move(2, 1), 5_500_000)
+    assert patch is not None and patch["append"]["latency"] == [[1, 3.5]]  # ms
+
+
+def test_a_new_config_under_a_used_id_starts_the_session_again() -> None:
+    config = {"seed": 0, "grid": 4, "frame": "feedback", "steps": 9, "learner": {"beta": 0.95},
+              "dataset": {}, "signal": "features"}
+    view = SessionView("s")
+    assert view.update(_message("config", t_ns=10, **config), 0) is not None
+    snapshot = view.snapshot()
+    assert snapshot["layout"] == {"kind": "grid", "side": 4}
+    assert (snapshot["threshold"], snapshot["threshold_known"]) == (0.95, True)
+    view.update(_move(1, 2), 0)
+    assert view.update(_message("config", t_ns=10, **config), 0) is None  # re-sent: same
+    assert view.starts_anew(_message("config", t_ns=11, **config))
+    assert not view.starts_anew(_message("config", t_ns=10, **config))
+
+
+def test_layout_is_the_configs_grid_else_a_ranked_list() -> None:
+    grid = {"kind": "grid", "side": 5, "inferred": False}
+    assert layout_of({"grid": 5}) == grid
+    assert layout_of({"grid": 5, "world": {"kind": "grid"}}) == grid
+    assert layout_of({"grid": 5, "world": "line"}) == {"kind": "list"}
+    # Config not seen: a grid only when the tasks make a square and all moves are grid moves.
+    assert layout_of(None) == {"kind": "list"}
+    assert layout_of(None, 25) == {"kind": "grid", "side": 5, "inferred": True}
+    assert layout_of(None, 24) == {"kind": "list"}
+    assert layout_of(None, 25, grid_actions=False) == {"kind": "list"}
+    assert json.loads(json.dumps(SessionView("x").snapshot()))["threshold_known"] is False
