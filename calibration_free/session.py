@@ -49,3 +49,15 @@ def start_cell(seed: int, n_states: int) -> int:
     return int(session_streams(seed)[1].integers(n_states))
 
 
+
+
+#: Index of the world stream among a session seed's spawned streams.
+WORLD_STREAM = 3
+
+
+def world_stream(seed: int) -> np.random.Generator:
+    """The world stream of a session seed, ``SeedSequence(seed).spawn(4)[3]``: consumed only
+    by stochastic transitions, so that the data, user and learner streams (the first three
+    spawned, :func:`session_streams`) are those of a deterministic world."""
+    child = np.random.SeedSequence(seed).spawn(WORLD_STREAM + 1)[WORLD_STREAM]
+    return np.random.default_rng(child)
