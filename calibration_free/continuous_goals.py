@@ -202,10 +202,11 @@ class ContinuousGoalLearner:
         )
         corrected = _corrected_predictions(signals, labels, chosen, config)  # (H, S, K)
         frame = cardinal_guidance(candidates, self.particles, config.alpha)  # (C, H, K)
-        expected = np.einsum("chk,hsk->chs", frame, corrected)
+        expected = np.swapaxes(frame, 0, 1) @ np.swapaxes(corrected, 1, 2)  # (H, C, S)
         weights = self._weights()
-        mean = np.einsum("h,chs->cs", weights, expected)
-        variance = np.einsum("h,chs->cs", weights, (expected - mean[:, None]) ** 2)
+        mean = np.tensordot(weights, expected, axes=1)  # (C, S)
+        expected -= mean
+        variance = np.tensordot(weights, np.square(expected, out=expected), axes=1)
         return candidates, variance.sum(axis=1)
 
 
