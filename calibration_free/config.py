@@ -27,7 +27,9 @@ class LearnerConfig:
     eps : float, default 0.1
         The user error rate the learner assumes when matching labels.
     decoder : {"lda", "student_t"}, default "lda"
-        Shrinkage LDA with equal priors, or the thesis's Student-t predictive.
+        Shrinkage LDA with the pooled within-class covariance, deciding with equal
+        priors (:mod:`decoding.lda`), or the thesis's Student-t predictive (per-class
+        scatters: a slower per-task path, see :mod:`calibration_free.task_decoders`).
     shrinkage : float, default 0.5
         Covariance shrinkage towards the scaled identity, in [0, 1].
     n_folds : int, default 10

@@ -108,8 +108,11 @@ class Frame:
         else:
             guided = optimal[:, :, list(self.world.guidance_actions)]
             bits = (guided.astype(np.uint8) << np.arange(guided.shape[-1], dtype=np.uint8))
-            masks, index = np.unique(bits.sum(axis=-1, dtype=np.uint8), return_inverse=True)
-            index = index.reshape((*guided.shape[:2], 1)).astype(np.uint8)
+            table = bits.sum(axis=-1, dtype=np.uint8)  # the set of optimal actions, as bits
+            masks = np.flatnonzero(np.bincount(table.ravel(), minlength=256))
+            row_of_mask = np.zeros(256, dtype=np.uint8)
+            row_of_mask[masks] = np.arange(len(masks))
+            index = row_of_mask[table][:, :, None]
             labels = (masks[:, None] >> np.arange(self.n_classes) & 1).astype(float)
             labels[masks == 0] = 1.0
             labels /= labels.sum(axis=-1, keepdims=True)

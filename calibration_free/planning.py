@@ -10,7 +10,7 @@ from calibration_free.world import World, value_iteration
 PLANNERS: tuple[str, ...] = ("uncertainty", "greedy", "random")
 DEFAULT_DISCOUNT = 0.9
 #: Indicator elements the uncertainty planner builds at a time (bounds its temporaries).
-_CHUNK_ELEMENTS = 1 << 20
+_CHUNK_ELEMENTS = 1 << 22
 
 
 def random_action(world: World, rng: np.random.Generator) -> int:

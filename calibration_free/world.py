@@ -316,7 +316,7 @@ class GridWorld(World):
     def n_states(self) -> int:
         return self.size * self.size
 
-    @property
+    @cached_property
     def task_states(self) -> np.ndarray:
         return np.arange(self.n_states)
 

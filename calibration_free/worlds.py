@@ -71,7 +71,7 @@ class LineWorld(_StateRewardWorld):
     def n_states(self) -> int:
         return self.length
 
-    @property
+    @cached_property
     def task_states(self) -> np.ndarray:
         return np.array([0, self.length - 1])
 
@@ -158,7 +158,7 @@ class PickAndPlaceWorld(_StateRewardWorld):
     def n_states(self) -> int:
         return len(self.states)
 
-    @property
+    @cached_property
     def task_states(self) -> np.ndarray:
         return np.arange(self.n_states)
 

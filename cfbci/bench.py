@@ -51,6 +51,7 @@ from calibration_free.config import LearnerConfig
 from calibration_free.learner import CalibrationFreeLearner
 from calibration_free.session import session_streams
 from calibration_free.world import GridWorld
+from cfbci.blas import single_threaded_blas
 from cfbci.memory import keep_freed_memory
 from cfbci.simulation import SessionConfig, run_session
 
@@ -123,6 +124,7 @@ def bench_grid(
     """Run the learner on one grid and time it, and the naive reference, at each history
     size (in a worker process: see the module docstring)."""
     keep_freed_memory()
+    single_threaded_blas()
     world = GridWorld(grid)
     config = LearnerConfig()
     data_rng, user_rng, learner_rng = session_streams(seed)
@@ -225,7 +227,7 @@ def print_rows(rows: list[BenchRow], console: Console) -> None:
         f"{NAIVE_TASKS} tasks; * = extrapolated linearly to T from that slice (its cost is "
         f"exactly linear in T). Planning is not in it: the speed-up is a lower bound. "
         f"peak MB: the grid's process peak resident memory (interpreter and libraries "
-        f"included)."
+        f"included). One BLAS thread (cfbci/blas.py)."
     )
 
 
@@ -249,6 +251,7 @@ def bench_simulate(
     if seeds < 1 or steps < 1:
         raise ValueError("--seeds and --steps must be at least 1")
     keep_freed_memory()
+    single_threaded_blas()
     data = load_labelled(dataset, frame=frame)
     config = SessionConfig(steps=steps, grid=grid, learner=LearnerConfig(frame=frame))
     sessions = []

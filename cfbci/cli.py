@@ -19,11 +19,21 @@ from calibration_free.baseline import DEFAULT_CALIBRATION_TRIALS
 from calibration_free.config import LearnerConfig
 from calibration_free.frames import FRAMES
 from calibration_free.planning import PLANNERS
+from calibration_free.worlds import WORLDS
 from cfbci import router
+from cfbci.blas import single_threaded_blas
 from cfbci.export import add_export_command
+from cfbci.flood import add_flood_parser
+from cfbci.limits import add_options as add_limit_options
 from cfbci.make_datasets import add_datasets_command
 from cfbci.memory import keep_freed_memory
 from cfbci.parallel import Scheduler, add_scheduler_options
+from cfbci.plane_worlds import (
+    PLANE_WORLDS,
+    add_plane_world_options,
+    print_plane_report,
+    simulate_plane_world,
+)
 from cfbci.simulation import BASELINES, SessionConfig
 from cfbci.soak import add_soak_parser
 from cfbci.sweep import add_sweep_command
@@ -82,6 +92,11 @@ def _add_simulate(commands: argparse._SubParsersAction) -> None:
     p.add_argument("--first-seed", type=int, default=0, help="seed of the first session")
     p.add_argument("--steps", type=int, default=500, help="actions per session (default 500)")
     p.add_argument("--grid", type=int, default=5, help="grid side (default 5)")
+    p.add_argument(
+        "--world", choices=(*WORLDS, *PLANE_WORLDS), default="grid",
+        help="grid (N x N, --grid), line (5 states), pick-and-place (624 states); in the "
+        "plane: continuous (goal points, cardinal frame) or puddle (660 tasks, mixed frame)",
+    )
     p.add_argument("--frame", choices=FRAMES, default="feedback")
     p.add_argument("--planner", choices=PLANNERS, default="uncertainty")
     p.add_argument("--baseline", choices=BASELINES, help="run the calibrated baseline instead")
@@ -95,6 +110,7 @@ def _add_simulate(commands: argparse._SubParsersAction) -> None:
         help="any other learner setting (see calibration_free.config.LearnerConfig)",
     )
     add_scheduler_options(p)
+    add_plane_world_options(p)
     p.add_argument("--json", type=Path, help="write the report as JSON")
     p.add_argument("--trace", type=Path, help="write one JSON line per step")
     p.set_defaults(run=_run_simulate)
@@ -105,6 +121,12 @@ def _run_simulate(args: argparse.Namespace, console: Console) -> int:
 
     if args.seeds < 1 or args.steps < 1:
         raise ValueError("--seeds and --steps must be at least 1")
+    if args.world in PLANE_WORLDS:
+        report = simulate_plane_world(args, data_spec(args), console)
+        print_plane_report(report, console)
+        if args.json:
+            args.json.write_text(json.dumps(report, indent=2) + "\n")
+        return 0
     settings = {"frame": args.frame, "planner": args.planner, **parse_settings(args.set)}
     config = SessionConfig(
         steps=args.steps,
@@ -113,6 +135,7 @@ def _run_simulate(args: argparse.Namespace, console: Console) -> int:
         baseline=args.baseline,
         calibration_trials=args.calibration_trials,
         user_error_rate=args.user_error_rate,
+        world=args.world,
     )
     data = data_spec(args)
     seeds = list(range(args.first_seed, args.first_seed + args.seeds))
@@ -147,6 +170,7 @@ def _add_bench(commands: argparse._SubParsersAction) -> None:
     latency.add_argument("--json", type=Path, help="write the figures (ms) as JSON")
     latency.set_defaults(run=_run_bench_latency)
     add_soak_parser(which)
+    add_flood_parser(which)
 
 
 def _run_bench_latency(args: argparse.Namespace, console: Console) -> int:
@@ -185,6 +209,7 @@ def _add_serve(commands: argparse._SubParsersAction) -> None:
     )
     _add_zenoh_config(p)
     p.add_argument("--record-dir", type=Path, help="write one <session>.mcap per session here")
+    add_limit_options(p)
     p.set_defaults(run=_run_serve)
 
 
@@ -193,7 +218,12 @@ def _run_serve(args: argparse.Namespace, console: Console) -> int:
 
     if not args.listen and not args.connect and args.zenoh_config is None:
         raise ValueError("give at least one --listen or --connect endpoint (or --zenoh-config)")
-    serve(args.listen, args.connect, args.record_dir, zenoh_config=args.zenoh_config)
+    from cfbci.limits import from_args
+
+    serve(
+        args.listen, args.connect, args.record_dir, limits=from_args(args),
+        zenoh_config=args.zenoh_config,
+    )
     return 0
 
 
@@ -535,7 +565,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_sweep_command(commands)
     add_export_command(commands)
     add_datasets_command(commands)
-    add_view_command(commands)
+    _add_zenoh_config(add_view_command(commands))
     add_world_command(commands)
     from cfbci.lsl_commands import add_lsl_commands  # here: it imports this module's helpers
 
@@ -547,6 +577,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``cfbci`` console script."""
     args = build_parser().parse_args(argv)
     keep_freed_memory()
+    single_threaded_blas()
     console = Console(stderr=False)
     try:
         return args.run(args, console)

@@ -49,7 +49,7 @@ class ServiceLimits:
     max_sessions: int = 8
     idle_timeout: float = 300.0
     subscriber_timeout: float = 5.0
-    max_grid: int = 16
+    max_grid: int = 10
     max_steps: int = 20_000
     max_features: int = 512
     max_epoch_values: int = 262_144

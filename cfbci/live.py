@@ -167,7 +167,8 @@ def run_live_session(
         service = context.Process(
             target=serve,
             args=(service_endpoints, [display_endpoint, *connect], record.parent),
-            kwargs={"zenoh_config": zenoh_config},
+            # Not resume: the directory holds the user's other recordings.
+            kwargs={"zenoh_config": zenoh_config, "resume": False},
             name="cfbci-service",
         )
         service.start()

@@ -12,10 +12,9 @@ from typing import Any
 
 from rich.console import Console
 
-from acquisition.sources import DataSpec
 from calibration_free.config import LearnerConfig
 from calibration_free.frames import FRAMES
-from cfbci.cli import _add_data_options, _add_endpoints, parse_settings
+from cfbci.cli import _add_data_options, _add_endpoints, data_spec, parse_settings
 
 
 def add_lsl_commands(commands: argparse._SubParsersAction) -> None:
@@ -208,8 +207,11 @@ def _run_simulator(args: argparse.Namespace, console: Console) -> int:
 
     if args.onset_delay <= 0 or args.outage <= 0 or args.timeout <= 0:
         raise ValueError("--onset-delay, --outage and --timeout must be positive")
+    if args.synthetic != "errp":  # the other generators make feature vectors
+        raise ValueError("the LSL simulator streams EEG: it needs the synthetic ErrP generator "
+                         f"or a dataset of raw epochs, not --synthetic {args.synthetic}")
     settings = SimulatorSettings(
-        session=args.session, data=DataSpec(args.dataset, args.synthetic_accuracy),
+        session=args.session, data=data_spec(args),
         seed=args.seed, grid=args.grid, frame=args.frame, user_error_rate=args.user_error_rate,
         eeg=args.eeg, markers=args.markers, moves=args.moves, onset_delay=args.onset_delay,
         drops=tuple(args.drop), late_markers=tuple(args.late_onset),

@@ -70,6 +70,12 @@ TICK = 0.02
 IDLE_TICK = 0.5
 #: Error events published per session id per second; further ones are only counted.
 ERRORS_PER_SECOND = 20
+#: Error and rejection events published per second in all.
+EVENTS_PER_SECOND = 200
+#: Seconds an ended session's recording waits for the truth of its last step.
+TRUTH_WAIT = 10.0
+#: Configs that may wait for their source to subscribe, per session of ``max_sessions``.
+PENDING_PER_SESSION = 4
 #: foxglove.Log levels of the event kinds.
 _LOG_LEVELS = {"error": 4, "session_rejected": 4, "info": 2}
 
@@ -79,7 +85,8 @@ class Recordings:
 
     One MCAP file per session, ``<directory>/<session>.mcap``. A recording is closed when
     its session has ended and the truth of its last step has been recorded (at once if no
-    truth arrived at all), or by :meth:`close`.
+    truth arrived at all; after :data:`TRUTH_WAIT` seconds at the latest), or by
+    :meth:`close`.
 
     Parameters
     ----------
@@ -92,6 +99,7 @@ class Recordings:
         self._recorders: dict[str, SessionRecorder] = {}
         self._last_truth: dict[str, int] = {}  # session -> step of its latest truth
         self._awaiting: dict[str, int] = {}  # ended session -> step whose truth closes it
+        self._deadlines: dict[str, int] = {}  # ended session -> monotonic ns to close anyway
 
     def open(self, session: str, config: dict[str, Any]) -> SessionRecorder | None:
         """Start the recording of a session (None when not recording)."""
@@ -114,13 +122,16 @@ class Recordings:
             return None
         path = self.directory / f"{recording.session}.mcap"
         partial = path.with_suffix(".mcap.resuming")
-        config = recording.config
-        recorder = SessionRecorder(partial, recording.session, config)
+        recorder = SessionRecorder(partial, recording.session, recording.config)
+        # An epoch recorded without its features was not accepted (killed in between):
+        # left out, since its re-sent copy (same seq) will be.
+        accepted = {m["seq"] for _, m in recording.messages.get("/features", [])}
         messages = sorted(
             (log_time, order, index, topic, message)
             for order, (topic, entries) in enumerate(recording.messages.items())
             if topic != "/config"
             for index, (log_time, message) in enumerate(entries)
+            if topic != "/epoch" or message["seq"] in accepted
         )
         for log_time, _, _, topic, message in messages:
             recorder.record(topic, message, log_time)
@@ -136,19 +147,27 @@ class Recordings:
         """The open recorder of a session, if any."""
         return self._recorders.get(session)
 
-    def truth(self, received: Received) -> None:
-        """Record a ``truth`` message on its session's ``/truth`` (else log why not)."""
+    def truth(self, received: Received, latest_step: int) -> None:
+        """Record a ``truth`` message on its session's ``/truth`` (else log why not).
+
+        Only the truth of a step after the latest recorded one and at most ``latest_step``
+        (the session's last move; 0 when not running) is recorded: once per step.
+        """
         try:
             message = protocol.decode(received.data, key_expr=received.key_expr)
         except ProtocolError as error:
-            log.warning("truth not recorded: %s", error)
+            log.debug("truth not recorded: %s", error)
             return
         recorder = self._recorders.get(message.session)
         if recorder is None:
             log.debug("truth of session %r not recorded: no open recording", message.session)
             return
-        if message.fields["step"] <= self._last_truth.get(message.session, 0):
-            return  # re-sent with its epoch, or out of order: the step's truth is recorded
+        step = message.fields["step"]
+        if not self._last_truth.get(message.session, 0) < step <= max(
+            latest_step, self._awaiting.get(message.session, 0)
+        ):
+            log.debug("truth of step %d of session %r not recorded", step, message.session)
+            return  # re-sent with its epoch, or of no step yet
         record = {"seq": message.seq, "t_ns": message.t_ns, **message.fields}
         recorder.record("/truth", record, received.t_ns)
         self._last_truth[message.session] = message.fields["step"]
@@ -163,11 +182,20 @@ class Recordings:
             self._close(session)
         else:
             self._awaiting[session] = last_step
+            self._deadlines[session] = time.monotonic_ns() + int(TRUTH_WAIT * 1e9)
+
+    def close_overdue(self) -> None:
+        """Close the recordings of ended sessions whose last truth is overdue."""
+        now = time.monotonic_ns()
+        for session in [s for s, deadline in self._deadlines.items() if now >= deadline]:
+            log.warning("session %r: the truth of its last step never came", session)
+            self._close(session)
 
     def _close(self, session: str) -> None:
         self._recorders.pop(session).close()
         self._last_truth.pop(session, None)
         self._awaiting.pop(session, None)
+        self._deadlines.pop(session, None)
 
     def close(self) -> None:
         """Close every recording."""
@@ -255,22 +283,27 @@ SessionEndHook = Callable[[str, list[int]], None]
 
 
 class _ErrorBudget:
-    """At most :data:`ERRORS_PER_SECOND` error events per session id per second."""
+    """At most :data:`ERRORS_PER_SECOND` error and rejection events per session id per
+    second, and :data:`EVENTS_PER_SECOND` in all; the others are only counted (and the
+    count logged)."""
 
     def __init__(self) -> None:
         self._window = 0
         self._counts: Counter[str] = Counter()
+        self._total = self._suppressed = 0
 
     def allows(self, session: str) -> bool:
         window = int(time.monotonic())
         if window != self._window:
-            suppressed = sum(max(0, n - ERRORS_PER_SECOND) for n in self._counts.values())
-            if suppressed:
-                log.warning("%d error events suppressed in the last second", suppressed)
-            self._window = window
+            if self._suppressed:
+                log.warning("%d error events suppressed in the last second", self._suppressed)
+            self._window, self._total, self._suppressed = window, 0, 0
             self._counts.clear()
         self._counts[session] += 1
-        return self._counts[session] <= ERRORS_PER_SECOND
+        self._total += 1
+        allowed = self._counts[session] <= ERRORS_PER_SECOND and self._total <= EVENTS_PER_SECOND
+        self._suppressed += not allowed
+        return allowed
 
 
 class PipelineService:
@@ -287,6 +320,8 @@ class PipelineService:
     on_end : callable or None
         Called with ``(session id, update_ns)`` when a session ends normally: the learner's
         time per epoch in ns, as :attr:`_Session.update_ns` (``cfbci bench latency``).
+    resume : bool
+        Resume the unfinished sessions of ``record_dir`` (:meth:`resume`).
 
     Use :meth:`run` to serve until :meth:`stop`; :meth:`handle` processes one message.
     """
@@ -297,6 +332,7 @@ class PipelineService:
         record_dir: Path | None = None,
         limits: ServiceLimits | None = None,
         on_end: SessionEndHook | None = None,
+        resume: bool = True,
     ) -> None:
         self.limits = limits or ServiceLimits()
         self.intake = Intake(self.limits.rate, self.limits.max_message_bytes)
@@ -307,7 +343,7 @@ class PipelineService:
         self._pending: dict[str, _Pending] = {}
         self._errors = _ErrorBudget()
         self._stopped = False
-        if record_dir is not None:
+        if record_dir is not None and resume:
             self.resume(record_dir)
         prefix = protocol.PREFIX
         self._pumps = [
@@ -349,7 +385,8 @@ class PipelineService:
         """Process one received message; a bad one yields an ``error`` event, nothing else."""
         try:
             if received.tag == "truth":
-                self.recordings.truth(received)
+                running = self._sessions.get(session_of(received.key_expr) or "")
+                self.recordings.truth(received, running.step if running is not None else 0)
             elif received.tag == "config":
                 self._on_config(received)
             else:
@@ -381,6 +418,7 @@ class PipelineService:
         idle_ns = int(self.limits.idle_timeout * 1e9)
         for session in [s for s in self._sessions.values() if now - s.active_ns > idle_ns]:
             self._abort(session, f"no epoch for {self.limits.idle_timeout:g} s: session ended")
+        self.recordings.close_overdue()
         drops = self.intake.take_drops()
         if drops:
             log.warning("intake dropped %s", dict(drops))
@@ -418,8 +456,6 @@ class PipelineService:
                 return  # a re-send: the pending session starts once its source subscribes
             raise reject("a session with this id is already waiting for its source")
         limits = self.limits
-        if len(self._sessions) + len(self._pending) >= limits.max_sessions:
-            raise reject(f"the service runs its maximum of {limits.max_sessions} sessions")
         if not 2 <= config["grid"] <= limits.max_grid:
             raise reject(f"field 'grid' must be in 2..{limits.max_grid}; got {config['grid']}")
         if not 1 <= config["steps"] <= limits.max_steps:
@@ -431,6 +467,10 @@ class PipelineService:
         except (ValueError, TypeError) as exc:
             raise reject(f"bad config: {exc}") from None
         self._check_memory(sid, config, 0, lambda problem: reject(problem))
+        if len(self._sessions) >= limits.max_sessions:
+            raise reject(f"the service runs its maximum of {limits.max_sessions} sessions")
+        if len(self._pending) >= PENDING_PER_SESSION * limits.max_sessions:
+            raise reject(f"{len(self._pending)} sessions already wait for their source")
         publisher = self._outbox.publisher(protocol.key(sid, "event"))
         if publisher.matching_status.matching:
             self._start(message, publisher)
@@ -459,6 +499,11 @@ class PipelineService:
     def _start(self, message: protocol.Message, publisher: zenoh.Publisher) -> None:
         """Create the learner and the recording of a config; publish the first move."""
         sid, config = message.session, message.fields
+        if len(self._sessions) >= self.limits.max_sessions:
+            raise Rejection(
+                f"the service runs its maximum of {self.limits.max_sessions} sessions", sid,
+                message.seq, message.t_ns,
+            )
         world = GridWorld(config["grid"])
         learner_config = learner_settings(config["learner"], config["frame"])
         learner = CalibrationFreeLearner(world, learner_config, session_streams(config["seed"])[2])
@@ -741,15 +786,18 @@ class PipelineService:
         a :class:`Rejection` of a running session (the one its ``config_t_ns`` names) ends
         it."""
         session = error.session if error.session is not None else NO_SESSION
-        if isinstance(error, Rejection):
+        running = self._sessions.get(session)
+        ends = running is not None and running.config_t_ns == getattr(error, "config_t_ns", -1)
+        if isinstance(error, Rejection) and (ends or self._errors.allows(session)):
             self._event(session, "session_rejected", str(error), error.config_t_ns)
-            running = self._sessions.get(session)
-            if running is not None and running.config_t_ns == error.config_t_ns:
+            if ends:
+                assert running is not None
                 self._end(running, running.step - 1)
         elif self._errors.allows(session):
             self._event(session, "error", str(error))
         if session not in self._sessions and session not in self._pending:
-            self._outbox.forget(session)
+            never_ran = session != NO_SESSION and self.recordings.get(session) is None
+            self._outbox.forget(session, numbering=never_ran)
 
 
 def unfinished(recording: Recording) -> bool:
@@ -773,6 +821,7 @@ def serve(
     on_end: SessionEndHook | None = None,
     limits: ServiceLimits | None = None,
     zenoh_config: Path | None = None,
+    resume: bool = True,
 ) -> None:
     """Run a :class:`PipelineService` until SIGINT or SIGTERM, then shut down cleanly.
 
@@ -792,11 +841,13 @@ def serve(
         Default :class:`cfbci.limits.ServiceLimits`.
     zenoh_config : Path or None
         Zenoh JSON5 configuration merged over the defaults (``--zenoh-config``).
+    resume : bool
+        Resume the unfinished sessions recorded in ``record_dir``.
     """
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
     keep_freed_memory()
     with zenoh.open(peer_config(listen, connect, zenoh_config)) as session:
-        service = PipelineService(session, record_dir, limits, on_end=on_end)
+        service = PipelineService(session, record_dir, limits, on_end=on_end, resume=resume)
         for signum in (signal.SIGINT, signal.SIGTERM):
             signal.signal(signum, lambda *_: service.stop())
         log.info("serving on listen=%s connect=%s", list(listen), list(connect))

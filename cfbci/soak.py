@@ -17,9 +17,11 @@ default learner, as fast as the service answers (no reaction time).
   *Growth*: least-squares slopes of RSS (KB per step) and of the per-step times (ms per
   1,000 steps) over the first and the second half of the session after its first window
   (warm-up): for growth that is at most linear in the history, the second half's RSS slope
-  is no larger than the first's. Beside it, the recorder's own share, measured in this
-  process: the memory the MCAP writer keeps per message until the file is closed (its
-  chunk indexes), times the messages per step of the recording.
+  is no larger than the first's. Beside it, what the history itself takes, measured in
+  this process with ``tracemalloc``: the memory the MCAP writer keeps per message until the
+  file is closed (its chunk indexes) times the recording's messages per step, and the
+  memory per step of the service's learner for the same config run offline (steps 40 to
+  200, random feature vectors of the recording's size).
 * **Short sessions** (``--sessions``, default 200, of ``--session-steps`` steps each, one
   after the other, distinct ids): the RSS before the first, after each. The growth from
   the end of the first session to the end of the last, per session, is what a leak would
@@ -51,9 +53,12 @@ from rich.console import Console
 from rich.table import Table
 
 from acquisition.replay_source import SourceSettings, replay_session
+from calibration_free.learner import CalibrationFreeLearner
 from calibration_free.session import StepRecord
+from calibration_free.world import GridWorld
 from cfbci.service import serve
 from replay.recording import SessionRecorder
+from wire.messages import learner_settings
 from wire.zenoh_config import free_tcp_endpoint, peer_config
 
 #: Grid side of the soak sessions (T = GRID ** 2 tasks).
@@ -181,13 +186,39 @@ def _recorder_bytes_per_message(n_messages: int = 3000) -> float:
     return (after - before) / n_messages
 
 
-def _messages_per_step(path: Path, steps: int) -> float:
-    """Messages of a closed recording (its statistics) per step."""
+def _recording_figures(path: Path, steps: int) -> tuple[float, int]:
+    """Messages per step of a closed recording (its statistics), and its feature size."""
     with path.open("rb") as file:
-        summary = make_reader(file).get_summary()
-    if summary is None or summary.statistics is None:
-        raise RuntimeError(f"{path}: the recording was not closed")
-    return summary.statistics.message_count / steps
+        reader = make_reader(file)
+        summary = reader.get_summary()
+        if summary is None or summary.statistics is None:
+            raise RuntimeError(f"{path}: the recording was not closed")
+        _, _, message = next(reader.iter_messages(topics=["/features"]))
+    [n_features] = json.loads(message.data)["shape"]
+    return summary.statistics.message_count / steps, n_features
+
+
+def _learner_bytes_per_step(n_features: int, steps: int = 200, warmup: int = 40) -> float:
+    """Python memory the learner's history takes per step, bytes (tracemalloc, steps
+    ``warmup`` to ``steps``): the service's learner for the soak's config, offline, fed
+    random feature vectors (what it keeps does not depend on their values)."""
+    world = GridWorld(GRID)
+    learner = CalibrationFreeLearner(world, learner_settings({}, "feedback"),
+                                     np.random.default_rng(0))
+    signals = np.random.default_rng(1).normal(size=(steps, n_features)).astype(np.float32)
+    state, before = 0, 0
+    tracemalloc.start()
+    try:
+        for step, signal in enumerate(signals, start=1):
+            action = learner.propose(state).action
+            learner.observe(state, action, signal)
+            state = world.step(state, action)
+            if step == warmup:
+                before = tracemalloc.get_traced_memory()[0]
+        after = tracemalloc.get_traced_memory()[0]
+    finally:
+        tracemalloc.stop()
+    return (after - before) / (steps - warmup)
 
 
 def soak_long(
@@ -210,8 +241,9 @@ def soak_long(
     Returns
     -------
     dict
-        ``{"steps", "every", "rss_idle_mb", "rss_mb": [steps], "end_to_end_ms": [steps - 1],
-        "update_ms": [steps - 1], "windows": [...], "growth": {...}, "recorder": {...}}``.
+        ``{"steps", "every", "seconds", "rss_idle_mb", "rss_mb": [steps], "end_to_end_ms":
+        [steps - 1], "update_ms": [steps - 1], "windows": [...], "growth": {...},
+        "recorder": {...}, "learner": {...}}`` (memory in MB, times in ms).
     """
     rss: list[int] = []
     started = time.perf_counter()
@@ -224,7 +256,8 @@ def soak_long(
                 console.print(
                     f"step {record.step:>6}: service RSS {rss[-1] / _MB:7.1f} MB "
                     f"({(rss[-1] - rss[max(0, record.step - every - 1)]) / _MB:+.1f} MB over "
-                    f"the last {every} steps), {time.perf_counter() - started:6.0f} s"
+                    f"the last {every} steps), {time.perf_counter() - started:6.0f} s",
+                    soft_wrap=True,
                 )
 
         idle = rss_bytes(service.pid)
@@ -243,7 +276,8 @@ def soak_long(
         for end in range(every, steps + 1, every)
     ]
     per_message = _recorder_bytes_per_message()
-    per_step = _messages_per_step(record_dir / f"{_LONG}.mcap", steps)
+    per_step, n_features = _recording_figures(record_dir / f"{_LONG}.mcap", steps)
+    learner_bytes = _learner_bytes_per_step(n_features)
     return {
         "steps": steps,
         "every": every,
@@ -259,6 +293,7 @@ def soak_long(
             "messages_per_step": per_step,
             "kb_per_step": per_message * per_step / 1024,
         },
+        "learner": {"n_features": n_features, "kb_per_step": learner_bytes / 1024},
     }
 
 
@@ -372,10 +407,14 @@ def print_soak(report: dict[str, Any], console: Console) -> None:
         f"{growth['update_ms_per_1000_steps']['second']:+.2f} ms per 1000 steps",
         soft_wrap=True,
     )
+    learner = long["learner"]
     console.print(
-        f"the recorder keeps {recorder['bytes_per_message']:.0f} bytes per message until the "
-        f"file is closed (chunk indexes), {recorder['messages_per_step']:.2f} messages per "
-        f"step: {recorder['kb_per_step']:.2f} KB per step", soft_wrap=True,
+        f"the history's own memory, measured in this process: the recorder keeps "
+        f"{recorder['bytes_per_message']:.0f} bytes per message until the file is closed "
+        f"(chunk indexes), {recorder['messages_per_step']:.2f} messages per step: "
+        f"{recorder['kb_per_step']:.2f} KB per step; the learner (offline, d = "
+        f"{learner['n_features']}) {learner['kb_per_step']:.2f} KB per step; together "
+        f"{recorder['kb_per_step'] + learner['kb_per_step']:.2f} KB per step", soft_wrap=True,
     )
     console.print(
         f"{short['sessions']} short sessions of {short['steps']} steps: service RSS "

@@ -231,8 +231,9 @@ def summary_figure(cells: list[CellResult]) -> Any:
     datasets = list(dict.fromkeys(c.cell.dataset for c in cells))
     colours = [f"C{datasets.index(c.cell.dataset) % 10}" for c in cells]
     positions = np.arange(len(cells), dtype=float)
-    labels = ["\n".join(f"{k}={_text(v)}" for k, v in c.cell.settings.items()) for c in cells]
-    figure = Figure(figsize=(max(7.5, 3 * (1 + 0.55 * len(cells))), 3.8), layout="constrained")
+    keys = list(cells[0].cell.settings)
+    labels = [" / ".join(_text(v) for v in c.cell.settings.values()) for c in cells]
+    figure = Figure(figsize=(max(7.5, 3 * (1.2 + 0.5 * len(cells))), 3.8), layout="constrained")
     axes = figure.subplots(1, 3)
     panels = (
         ("a", "steps to the first target", [c.first_targets() for c in cells]),
@@ -250,9 +251,8 @@ def summary_figure(cells: list[CellResult]) -> Any:
         ax.set_ylabel(ylabel)
         ax.set_title(f"({letter})", loc="left", fontweight="bold")
     steps = cells[0].results[0].steps
-    axes[0].axhline(steps, color="grey", ls=":", lw=1)
-    axes[0].text(positions[-1] + 0.4, steps, "session length (above: no target)", ha="right",
-                 va="bottom", fontsize=7, color="grey")
+    axes[0].axhline(steps, color="grey", ls=":", lw=1, label="session length\n(above: no target)")
+    axes[0].legend(loc="best", fontsize=7, frameon=False)
     axes[1].yaxis.set_major_locator(MaxNLocator(integer=True))
     rates = [100 * c.report["summary"]["wrong_target_rate"] for c in cells]
     axes[2].bar(positions, rates, width=0.55, color=colours, alpha=0.7)
@@ -264,7 +264,8 @@ def summary_figure(cells: list[CellResult]) -> Any:
     axes[2].set_ylim(0, max(5.0, 1.25 * max(rates)))
     axes[2].set_title("(c)", loc="left", fontweight="bold")
     for ax in axes:
-        ax.set_xticks(positions, labels, fontsize=7)
+        ax.set_xticks(positions, labels, fontsize=8, rotation=30 if len(cells) > 6 else 0)
+        ax.set_xlabel(" / ".join(keys), fontsize=8)
         ax.set_xlim(-0.6, len(cells) - 0.4)
         ax.grid(axis="y", alpha=0.3)
     if len(datasets) > 1:
@@ -278,10 +279,13 @@ def summary_figure(cells: list[CellResult]) -> Any:
 def print_summary(cells: list[CellResult], summary: dict[str, Any], console: Console) -> None:
     """One row per cell: median (IQR) first target, mean correct and wrong, wrong rate."""
     keys = list(summary["grid"])
-    table = Table(box=box.SIMPLE_HEAD, title=f"cfbci sweep: {summary['seeds']} seeds per cell")
+    table = Table(box=box.SIMPLE_HEAD, title=f"cfbci sweep: {summary['seeds']} seeds per cell",
+                  caption="first target: median (quartiles) over the seeds, steps; correct, "
+                  "wrong: mean targets per session; wrong rate: wrong / all targets",
+                  caption_justify="left")
     table.add_column("dataset")
     for key in keys:
-        table.add_column(key, justify="right")
+        table.add_column(key, justify="right", min_width=len(key))
     for name in ("first target (IQR)", "correct", "wrong", "wrong rate"):
         table.add_column(name, justify="right", no_wrap=True)
     for cell in cells:

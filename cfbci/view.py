@@ -11,8 +11,9 @@ import argparse
 import logging
 
 
-def add_view_command(commands: argparse._SubParsersAction) -> None:
-    """Register ``cfbci view``."""
+def add_view_command(commands: argparse._SubParsersAction) -> argparse.ArgumentParser:
+    """Register ``cfbci view``; return its parser (the CLI adds the shared
+    ``--zenoh-config`` option to it)."""
     p = commands.add_parser(
         "view",
         help="live view of sessions in a web browser (operator and subject pages)",
@@ -22,11 +23,13 @@ def add_view_command(commands: argparse._SubParsersAction) -> None:
     p.add_argument("--connect", action="append", default=[], metavar="EP",
                    help="Zenoh endpoint to connect to, e.g. the service's (repeatable)")
     p.add_argument("--listen", action="append", default=[], metavar="EP",
-                   help="Zenoh endpoint to listen on (default: a free tcp/127.0.0.1 port)")
+                   help="Zenoh endpoint to listen on (default without --zenoh-config: a free "
+                   "tcp/127.0.0.1 port)")
     p.add_argument("--host", default="127.0.0.1",
                    help="HTTP address to bind (default 127.0.0.1; 0.0.0.0 for other machines)")
     p.add_argument("--port", type=int, default=8080, help="HTTP port (default 8080; 0: any)")
     p.set_defaults(run=_run_view)
+    return p
 
 
 def _print_addresses(host: str, port: int) -> None:
@@ -37,14 +40,16 @@ def _print_addresses(host: str, port: int) -> None:
 def _run_view(args: argparse.Namespace, _: object) -> int:
     from cfbci.view_server import run_view
 
-    if not args.connect and not args.listen:
-        raise ValueError("give at least one --connect endpoint (the service's) or --listen")
+    zenoh_config = getattr(args, "zenoh_config", None)
+    if not args.connect and not args.listen and zenoh_config is None:
+        raise ValueError(
+            "give at least one --connect endpoint (the service's or a router's), --listen "
+            "or --zenoh-config"
+        )
     if not 0 <= args.port <= 65535:
         raise ValueError(f"--port must be in 0..65535; got {args.port}")
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
-    try:
-        run_view(args.listen, args.connect, host=args.host, port=args.port,
-                 on_ready=_print_addresses)
-    except OSError as error:
-        raise ValueError(f"cannot serve HTTP on {args.host}:{args.port}: {error}") from None
+    logging.getLogger("aiohttp.access").setLevel(logging.WARNING)  # not every file served
+    run_view(args.listen, args.connect, zenoh_config, host=args.host, port=args.port,
+             on_ready=_print_addresses)
     return 0

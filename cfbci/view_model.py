@@ -30,6 +30,9 @@ PATH_LENGTH = 12
 EVENT_LOG = 20
 #: Sessions kept; beyond it the oldest that is not running is forgotten.
 MAX_SESSIONS = 32
+#: Largest grid side drawn as a grid (a larger one, which the service would refuse
+#: anyway, is shown as a list rather than as millions of cells).
+MAX_GRID_SIDE = 64
 
 
 def layout_of(
@@ -56,14 +59,15 @@ def layout_of(
     """
     if config is None:
         side = math.isqrt(n_tasks)
-        if n_tasks and side * side == n_tasks and grid_actions:
+        if n_tasks and side * side == n_tasks and grid_actions and side <= MAX_GRID_SIDE:
             return {"kind": "grid", "side": side, "inferred": True}
         return {"kind": "list"}
     world = config.get("world")
     kind = world.get("kind") if isinstance(world, dict) else world
-    if kind not in (None, "grid") or not isinstance(config.get("grid"), int) or config["grid"] < 1:
+    side = config.get("grid")
+    if kind not in (None, "grid") or not isinstance(side, int) or not 1 <= side <= MAX_GRID_SIDE:
         return {"kind": "list"}
-    return {"kind": "grid", "side": config["grid"], "inferred": False}
+    return {"kind": "grid", "side": side, "inferred": False}
 
 
 def threshold_of(config: dict[str, Any] | None) -> tuple[float, bool]:
@@ -198,6 +202,12 @@ class SessionView:
             A decoded message of this session.
         received_ns : int
             When the view received it (monotonic clock), ns.
+
+        Raises
+        ------
+        ValueError
+            If the message contradicts itself (a state's ``best_task`` beyond its tasks);
+            nothing is changed.
         """
         handler = getattr(self, f"_on_{message.kind}")
         return handler(message.fields, message, received_ns)
@@ -217,9 +227,12 @@ class SessionView:
         self.from_state, self.action = fields["from_state"], fields["action"]
         self.path.append(self.agent)
         self.grid_actions &= self.action in ACTIONS
+        if self.status == "waiting":  # session_started went by before the view started
+            self.status = "running"
         changed: dict[str, Any] = {
             "step": self.step, "agent": self.agent, "from_state": self.from_state,
             "action": self.action, "path": list(self.path), "layout": self.layout(),
+            "status": self.status,
         }
         if fields["target_reached"]:
             self.targets.append({"step": self.step, "cell": self.from_state, "status": "pending"})
@@ -232,7 +245,11 @@ class SessionView:
         self, fields: dict[str, Any], message: protocol.Message, _: int
     ) -> dict[str, Any]:
         assert message.payload is not None  # decode guarantees a state's payload
-        self.confidence = [float(c) for c in message.payload]
+        if fields["best_task"] >= len(message.payload):
+            raise ValueError(
+                f"best_task {fields['best_task']} is not one of the {len(message.payload)} tasks"
+            )
+        self.confidence = [round(float(c), 6) for c in message.payload]
         self.best_task, self.confident = fields["best_task"], fields["confident"]
         self.n_signals, self.balanced_accuracy = fields["n_signals"], fields["balanced_accuracy"]
         self.n_classes = len(fields["class_counts"]) or None
@@ -312,14 +329,22 @@ class SessionBook:
     ) -> tuple[dict[str, Any] | None, bool]:
         """Route a message to its session (created if new); return its patch (see
         :meth:`SessionView.update`) and whether the list of sessions (ids, statuses)
-        changed."""
+        changed.
+
+        Raises
+        ------
+        ValueError
+            As :meth:`SessionView.update` (nothing is stored).
+        """
         view = self.sessions.get(message.session)
         before = None if view is None else (view.status, view.config_t_ns)
         if view is None or (message.kind == "config" and view.starts_anew(message)):
+            view = SessionView(message.session)
+        patch = view.update(message, received_ns)  # may raise: then nothing is stored
+        if self.sessions.get(message.session) is not view:
             self.sessions.pop(message.session, None)
-            view = self.sessions[message.session] = SessionView(message.session)
+            self.sessions[message.session] = view
             self._forget_old()
-        patch = view.update(message, received_ns)
         return patch, before != (view.status, view.config_t_ns)
 
     def listing(self) -> list[dict[str, Any]]:

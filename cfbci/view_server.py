@@ -18,11 +18,15 @@ Routes:
   ``{"type": "snapshot", ...}`` then ``{"type": "update", "session", "set", "append"}``
   (or ``"reset"``); the page sends ``{"follow": ID}``.
 
-Like the recorders, the view subscribes to configs: a source started while the view runs
-but the service does not yet would see a subscriber to its config (start the service
-first). The view listens on a loopback endpoint of its own (a free port unless
-``--listen`` is given), so that sources, told of it by the service's Zenoh gossip,
-connect to it and their ``truth`` and ``epoch`` reach it.
+The moves, states and events come from the service the view connects to. The configs,
+truths and epochs come from the sources: the view listens on a loopback endpoint of its
+own (a free port unless ``--listen`` is given), so that sources, told of it by the
+service's Zenoh gossip, connect to it. A source that reaches the view only after sending
+its config (or a view started later) leaves the view without the config: the grid is then
+inferred from the states (:func:`cfbci.view_model.layout_of`), the threshold is the
+default and the number of steps unknown; a source that connects to the view's endpoint
+itself is sure to be seen whole. Like a recorder, the view subscribes to configs: a
+subscriber to a config key is no proof that the service is up.
 """
 
 from __future__ import annotations
@@ -110,7 +114,12 @@ class ViewServer:
         if message.session == NO_SESSION:
             log.warning("service error about an unusable session: %s", message.fields)
             return
-        patch, listing_changed = self.book.update(message, received.t_ns)
+        try:
+            patch, listing_changed = self.book.update(message, received.t_ns)
+        except ValueError as error:
+            log.warning("dropped %s of session %r seq %d: %s", message.kind, message.session,
+                        message.seq, error)
+            return
         if patch is not None:
             text = json.dumps({"type": "update", "session": message.session, **patch})
             for page in self.pages:
@@ -129,7 +138,8 @@ class ViewServer:
             session = json.loads(data)["follow"]
             protocol.key(session, "move")  # ProtocolError on a bad id
         except (ValueError, KeyError, TypeError) as error:
-            page.push(json.dumps({"type": "error", "message": f"bad request {data!r}: {error}"}))
+            problem = f"bad request {data[:100]!r}: {error}"
+            page.push(json.dumps({"type": "error", "message": problem}))
             return
         page.session = session
         view = self.book.sessions.get(session) or SessionView(session)
@@ -170,8 +180,7 @@ class ViewServer:
 
 
 async def _serve(
-    listen: Sequence[str],
-    connect: Sequence[str],
+    zenoh_config: zenoh.Config,
     host: str,
     port: int,
     on_ready: Callable[[str, int], None],
@@ -183,12 +192,15 @@ async def _serve(
     server = ViewServer()
     runner = web.AppRunner(server.app())
     await runner.setup()
-    with zenoh.open(peer_config(listen, connect)) as session:
+    with zenoh.open(zenoh_config) as session:
         sink = _LoopSink(loop, server.receive)
         pumps = [Pump(session, f"{protocol.PREFIX}/*/{kind}", kind, sink) for kind in KINDS]
         try:
             site = web.TCPSite(runner, host, port)
-            await site.start()
+            try:
+                await site.start()
+            except OSError as error:
+                raise ValueError(f"cannot serve HTTP on {host}:{port}: {error}") from None
             on_ready(host, runner.addresses[0][1])
             await stop.wait()
         finally:
@@ -200,6 +212,7 @@ async def _serve(
 def run_view(
     listen: Sequence[str] = (),
     connect: Sequence[str] = (),
+    zenoh_config: Path | None = None,
     *,
     host: str = "127.0.0.1",
     port: int = 8080,
@@ -210,14 +223,26 @@ def run_view(
     Parameters
     ----------
     listen : sequence of str
-        Zenoh endpoints to listen on (default: a free loopback port, see the module).
+        Zenoh endpoints to listen on (default without ``zenoh_config``: a free loopback
+        port, see the module).
     connect : sequence of str
-        Zenoh endpoints to connect to (the service's).
+        Zenoh endpoints to connect to (the service's, or a router's).
+    zenoh_config : Path or None
+        A Zenoh JSON5 file merged over the defaults (``wire.zenoh_config``), e.g. client
+        mode, TLS and credentials for a router deployment (docs/deployment.md).
     host : str
         Address the HTTP server binds (``0.0.0.0`` to serve other machines).
     port : int
         HTTP port; 0 picks a free one.
     on_ready : callable
         ``on_ready(host, port)`` once the server accepts connections.
+
+    Raises
+    ------
+    FileNotFoundError, ValueError
+        On a bad ``zenoh_config`` file, or an HTTP address that cannot be bound.
     """
-    asyncio.run(_serve(list(listen) or [free_tcp_endpoint()], connect, host, port, on_ready))
+    if not listen and zenoh_config is None:
+        listen = [free_tcp_endpoint()]
+    config = peer_config(listen, connect, zenoh_config)  # a bad file fails before serving
+    asyncio.run(_serve(config, host, port, on_ready))

@@ -177,8 +177,10 @@ def _solve_small(system: np.ndarray, rhs: np.ndarray) -> np.ndarray:
     a, b = system[..., 0, 0, None], system[..., 0, 1, None]
     c, d = system[..., 1, 0, None], system[..., 1, 1, None]
     determinant = a * d - b * c
-    first = (d * rhs[..., 0, :] - b * rhs[..., 1, :]) / determinant
-    second = (a * rhs[..., 1, :] - c * rhs[..., 0, :]) / determinant
+    # Only an uninformative decoder (never used) can have a singular system.
+    with np.errstate(divide="ignore", invalid="ignore"):
+        first = (d * rhs[..., 0, :] - b * rhs[..., 1, :]) / determinant
+        second = (a * rhs[..., 1, :] - c * rhs[..., 0, :]) / determinant
     return np.stack([first, second], axis=-2)
 
 

@@ -17,8 +17,9 @@ Crash safety was measured by killing (SIGKILL) a writer after it had reported ``
 messages (k = 50, 500, 2000, 3 runs each; every 7th message a 32 x 256 epoch): unchunked
 records and one chunk per message, flushed after each message, kept every reported message
 each time (plus, once, the message written but not yet reported); the mcap default (1 MiB
-zstd chunks, file flushed) lost up to 167 messages, all of them in short sessions. A chunk
-costs 163 bytes per message over an unchunked record (a Chunk header, a MessageIndex
+zstd chunks, file flushed) lost up to 167 messages, all of them in short sessions. The same
+9 kills of this recorder (one chunk per message) lost none of the 7,716 reported messages.
+A chunk costs 163 bytes per message over an unchunked record (a Chunk header, a MessageIndex
 record and a ChunkIndex in the summary: +11.6 % on a 300-step synthetic session, 1,404 to
 1,567 bytes a message), about 140 us more per message to write and about 500 bytes of
 writer memory per message until the file is closed (the chunk indexes).

@@ -52,15 +52,6 @@ def source_process(settings: SourceSettings, endpoint: str) -> Iterator[Future[S
         yield pool.submit(run_source, settings, [], [endpoint])
 
 
-@contextmanager
-def source_process_listening(
-    settings: SourceSettings, endpoint: str
-) -> Iterator[Future[SourceSummary]]:
-    """The source in a spawned process listening on ``endpoint`` (services connect to it)."""
-    with ProcessPoolExecutor(1, mp_context=SPAWN) as pool:
-        yield pool.submit(run_source, settings, [endpoint], [])
-
-
 def test_live_session_equals_simulation_and_is_recorded(tmp_path: Path) -> None:
     seed = 3
     endpoint = free_tcp_endpoint()

@@ -17,7 +17,7 @@ def reference_rewards(
     For every signal e and (s, a): m_t = sum_l p(l | s, a, t) q_t(e)_l; the reward is the
     task-weighted variance of m_t over tasks, clipped at 0 per signal, summed over signals.
     """
-    n_tasks, n_states, n_actions, _ = label_distribution.shape
+    _, n_states, n_actions, _ = label_distribution.shape
     reward = np.zeros((n_states, n_actions))
     for e in range(corrected.shape[1]):
         m = np.einsum("tsak,tk->tsa", label_distribution, corrected[:, e])

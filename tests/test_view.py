@@ -13,9 +13,11 @@ from __future__ import annotations
 import json
 import queue
 import shutil
+import time
 import urllib.request
 from collections.abc import Callable, Iterator
 from concurrent.futures import Future, ProcessPoolExecutor
+from contextlib import contextmanager
 from dataclasses import dataclass
 from html.parser import HTMLParser
 from pathlib import Path
@@ -27,14 +29,13 @@ import zenoh
 from live import SPAWN, TIMEOUT, service_process
 from matplotlib.image import imread
 from selenium import webdriver
-from selenium.common.exceptions import TimeoutException
 from selenium.webdriver.chrome.service import Service as DriverService
 from selenium.webdriver.common.by import By
 from selenium.webdriver.support.ui import Select, WebDriverWait
 
 from acquisition.replay_source import SourceSettings, SourceSummary, run_source
 from cfbci.publish import publish_recording
-from cfbci.view_model import SessionView, layout_of
+from cfbci.view_model import SessionBook, SessionView, layout_of
 from cfbci.view_server import STATIC, run_view
 from replay.recording import read_recording
 from wire import protocol
@@ -48,6 +49,7 @@ CHROME_FLAGS = (
 )
 SEED = 3  # reaches targets early on the synthetic default (checked below: >= 1 target)
 STEPS = 120
+POLL = 0.02  # seconds between two readings of a page
 
 
 def _executable(name: str, debian_path: str) -> str:
@@ -60,16 +62,17 @@ def _executable(name: str, debian_path: str) -> str:
     return found
 
 
-def _view_process(listen: str, ready: Any) -> None:
-    run_view([listen], [], host="127.0.0.1", port=0, on_ready=lambda _, port: ready.put(port))
+def _view_process(listen: str, connect: list[str], ready: Any) -> None:
+    run_view([listen], connect, host="127.0.0.1", port=0,
+             on_ready=lambda _, port: ready.put(port))
 
 
-@pytest.fixture(scope="module")
-def view() -> Iterator[tuple[str, str]]:
-    """The view in a spawned process: (its page address, its Zenoh endpoint)."""
+@contextmanager
+def _view_running(connect: tuple[str, ...] = ()) -> Iterator[tuple[str, str]]:
+    """A view in a spawned process: (its page address, its Zenoh endpoint)."""
     endpoint = free_tcp_endpoint()
     ready = SPAWN.Queue()
-    process = SPAWN.Process(target=_view_process, args=(endpoint, ready))
+    process = SPAWN.Process(target=_view_process, args=(endpoint, list(connect), ready))
     process.start()
     try:
         port = ready.get(timeout=TIMEOUT)
@@ -81,6 +84,13 @@ def view() -> Iterator[tuple[str, str]]:
             process.kill()
             process.join()
     assert process.exitcode == 0
+
+
+@pytest.fixture(scope="module")
+def view() -> Iterator[tuple[str, str]]:
+    """The view the tests' services connect to."""
+    with _view_running() as running:
+        yield running
 
 
 @pytest.fixture(scope="module")
@@ -167,6 +177,14 @@ class Published:
                 self.last_state[message.session] = message
         return self
 
+    def wait_for_move(self, session: str, step: int) -> None:
+        """Wait until the move of ``step`` has arrived."""
+        while step not in self.moves[session]:
+            received = self._inbox.get(timeout=TIMEOUT)
+            message = protocol.decode(received.data, key_expr=received.key_expr)
+            if message.kind == "move":
+                self.moves[message.session][message.fields["step"]] = message.fields
+
     def close(self) -> None:
         for pump in self._pumps:
             pump.close()
@@ -190,21 +208,24 @@ def _wait(
     browser: webdriver.Chrome, condition: Callable[[dict[str, str]], bool], what: str,
     seen: list[dict[str, str]] | None = None,
 ) -> dict[str, str]:
-    """Poll the page's attributes until ``condition`` holds (every reading kept in ``seen``)."""
+    """Poll the page's attributes until ``condition`` holds (every reading kept in ``seen``).
+
+    Fails when the page has shown nothing new for ``TIMEOUT`` seconds (a loaded machine
+    makes sessions slow, not stuck).
+    """
     last: dict[str, str] = {}
-
-    def check(driver: webdriver.Chrome) -> bool:
-        nonlocal last
-        last = _shown(driver)
+    deadline = time.monotonic() + TIMEOUT
+    while True:
+        shown = _shown(browser)
         if seen is not None:
-            seen.append(last)
-        return condition(last)
-
-    try:
-        WebDriverWait(browser, TIMEOUT, poll_frequency=0.02).until(check)
-    except TimeoutException:
-        pytest.fail(f"the page never showed {what}; last shown: {last}")
-    return last
+            seen.append(shown)
+        if condition(shown):
+            return shown
+        if shown != last:
+            last, deadline = shown, time.monotonic() + TIMEOUT
+        elif time.monotonic() > deadline:
+            pytest.fail(f"the page never showed {what}; last shown: {last}")
+        time.sleep(POLL)
 
 
 def _ended(sid: str, steps: int) -> Callable[[dict[str, str]], bool]:
@@ -246,7 +267,7 @@ def _follow(
         [future] = _start_sources(sources, [settings], [service, view_endpoint])
         seen: list[dict[str, str]] = []
         final = _wait(browser, _ended(sid, settings.steps), f"the end of {sid}", seen)
-        summary = future.result(TIMEOUT)
+        summary = future.result()  # the source's own timeout guards it
         published.collect()
     finally:
         published.close()
@@ -346,7 +367,7 @@ def test_session_picker_switches_between_running_sessions(
         picker.select_by_value("pick-a")
         final_a = _wait(browser, _ended("pick-a", 40), "the end of pick-a")
         for future in futures:
-            future.result(TIMEOUT)
+            future.result()  # the source's own timeout guards it
         moves = published.collect().moves
     finally:
         published.close()
@@ -367,7 +388,7 @@ def test_a_republished_recording_is_shown_as_it_was_recorded(
         _wait_for_service(first)
         [future] = _start_sources(sources, [SourceSettings("rec", seed=SEED, steps=steps)],
                                   [first, view_endpoint])
-        original = future.result(TIMEOUT)
+        original = future.result()  # the source's own timeout guards it
     recording = read_recording(recorded / "rec.mcap")
     last_move = recording.messages["/move"][-1][1]
     browser.get(f"{url}/?session=rec-replay")
@@ -379,6 +400,34 @@ def test_a_republished_recording_is_shown_as_it_was_recorded(
     assert (final["correct"], final["wrong"]) == (
         str(original.correct_targets), str(original.wrong_targets)
     )
+
+
+def test_a_view_started_during_a_session_infers_its_grid(
+    browser: webdriver.Chrome, service: str, sources: ProcessPoolExecutor
+) -> None:
+    """The config went by before the view started: the grid is inferred from the states."""
+    sid, steps = "late", 60
+    published = Published(service, (sid,))
+    try:
+        [future] = _start_sources(
+            sources, [SourceSettings(sid, seed=2, steps=steps, interval=0.05)], [service]
+        )
+        published.wait_for_move(sid, 5)
+        with _view_running(connect=(service,)) as (url, _):
+            browser.get(f"{url}/?session={sid}")
+            seen: list[dict[str, str]] = []
+            final = _wait(browser, _ended(sid, steps), f"the end of {sid}", seen)
+            title = browser.find_element(By.ID, "world-title").text
+            cells = browser.find_elements(By.CSS_SELECTOR, "#world rect.cell")
+        summary = future.result()  # the source's own timeout guards it
+        published.collect()
+    finally:
+        published.close()
+    followed = Followed(seen, final, summary, published.moves[sid], published.last_state[sid])
+    assert len(_shown_steps(followed)) >= 5
+    assert final["layout"] == "grid" and len(cells) == 25
+    assert "inferred" in title, title
+    assert final["agent"] == str(followed.moves[steps]["to_state"])
 
 
 class _References(HTMLParser):
@@ -445,7 +494,7 @@ def test_a_new_config_under_a_used_id_starts_the_session_again() -> None:
     view = SessionView("s")
     assert view.update(_message("config", t_ns=10, **config), 0) is not None
     snapshot = view.snapshot()
-    assert snapshot["layout"] == {"kind": "grid", "side": 4}
+    assert snapshot["layout"] == {"kind": "grid", "side": 4, "inferred": False}
     assert (snapshot["threshold"], snapshot["threshold_known"]) == (0.95, True)
     view.update(_move(1, 2), 0)
     assert view.update(_message("config", t_ns=10, **config), 0) is None  # re-sent: same
@@ -453,11 +502,21 @@ def test_a_new_config_under_a_used_id_starts_the_session_again() -> None:
     assert not view.starts_anew(_message("config", t_ns=10, **config))
 
 
+def test_a_state_that_contradicts_itself_is_refused_and_changes_nothing() -> None:
+    book = SessionBook()
+    state = _message("state", payload=np.full(4, 0.5, np.float32), best_task=4, confident=False,
+                     n_signals=0, class_counts=[0.0, 0.0], balanced_accuracy=None)
+    with pytest.raises(ValueError, match="best_task 4 is not one of the 4 tasks"):
+        book.update(state, 0)
+    assert book.listing() == []
+
+
 def test_layout_is_the_configs_grid_else_a_ranked_list() -> None:
     grid = {"kind": "grid", "side": 5, "inferred": False}
     assert layout_of({"grid": 5}) == grid
     assert layout_of({"grid": 5, "world": {"kind": "grid"}}) == grid
     assert layout_of({"grid": 5, "world": "line"}) == {"kind": "list"}
+    assert layout_of({"grid": 10**6}) == {"kind": "list"}  # not a million-cell page
     # Config not seen: a grid only when the tasks make a square and all moves are grid moves.
     assert layout_of(None) == {"kind": "list"}
     assert layout_of(None, 25) == {"kind": "grid", "side": 5, "inferred": True}

@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 
 from calibration_free.frames import CORRECT, ERROR, Frame
+from calibration_free.learner import CalibrationFreeLearner
 from calibration_free.session import session_streams
 from calibration_free.world import (
     ACTIONS,
@@ -132,6 +133,15 @@ def test_large_tables_are_built_on_first_use_only():
     assert "optimal" not in vars(world) and "_tables" not in vars(frame)
     assert frame.weights_at(0, GOAL).shape == (2500, 2)
     assert "optimal" in vars(world) and frame.row_index.base is world.optimal
+
+
+def test_a_learner_builds_its_tables_at_its_first_epoch_not_at_its_construction():
+    world = GridWorld(50)
+    learner = CalibrationFreeLearner(world, rng=0)
+    learner.propose(0)  # a warm-up action: no table needed yet
+    assert "optimal" not in vars(world) and "_tables" not in vars(learner.frame)
+    learner.observe(0, GOAL, np.ones(3, dtype=np.float32))
+    assert world.optimal.shape == (2500, 2500, 5) and "_tables" in vars(learner.frame)
 
 
 def test_line_world_edges_bounce_and_no_move_is_optimal_only_at_the_goal():

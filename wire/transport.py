@@ -207,11 +207,16 @@ class Outbox:
         """Publish a message sent before once more, unchanged (same ``seq`` and ``t_ns``)."""
         self.publisher(protocol.key(message.session, message.kind)).put(protocol.encode(message))
 
-    def forget(self, session: str) -> None:
-        """Undeclare the publishers of a session's key expressions (not their numbering)."""
+    def forget(self, session: str, numbering: bool = False) -> None:
+        """Undeclare the publishers of a session's key expressions; with ``numbering``,
+        forget their sequence numbers too (they restart from 0: for ids that never ran,
+        so that the outbox does not grow with every id a client makes up)."""
         prefix = f"{protocol.PREFIX}/{session}/"
         for key_expr in [k for k in self._publishers if k.startswith(prefix)]:
             self._publishers.pop(key_expr).undeclare()
+        if numbering:
+            for key_expr in [k for k in self._seq if k.startswith(prefix)]:
+                del self._seq[key_expr]
 
     def close(self) -> None:
         """Undeclare every publisher."""

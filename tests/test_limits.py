@@ -1,0 +1,123 @@
+"""The service's limits and rejections, against a real service process over loopback Zenoh:
+a session that cannot be run gets ``session_rejected`` naming its config; an idle session
+is ended and its recording closed; a re-sent config is answered again."""
+
+from __future__ import annotations
+
+import argparse
+import queue
+from collections.abc import Callable
+from pathlib import Path
+
+import pytest
+import zenoh
+from live import SPAWN, TIMEOUT
+
+from cfbci.limits import ServiceLimits, add_options, from_args, session_memory_bytes
+from cfbci.service import serve, unfinished
+from replay.recording import read_recording
+from wire import protocol
+from wire.transport import Outbox, Pump, Received, wait_for_subscribers
+from wire.zenoh_config import free_tcp_endpoint, peer_config
+
+LIMITS = ServiceLimits(
+    max_sessions=2, idle_timeout=2.0, subscriber_timeout=1.0, max_grid=6, max_steps=100,
+    max_session_mb=1.0,
+)
+
+
+def _config(**changes: object) -> dict:
+    return {
+        "seed": 0, "grid": 3, "frame": "feedback", "steps": 10, "learner": {}, "dataset": {},
+        "signal": "features", **changes,
+    }
+
+
+def _next(inbox: queue.SimpleQueue[Received], match: Callable[[protocol.Message], bool]):
+    while True:
+        message = protocol.decode(inbox.get(timeout=TIMEOUT).data)
+        if match(message):
+            return message
+
+
+def _event(sid: str, kind: str) -> Callable[[protocol.Message], bool]:
+    return lambda m: m.session == sid and m.fields["event"] == kind
+
+
+def test_the_cli_flags_give_the_limits_and_bad_ones_are_refused() -> None:
+    parser = argparse.ArgumentParser()
+    add_options(parser)
+    assert from_args(parser.parse_args([])) == ServiceLimits()
+    limits = from_args(parser.parse_args(["--max-sessions", "3", "--idle-timeout", "9.5"]))
+    assert (limits.max_sessions, limits.idle_timeout) == (3, 9.5)
+    with pytest.raises(ValueError, match="max_sessions must be positive"):
+        ServiceLimits(max_sessions=0)
+
+
+def test_the_memory_estimate_grows_with_grid_steps_and_features() -> None:
+    base = session_memory_bytes(5, 2, 100)
+    assert session_memory_bytes(6, 2, 100) > base
+    assert session_memory_bytes(5, 2, 200) > base
+    assert session_memory_bytes(5, 2, 100, 57) > base
+    assert session_memory_bytes(5, 4, 100) > base  # guidance: four classes
+
+
+def test_rejections_idle_timeout_and_a_re_sent_config(tmp_path: Path) -> None:
+    endpoint, client_endpoint = free_tcp_endpoint(), free_tcp_endpoint()
+    inbox: queue.SimpleQueue[Received] = queue.SimpleQueue()
+    with zenoh.open(peer_config([client_endpoint], ())) as client:
+        pump = Pump(client, "cfbci/*/event", "event", inbox)
+        service = SPAWN.Process(
+            target=serve, args=([endpoint], [client_endpoint], tmp_path),
+            kwargs={"limits": LIMITS},
+        )
+        service.start()
+        try:
+            outbox = Outbox(client)
+            assert wait_for_subscribers(outbox.publisher("cfbci/a/config"), TIMEOUT)
+            rejected = {
+                "big": (_config(grid=7), "field 'grid' must be in 2..6"),
+                "long": (_config(steps=101), "field 'steps' must be in 1..100"),
+                "heavy": (_config(grid=6, frame="guidance", steps=100), "MiB"),
+                "eps": (_config(learner={"eps": 0.9}), "bad config"),
+            }
+            for sid, (config, problem) in rejected.items():
+                sent = outbox.send("config", sid, config)
+                event = _next(inbox, _event(sid, "session_rejected"))
+                assert problem in event.fields["message"]
+                assert event.fields["config_t_ns"] == sent.t_ns
+
+            # A running session, and its config sent again: answered, not rejected.
+            first = outbox.send("config", "a", _config())
+            started = _next(inbox, _event("a", "session_started"))
+            assert started.fields["config_t_ns"] == first.t_ns
+            outbox.repeat(first)
+            again = _next(inbox, lambda m: m.session == "a")
+            assert again.fields["event"] == "session_started"
+            assert again.fields["config_t_ns"] == first.t_ns
+            # Another config on its id is rejected under its own t_ns; "a" goes on.
+            other = outbox.send("config", "a", _config(seed=1))
+            event = _next(inbox, _event("a", "session_rejected"))
+            assert event.fields["config_t_ns"] == other.t_ns != first.t_ns
+            outbox.send("config", "b", _config())
+            _next(inbox, _event("b", "session_started"))
+            outbox.send("config", "c", _config())  # a third: over max_sessions
+            assert "maximum of 2" in _next(inbox, _event("c", "session_rejected")).fields[
+                "message"
+            ]
+            # No epoch for idle_timeout: "a" is ended with a rejection naming its config.
+            idle = _next(inbox, lambda m: m.session == "a" and m.fields["event"] != "info")
+            assert idle.fields["event"] == "session_rejected"
+            assert "no epoch for 2 s" in idle.fields["message"]
+            assert idle.fields["config_t_ns"] == first.t_ns
+            # "b" (started after "a") is ended next: by then "a"'s recording was closed,
+            # while the service still runs (it handles one thing at a time).
+            _next(inbox, _event("b", "session_rejected"))
+            recording = read_recording(tmp_path / "a.mcap")
+            assert not recording.truncated and not unfinished(recording)
+            outbox.close()
+        finally:
+            service.terminate()
+            service.join(TIMEOUT)
+            pump.close()
+    assert service.exitcode == 0

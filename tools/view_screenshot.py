@@ -1,0 +1,65 @@
+"""Save a screenshot of a page of ``cfbci view`` once it shows a session at a given step.
+
+Headless Chromium (Debian's ``chromium`` and ``chromium-driver``) driven by Selenium, a
+fresh profile, the viewport set exactly (CSS pixels, times ``--scale``). The README's
+``docs/operator-view.png`` was made with a live session on ``s4.mat``::
+
+    cfbci serve --listen tcp/127.0.0.1:7447 &
+    cfbci view --connect tcp/127.0.0.1:7447 --port 8080 &
+    cfbci source --session s4 --dataset ../shared/datasets/errp-features-s4/s4.mat \\
+        --seed 0 --steps 300 --interval 0.1 --connect tcp/127.0.0.1:7447 &
+    .venv/bin/python tools/view_screenshot.py 'http://127.0.0.1:8080/?session=s4' \\
+        docs/operator-view.png --step 240
+"""
+
+from __future__ import annotations
+
+import argparse
+import tempfile
+from pathlib import Path
+
+from selenium import webdriver
+from selenium.webdriver.chrome.service import Service
+from selenium.webdriver.support.ui import WebDriverWait
+
+FLAGS = (
+    "--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
+    "--disable-component-update", "--disable-sync", "--no-first-run", "--hide-scrollbars",
+)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("url", help="page of cfbci view, e.g. http://127.0.0.1:8080/?session=s4")
+    parser.add_argument("out", type=Path, help="PNG file to write")
+    parser.add_argument("--step", type=int, default=1, help="wait until this step is shown")
+    parser.add_argument("--size", type=int, nargs=2, default=(1440, 880), metavar=("W", "H"),
+                        help="viewport, CSS pixels (default 1440 880)")
+    parser.add_argument("--scale", type=float, default=1.5, help="device pixel ratio")
+    parser.add_argument("--timeout", type=float, default=600.0, help="seconds to wait")
+    args = parser.parse_args()
+    options = webdriver.ChromeOptions()
+    options.binary_location = "/usr/bin/chromium"
+    for flag in FLAGS:
+        options.add_argument(flag)
+    with tempfile.TemporaryDirectory() as profile:
+        options.add_argument(f"--user-data-dir={profile}")
+        driver = webdriver.Chrome(options=options, service=Service("/usr/bin/chromedriver"))
+        try:
+            driver.execute_cdp_cmd("Emulation.setDeviceMetricsOverride", {
+                "width": args.size[0], "height": args.size[1],
+                "deviceScaleFactor": args.scale, "mobile": False,
+            })
+            driver.get(args.url)
+            shown = "return Number(document.getElementById('view').dataset.step) || 0"
+            WebDriverWait(driver, args.timeout, poll_frequency=0.05).until(
+                lambda d: d.execute_script(shown) >= args.step
+            )
+            driver.save_screenshot(str(args.out))
+        finally:
+            driver.quit()
+    print(f"{args.out}: {args.url} at step {args.step} or later")
+
+
+if __name__ == "__main__":
+    main()
