@@ -27,7 +27,7 @@ from cfbci.flood import add_flood_parser
 from cfbci.limits import add_options as add_limit_options
 from cfbci.make_datasets import add_datasets_command
 from cfbci.memory import keep_freed_memory
-from cfbci.parallel import Scheduler, add_scheduler_options
+from cfbci.parallel import Scheduler, add_scheduler_options, run_parallel
 from cfbci.plane_worlds import (
     PLANE_WORLDS,
     add_plane_world_options,
@@ -97,7 +97,15 @@ def _add_simulate(commands: argparse._SubParsersAction) -> None:
         help="grid (N x N, --grid), line (5 states), pick-and-place (624 states); in the "
         "plane: continuous (goal points, cardinal frame) or puddle (660 tasks, mixed frame)",
     )
-    p.add_argument("--frame", choices=FRAMES, default="feedback")
+    p.add_argument(
+        "--frame", choices=(*FRAMES, "hypotheses"), default="feedback",
+        help="the user's frame, or 'hypotheses': (task, frame) pairs, the frame unknown to the "
+        "learner (the teacher's frame alternates with the seed: even feedback, odd guidance)",
+    )
+    p.add_argument(
+        "--shuffle-labels", action="store_true",
+        help="--frame hypotheses: permute the dataset's labels (the shuffled-label control)",
+    )
     p.add_argument("--planner", choices=PLANNERS, default="uncertainty")
     p.add_argument("--baseline", choices=BASELINES, help="run the calibrated baseline instead")
     p.add_argument(
@@ -116,6 +124,33 @@ def _add_simulate(commands: argparse._SubParsersAction) -> None:
     p.set_defaults(run=_run_simulate)
 
 
+def _simulate_frame_hypotheses(args: argparse.Namespace, console: Console) -> int:
+    """``--frame hypotheses``: (task, frame) pairs, the user's frame unknown."""
+    from cfbci.frame_sessions import FrameJob, frame_hypotheses_report, run_frame_job
+
+    settings = {"planner": "random", "power_prior": False, **parse_settings(args.set)}
+    config = LearnerConfig.from_dict(settings)
+    data = data_spec(args)
+    data.resolve("guidance")  # fail early on a bad dataset
+    jobs = [
+        FrameJob(seed, args.world, args.grid, config, data, args.steps, args.shuffle_labels)
+        for seed in range(args.first_seed, args.first_seed + args.seeds)
+    ]
+    sessions = run_parallel(
+        run_frame_job, jobs, scheduler=Scheduler.from_options(args.scheduler, args.jobs),
+        description="sessions", console=console,
+    )
+    summary = frame_hypotheses_report(sessions, args.steps)
+    console.print(summary)
+    if args.json:
+        report = {"config": {"world": args.world, "frame": "hypotheses",
+                             "learner": config.to_dict(), "dataset": data.describe(),
+                             "shuffle_labels": args.shuffle_labels},
+                  "sessions": sessions, "summary": summary}
+        args.json.write_text(json.dumps(report, indent=2) + "\n")
+    return 0
+
+
 def _run_simulate(args: argparse.Namespace, console: Console) -> int:
     from cfbci.simulate import print_report, simulate
 
@@ -127,6 +162,8 @@ def _run_simulate(args: argparse.Namespace, console: Console) -> int:
         if args.json:
             args.json.write_text(json.dumps(report, indent=2) + "\n")
         return 0
+    if args.frame == "hypotheses":
+        return _simulate_frame_hypotheses(args, console)
     settings = {"frame": args.frame, "planner": args.planner, **parse_settings(args.set)}
     config = SessionConfig(
         steps=args.steps,

@@ -1,0 +1,145 @@
+"""Offline sessions with frame hypotheses (method-extensions §4): the user's frame unknown.
+
+The teacher's frame alternates with the seed: ``("feedback", "guidance")[seed % 2]``, so
+seeds 0..2N-1 give N sessions of each. Its task is drawn as usual; signals come from the
+dataset classes the world and frame map labels to (line world: feedback classes 0, 1 =
+correct, error; guidance classes 0, 1, 2 = right, left, no-move). With ``shuffle_labels``
+the dataset's labels are permuted once (from the data stream) before the session: the
+signals then say nothing about the labels, the shuffled-label control of the page.
+Random streams are those of :mod:`calibration_free.session`; the world stream drives the
+line world's edge moves.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from acquisition.labelled import LabelledFeatures
+from acquisition.sources import DataSpec
+from acquisition.user import SimulatedUser
+from calibration_free.config import LearnerConfig
+from calibration_free.frame_hypotheses import FrameHypothesesLearner
+from calibration_free.session import session_streams
+from calibration_free.world import World, transition_draws
+from calibration_free.worlds import make_world
+
+TEACHER_FRAMES: tuple[str, ...] = ("feedback", "guidance")
+
+
+@dataclass(frozen=True)
+class FrameSessionResult:
+    """One frame-hypotheses session.
+
+    Attributes
+    ----------
+    seed : int
+    teacher_frame : str
+    task : int
+        The user's task.
+    first_confident_step : int or None
+        First step (1-based) whose beliefs, after that step's signal, are confident.
+    first_confident_correct : bool or None
+        Whether that pair is the user's (task, frame).
+    winning_frame : str
+        Frame of the best pair at the end.
+    user_pair_confidence : tuple of float
+        Pairwise confidence of the user's pair after every step.
+    user_task_likelihood : tuple of float
+        Normalised likelihood of the user's pair at steps 10, 20, ...
+    """
+
+    seed: int
+    teacher_frame: str
+    task: int
+    first_confident_step: int | None
+    first_confident_correct: bool | None
+    winning_frame: str
+    user_pair_confidence: tuple[float, ...]
+    user_task_likelihood: tuple[float, ...]
+
+    def to_dict(self) -> dict[str, object]:
+        return {
+            "seed": self.seed, "teacher_frame": self.teacher_frame, "task": self.task,
+            "first_confident_step": self.first_confident_step,
+            "first_confident_correct": self.first_confident_correct,
+            "winning_frame": self.winning_frame,
+            "user_pair_confidence": list(self.user_pair_confidence),
+            "user_task_likelihood": list(self.user_task_likelihood),
+        }
+
+
+def run_frame_session(
+    seed: int,
+    world: World,
+    config: LearnerConfig,
+    data: LabelledFeatures,
+    steps: int,
+    shuffle_labels: bool = False,
+) -> FrameSessionResult:
+    """One closed-loop session of ``steps`` actions."""
+    data_rng, user_rng, learner_rng = session_streams(seed)
+    labels = data_rng.permutation(data.labels) if shuffle_labels else data.labels
+    teacher_frame = TEACHER_FRAMES[seed % 2]
+    user = SimulatedUser(world, teacher_frame, labels, user_rng)
+    learner = FrameHypothesesLearner(world, TEACHER_FRAMES, replace(config), learner_rng)
+    truth = TEACHER_FRAMES.index(teacher_frame) * world.n_tasks + user.target
+    draws = transition_draws(seed)
+    state = user.start_state
+    first, correct, confidence, likelihood = None, None, [], []
+    for step in range(1, steps + 1):
+        action = learner.propose(state).action
+        index, _ = user.answer(state, action)
+        learner.observe(state, action, data.features[index])
+        beliefs = learner.beliefs()
+        confidence.append(float(beliefs.confidence[truth]))
+        if step % 10 == 0:
+            likelihood.append(float(beliefs.normalised()[truth]))
+        if first is None and beliefs.confident:
+            first, correct = step, beliefs.best == truth
+        state = world.step(state, action, draws.uniform(step))
+    winning = learner.pair(learner.beliefs().best)[1]
+    return FrameSessionResult(
+        seed, teacher_frame, user.target, first, correct, winning, tuple(confidence),
+        tuple(likelihood),
+    )
+
+
+@dataclass(frozen=True)
+class FrameJob:
+    """One frame-hypotheses session (picklable, for the workers)."""
+
+    seed: int
+    world: str
+    grid: int
+    config: LearnerConfig
+    data: DataSpec
+    steps: int
+    shuffle_labels: bool
+
+
+def run_frame_job(job: FrameJob) -> dict[str, object]:
+    """The JSON record of one session."""
+    data = job.data.resolve("guidance")
+    if callable(data):
+        data = data(session_streams(job.seed)[0])
+    world = make_world(job.world, grid=job.grid)
+    return run_frame_session(
+        job.seed, world, job.config, data, job.steps, job.shuffle_labels
+    ).to_dict()
+
+
+def frame_hypotheses_report(sessions: list[dict[str, object]], steps: int) -> dict[str, object]:
+    """Summary of frame-hypotheses sessions: how often and how soon the user's pair wins."""
+    first = [s["first_confident_step"] for s in sessions]
+    by_100 = [max(s["user_pair_confidence"][:100]) > 0.9 for s in sessions]
+    return {
+        "sessions_confident": sum(f is not None for f in first),
+        "first_confident_correct": sum(bool(s["first_confident_correct"]) for s in sessions),
+        "user_pair_confident_by_step_100": float(np.mean(by_100)),
+        "median_first_confident_step": float(
+            np.median([f if f is not None else steps + 1 for f in first])
+        ),
+        "undecided": float(np.mean([f is None for f in first])),
+    }
