@@ -264,6 +264,7 @@ class _Replay:
         self.epoch_sent_ns: dict[int, int] = {}  # step -> its epoch's t_ns
         self.latency_ns: dict[int, int] = {}  # step k -> epoch k published to move k + 1
         self.next_step = 1  # the next move to answer
+        self.last_truth: protocol.Message | None = None  # re-sent with the next epoch
         self.agent = user.start_state
         self.first_target: int | None = None
         self.correct = self.wrong = 0
@@ -326,8 +327,10 @@ class _Replay:
         epoch = self.signals.values[index]
         sent = self.resender.send("epoch", sid, self.signals.epoch_fields(step), epoch)
         self.epoch_sent_ns[step] = sent.t_ns
+        if self.last_truth is not None:  # lost if the service restarted before it came
+            self.resender.also(self.last_truth)
         truth = {"step": step, "target": target, "label": label}
-        self.resender.send("truth", sid, truth, companion=True)
+        self.last_truth = self.resender.send("truth", sid, truth, companion=True)
         event = None
         if fields["target_reached"]:
             event = "correct_target" if state == target else "wrong_target"

@@ -4,8 +4,10 @@ The teacher's frame alternates with the seed: ``("feedback", "guidance")[seed % 
 seeds 0..2N-1 give N sessions of each. Its task is drawn as usual; signals come from the
 dataset classes the world and frame map labels to (line world: feedback classes 0, 1 =
 correct, error; guidance classes 0, 1, 2 = right, left, no-move). With ``shuffle_labels``
-the dataset's labels are permuted once (from the data stream) before the session: the
-signals then say nothing about the labels, the shuffled-label control of the page.
+every answer is a signal drawn uniformly from the whole dataset (data stream) whatever the
+user's label: the signals then say nothing about the labels, the shuffled-label control of
+the page. (Permuting the dataset's labels once is not such a control: the user draws from
+fixed per-class pools without replacement, and a decoder learns the pools' members.)
 Random streams are those of :mod:`calibration_free.session`; the world stream drives the
 line world's edge moves.
 """
@@ -80,9 +82,8 @@ def run_frame_session(
 ) -> FrameSessionResult:
     """One closed-loop session of ``steps`` actions."""
     data_rng, user_rng, learner_rng = session_streams(seed)
-    labels = data_rng.permutation(data.labels) if shuffle_labels else data.labels
     teacher_frame = TEACHER_FRAMES[seed % 2]
-    user = SimulatedUser(world, teacher_frame, labels, user_rng)
+    user = SimulatedUser(world, teacher_frame, data.labels, user_rng)
     learner = FrameHypothesesLearner(world, TEACHER_FRAMES, replace(config), learner_rng)
     truth = TEACHER_FRAMES.index(teacher_frame) * world.n_tasks + user.target
     draws = transition_draws(seed)
@@ -91,6 +92,8 @@ def run_frame_session(
     for step in range(1, steps + 1):
         action = learner.propose(state).action
         index, _ = user.answer(state, action)
+        if shuffle_labels:  # the control: a signal drawn regardless of the label
+            index = int(data_rng.integers(len(data.labels)))
         learner.observe(state, action, data.features[index])
         beliefs = learner.beliefs()
         confidence.append(float(beliefs.confidence[truth]))

@@ -105,8 +105,9 @@ def session_memory_bytes(grid: int, n_classes: int, steps: int, n_features: int 
     With T = S = ``grid ** 2`` tasks and states, A = 5 actions, K classes, F = 10 folds and
     d features: ``8 * ((4 + K) T S A K + 2 T (F + 1) K d^2 + steps (T K + d))`` — the
     frame's and the planner's tables, the per-fold class scatter matrices and the decoders
-    fitted from them, and the history. Measured (peak resident growth, 30 epochs, d = 57):
-    grid 5, 29 MiB (estimate 30); grid 16, 313 MiB (estimate 330).
+    fitted from them, and the history: an upper bound. Measured (peak resident growth, 30
+    epochs, d = 57) with the learner of its writing: grid 5, 29 MiB (estimate 28); grid 16,
+    313 MiB (estimate 309); the compact statistics since: grid 16, 33 MiB.
 
     Parameters
     ----------

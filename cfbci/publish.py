@@ -345,6 +345,7 @@ def publish_recording(
         while not answers.started:
             receive()
         truths = 0
+        last_truth: protocol.Message | None = None  # re-sent with the next epoch
         for (fields, payload), gap_ns in zip(published.epochs, published.gaps_ns, strict=True):
             step = fields["step"]
             while step not in answers.moves:
@@ -354,8 +355,10 @@ def publish_recording(
                 while time.monotonic_ns() < due:
                     receive(due)
             sent_ns[step] = resender.send("epoch", sid, fields, payload).t_ns
+            if last_truth is not None:  # lost if the service restarted before it came
+                resender.also(last_truth)
             if step in published.truths:
-                resender.send("truth", sid, published.truths[step], companion=True)
+                last_truth = resender.send("truth", sid, published.truths[step], companion=True)
                 truths += 1
         n = len(published.epochs)
         while not (answers.ended and len(answers.states) == n + 1):

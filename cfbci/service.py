@@ -97,7 +97,7 @@ class Recordings:
     def __init__(self, directory: Path | None) -> None:
         self.directory = directory
         self._recorders: dict[str, SessionRecorder] = {}
-        self._last_truth: dict[str, int] = {}  # session -> step of its latest truth
+        self._truths: dict[str, set[int]] = {}  # session -> steps whose truth is recorded
         self._awaiting: dict[str, int] = {}  # ended session -> step whose truth closes it
         self._deadlines: dict[str, int] = {}  # ended session -> monotonic ns to close anyway
 
@@ -137,9 +137,9 @@ class Recordings:
             recorder.record(topic, message, log_time)
         os.replace(partial, path)
         recorder.path = path
-        truths = recording.messages.get("/truth", [])
-        if truths:
-            self._last_truth[recording.session] = truths[-1][1]["step"]
+        self._truths[recording.session] = {
+            m["step"] for _, m in recording.messages.get("/truth", [])
+        }
         self._recorders[recording.session] = recorder
         return recorder
 
@@ -150,8 +150,8 @@ class Recordings:
     def truth(self, received: Received, latest_step: int) -> None:
         """Record a ``truth`` message on its session's ``/truth`` (else log why not).
 
-        Only the truth of a step after the latest recorded one and at most ``latest_step``
-        (the session's last move; 0 when not running) is recorded: once per step.
+        Only the truth of a step not recorded yet and at most ``latest_step`` (the
+        session's last move; 0 when not running) is recorded: once per step.
         """
         try:
             message = protocol.decode(received.data, key_expr=received.key_expr)
@@ -163,14 +163,13 @@ class Recordings:
             log.debug("truth of session %r not recorded: no open recording", message.session)
             return
         step = message.fields["step"]
-        if not self._last_truth.get(message.session, 0) < step <= max(
-            latest_step, self._awaiting.get(message.session, 0)
-        ):
+        recorded = self._truths.setdefault(message.session, set())
+        if step in recorded or step > max(latest_step, self._awaiting.get(message.session, 0)):
             log.debug("truth of step %d of session %r not recorded", step, message.session)
             return  # re-sent with its epoch, or of no step yet
         record = {"seq": message.seq, "t_ns": message.t_ns, **message.fields}
         recorder.record("/truth", record, received.t_ns)
-        self._last_truth[message.session] = message.fields["step"]
+        recorded.add(step)
         if self._awaiting.get(message.session) == message.fields["step"]:
             self._close(message.session)
 
@@ -178,7 +177,8 @@ class Recordings:
         """The session ended at ``last_step``: close now, or once that step's truth is in."""
         if session not in self._recorders:
             return
-        if self._last_truth.get(session, last_step) == last_step:
+        recorded = self._truths.get(session)
+        if not recorded or last_step in recorded:
             self._close(session)
         else:
             self._awaiting[session] = last_step
@@ -193,7 +193,7 @@ class Recordings:
 
     def _close(self, session: str) -> None:
         self._recorders.pop(session).close()
-        self._last_truth.pop(session, None)
+        self._truths.pop(session, None)
         self._awaiting.pop(session, None)
         self._deadlines.pop(session, None)
 

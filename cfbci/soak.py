@@ -13,7 +13,11 @@ default learner, as fast as the service answers (no reaction time).
   k + 1 received, the source's clock) and the learner's update inside the service
   (:attr:`cfbci.service._Session.update_ns`, sent back through a pipe at the end). A row
   per ``--every`` steps is printed as the session runs; the table at the end gives, per
-  window, the RSS and its growth and the median and 99th percentile of both times.
+  window, the RSS and its growth, the median and 99th percentile of both times, and a
+  speed reference taken at the window's end while the service waits: the median of 30
+  steps of the same learner run offline in this process at a short history (50 to 350
+  signals). The machine's load moves every time; the learner's update over the reference
+  is what grows with the history.
   *Growth*: least-squares slopes of RSS (KB per step) and of the per-step times (ms per
   1,000 steps) over the first and the second half of the session after its first window
   (warm-up): for growth that is at most linear in the history, the second half's RSS slope
@@ -21,7 +25,10 @@ default learner, as fast as the service answers (no reaction time).
   this process with ``tracemalloc``: the memory the MCAP writer keeps per message until the
   file is closed (its chunk indexes) times the recording's messages per step, and the
   memory per step of the service's learner for the same config run offline (steps 40 to
-  200, random feature vectors of the recording's size).
+  200, random feature vectors of the recording's size), both what it keeps and its peak
+  within a step (a step's temporaries grow with the history too, and RSS holds the peak).
+  Each part records to its own directory: a service starting on a directory reads the
+  recordings there (to resume unfinished sessions).
 * **Short sessions** (``--sessions``, default 200, of ``--session-steps`` steps each, one
   after the other, distinct ids): the RSS before the first, after each. The growth from
   the end of the first session to the end of the last, per session, is what a leak would
@@ -57,7 +64,7 @@ from calibration_free.learner import CalibrationFreeLearner
 from calibration_free.session import StepRecord
 from calibration_free.world import GridWorld
 from cfbci.service import serve
-from replay.recording import SessionRecorder
+from replay.recording import SessionRecorder, decode_array, read_recording
 from wire.messages import learner_settings
 from wire.zenoh_config import free_tcp_endpoint, peer_config
 
@@ -198,27 +205,78 @@ def _recording_figures(path: Path, steps: int) -> tuple[float, int]:
     return summary.statistics.message_count / steps, n_features
 
 
-def _learner_bytes_per_step(n_features: int, steps: int = 200, warmup: int = 40) -> float:
-    """Python memory the learner's history takes per step, bytes (tracemalloc, steps
-    ``warmup`` to ``steps``): the service's learner for the soak's config, offline, fed
-    random feature vectors (what it keeps does not depend on their values)."""
-    world = GridWorld(GRID)
-    learner = CalibrationFreeLearner(world, learner_settings({}, "feedback"),
-                                     np.random.default_rng(0))
-    signals = np.random.default_rng(1).normal(size=(steps, n_features)).astype(np.float32)
-    state, before = 0, 0
+class _OfflineLearner:
+    """The service's learner for the soak's config, run in this process on random feature
+    vectors: the reference for the memory a step of history takes and for the machine's
+    speed at the moment (what the learner keeps, and its cost at a short history, do not
+    depend on the values)."""
+
+    def __init__(self, n_features: int) -> None:
+        self.world = GridWorld(GRID)
+        settings = learner_settings({}, "feedback")
+        self.learner = CalibrationFreeLearner(self.world, settings, np.random.default_rng(0))
+        self.n_features = n_features
+        self.state = 0
+        self._rng = np.random.default_rng(1)
+
+    def step(self) -> int:
+        """One update (``propose`` then ``observe``, as a service's step); its time, ns."""
+        signal = self._rng.normal(size=self.n_features).astype(np.float32)
+        started = time.perf_counter_ns()
+        action = self.learner.propose(self.state).action
+        self.learner.observe(self.state, action, signal)
+        elapsed = time.perf_counter_ns() - started
+        self.state = self.world.step(self.state, action)
+        return elapsed
+
+
+def _learner_bytes_per_step(
+    n_features: int, steps: int = 200, warmup: int = 40
+) -> tuple[float, float]:
+    """Python memory the learner's history takes per step, bytes (tracemalloc, from step
+    ``warmup`` to step ``steps`` of an :class:`_OfflineLearner`): what it keeps between
+    steps, and its peak within a step (what it keeps plus the step's temporaries, which
+    also grow with the history; with freed memory kept in the heap, RSS follows the peak).
+    """
+    offline = _OfflineLearner(n_features)
+    for _ in range(warmup - 1):
+        offline.step()
     tracemalloc.start()
     try:
-        for step, signal in enumerate(signals, start=1):
-            action = learner.propose(state).action
-            learner.observe(state, action, signal)
-            state = world.step(state, action)
-            if step == warmup:
-                before = tracemalloc.get_traced_memory()[0]
-        after = tracemalloc.get_traced_memory()[0]
+        kept_before, peak_before = _traced_step(offline)
+        for _ in range(steps - warmup - 1):
+            offline.step()
+        kept_after, peak_after = _traced_step(offline)
     finally:
         tracemalloc.stop()
-    return (after - before) / (steps - warmup)
+    n = steps - warmup
+    return (kept_after - kept_before) / n, (peak_after - peak_before) / n
+
+
+def _traced_step(offline: _OfflineLearner) -> tuple[int, int]:
+    """One step under tracemalloc: bytes traced after it, and their peak during it."""
+    tracemalloc.reset_peak()
+    offline.step()
+    return tracemalloc.get_traced_memory()
+
+
+class _SpeedReference:
+    """Median time of 30 offline learner steps at a short history (50 to 350 signals
+    over a 10,000-step soak), taken at every window of the long session while the service
+    waits: how fast the machine is then, so that growth can be told from load."""
+
+    def __init__(self, recording: Path, warmup: int = 50, steps: int = 30) -> None:
+        self._recording, self._warmup, self._steps = recording, warmup, steps
+        self._offline: _OfflineLearner | None = None
+
+    def measure_ms(self) -> float:
+        if self._offline is None:  # the feature size, from the recording so far
+            features = read_recording(self._recording).messages["/features"][0][1]
+            self._offline = _OfflineLearner(decode_array(features).size)
+            for _ in range(self._warmup):
+                self._offline.step()
+        offline = self._offline
+        return float(np.median([offline.step() for _ in range(self._steps)])) / 1e6
 
 
 def soak_long(
@@ -246,6 +304,8 @@ def soak_long(
         "recorder": {...}, "learner": {...}}`` (memory in MB, times in ms).
     """
     rss: list[int] = []
+    reference_ms: list[float] = []
+    reference = _SpeedReference(record_dir / f"{_LONG}.mcap")
     started = time.perf_counter()
 
     with _running_service(record_dir) as service:
@@ -253,6 +313,7 @@ def soak_long(
         def on_step(record: StepRecord) -> None:
             rss.append(rss_bytes(service.pid))
             if record.step % every == 0:
+                reference_ms.append(reference.measure_ms())
                 console.print(
                     f"step {record.step:>6}: service RSS {rss[-1] / _MB:7.1f} MB "
                     f"({(rss[-1] - rss[max(0, record.step - every - 1)]) / _MB:+.1f} MB over "
@@ -272,12 +333,12 @@ def soak_long(
             f"end-to-end and {len(update)} update times"
         )
     windows = [
-        _window_row(end, every, rss_array, end_to_end, update)
-        for end in range(every, steps + 1, every)
+        {**_window_row(end, every, rss_array, end_to_end, update), "reference_ms": ms}
+        for end, ms in zip(range(every, steps + 1, every), reference_ms, strict=True)
     ]
     per_message = _recorder_bytes_per_message()
     per_step, n_features = _recording_figures(record_dir / f"{_LONG}.mcap", steps)
-    learner_bytes = _learner_bytes_per_step(n_features)
+    learner_kept, learner_peak = _learner_bytes_per_step(n_features)
     return {
         "steps": steps,
         "every": every,
@@ -293,7 +354,11 @@ def soak_long(
             "messages_per_step": per_step,
             "kb_per_step": per_message * per_step / 1024,
         },
-        "learner": {"n_features": n_features, "kb_per_step": learner_bytes / 1024},
+        "learner": {
+            "n_features": n_features,
+            "kb_per_step": learner_kept / 1024,
+            "peak_kb_per_step": learner_peak / 1024,
+        },
     }
 
 
@@ -367,11 +432,17 @@ def bench_soak(
         )
     console = console or Console()
     with tempfile.TemporaryDirectory(prefix="cfbci-soak-") as temporary:
-        directory = record_dir or Path(temporary)
-        console.print(f"long session: {steps} steps, T = {GRID * GRID}, recording to {directory}")
-        long = soak_long(steps, seed, every, directory, console)
-        console.print(f"{sessions} short sessions of {session_steps} steps")
-        short = soak_short(sessions, session_steps, seed, directory)
+        # One directory per part: a service starting on a directory reads its recordings
+        # (to resume unfinished sessions), which would charge the long one to the short ones.
+        base = record_dir or Path(temporary)
+        long_dir, short_dir = base / "long", base / "short"
+        for directory in (long_dir, short_dir):
+            directory.mkdir(parents=True, exist_ok=True)
+        console.print(f"long session: {steps} steps, T = {GRID * GRID}, recording to {long_dir}")
+        long = soak_long(steps, seed, every, long_dir, console)
+        console.print(f"{sessions} short sessions of {session_steps} steps, recording to "
+                      f"{short_dir}")
+        short = soak_short(sessions, session_steps, seed, short_dir)
     return {
         "grid": GRID,
         "long": long,
@@ -386,15 +457,20 @@ def print_soak(report: dict[str, Any], console: Console) -> None:
     table = Table(title=f"bench soak: one session of {long['steps']} steps, "
                         f"T = {report['grid'] ** 2} (service process)")
     for column in ("step", "RSS MB", "growth MB", "end to end median / p99 ms",
-                   "learner update median / p99 ms"):
+                   "learner update median / p99 ms", "reference ms", "update / reference"):
         table.add_column(column, justify="right")
     for row in long["windows"]:
         table.add_row(
             str(row["step"]), f"{row['rss_mb']:.1f}", f"{row['rss_growth_mb']:+.1f}",
             f"{row['end_to_end_median_ms']:.2f} / {row['end_to_end_p99_ms']:.2f}",
             f"{row['update_median_ms']:.2f} / {row['update_p99_ms']:.2f}",
+            f"{row['reference_ms']:.2f}", f"{row['update_median_ms'] / row['reference_ms']:.2f}",
         )
     console.print(table)
+    console.print(
+        "reference: the median of 30 steps of the same learner offline in this process, at "
+        "a short history, taken at the window's end (the machine's speed then)", soft_wrap=True,
+    )
     growth, recorder = long["growth"], long["recorder"]
     first, second = growth["halves"]["first"], growth["halves"]["second"]
     console.print(
@@ -413,8 +489,11 @@ def print_soak(report: dict[str, Any], console: Console) -> None:
         f"{recorder['bytes_per_message']:.0f} bytes per message until the file is closed "
         f"(chunk indexes), {recorder['messages_per_step']:.2f} messages per step: "
         f"{recorder['kb_per_step']:.2f} KB per step; the learner (offline, d = "
-        f"{learner['n_features']}) {learner['kb_per_step']:.2f} KB per step; together "
-        f"{recorder['kb_per_step'] + learner['kb_per_step']:.2f} KB per step", soft_wrap=True,
+        f"{learner['n_features']}) keeps {learner['kb_per_step']:.2f} KB per step, and its "
+        f"peak within a step grows by {learner['peak_kb_per_step']:.2f} KB per step; "
+        f"recorder and learner's peak together "
+        f"{recorder['kb_per_step'] + learner['peak_kb_per_step']:.2f} KB per step",
+        soft_wrap=True,
     )
     console.print(
         f"{short['sessions']} short sessions of {short['steps']} steps: service RSS "
@@ -447,13 +526,16 @@ def plot_soak(report: dict[str, Any], path: Path) -> None:
         median = np.array([np.median(values[max(0, i - window // 2): i + window // 2 + 1])
                            for i in range(len(values))])
         times.plot(epochs, median, color=colour, label=f"{label} (running median)")
+    ends = [row["step"] for row in long["windows"]]
+    times.plot(ends, [row["reference_ms"] for row in long["windows"]], "k^", markersize=4,
+               label="reference (offline, short history)")
     times.set(xlabel="step", ylabel="ms per step", title="per-step time",
               ylim=(0, 2 * np.percentile(long["end_to_end_ms"], 99)))
     times.legend(loc="upper left")
     sessions.plot(np.arange(1, short["sessions"] + 1), short["rss_mb"], "o-", markersize=2)
     sessions.set(xlabel="short session", ylabel="service RSS after it (MB)",
-                 title=f"{short['sessions']} sessions of {short['steps']} steps "
-                       f"(before the first: {short['rss_before_mb']:.0f} MB)")
+                 title=f"{short['sessions']} sessions of {short['steps']} steps\n"
+                       f"(RSS before the first: {short['rss_before_mb']:.0f} MB)")
     figure.savefig(path, dpi=120)
 
 

@@ -221,8 +221,8 @@ def summary_figure(cells: list[CellResult]) -> Any:
     """Three panels over the cells (a matplotlib Figure, built without pyplot).
 
     (a) steps to the first target per session (box plot and the seeds as dots; a session
-    without a target is drawn at steps + 1, above the dotted session length), (b) correct
-    targets per session, (c) wrong-target rate (wrong / all targets of the cell's
+    without a target is drawn at steps + 1, above the session length, then dotted), (b)
+    correct targets per session, (c) wrong-target rate (wrong / all targets of the cell's
     sessions, %, counts above the bars). Cells of one dataset share a colour.
     """
     from matplotlib.figure import Figure  # only here: importing cfbci.cli stays light
@@ -251,8 +251,10 @@ def summary_figure(cells: list[CellResult]) -> Any:
         ax.set_ylabel(ylabel)
         ax.set_title(f"({letter})", loc="left", fontweight="bold")
     steps = cells[0].results[0].steps
-    axes[0].axhline(steps, color="grey", ls=":", lw=1, label="session length\n(above: no target)")
-    axes[0].legend(loc="best", fontsize=7, frameon=False)
+    if any(r.first_target_step is None for c in cells for r in c.results):
+        axes[0].axhline(steps, color="grey", ls=":", lw=1,
+                        label="session length\n(above: no target)")
+        axes[0].legend(loc="best", fontsize=7, frameon=False)
     axes[1].yaxis.set_major_locator(MaxNLocator(integer=True))
     rates = [100 * c.report["summary"]["wrong_target_rate"] for c in cells]
     axes[2].bar(positions, rates, width=0.55, color=colours, alpha=0.7)

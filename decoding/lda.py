@@ -98,7 +98,8 @@ class PooledLinearDecoders(BatchedDecoders):
         intercept = np.where(informative[..., None], difference, 0.0)
         difference = self._scores(X, coef, intercept)  # (*J, n, *T, 1)
         uniform = ~informative[(*(slice(None),) * n_sets, None)][..., None]
-        error = np.exp(-difference, out=difference)
+        with np.errstate(over="ignore"):  # exp(+large) = inf gives p = 0, as it should
+            error = np.exp(-difference, out=difference)
         error += 1.0
         np.reciprocal(error, out=error)  # p(class 1) = logistic(difference)
         error[np.broadcast_to(uniform, error.shape)] = 0.5

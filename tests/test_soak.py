@@ -44,6 +44,8 @@ def test_the_long_session_is_measured_at_every_step(report: dict[str, Any]) -> N
     # the learner's update is part of the end-to-end time, for every step
     assert all(u < e for u, e in zip(long["update_ms"], long["end_to_end_ms"], strict=True))
     assert [row["step"] for row in long["windows"]] == [100, 200, 300]
+    assert all(row["reference_ms"] > 0 for row in long["windows"])
+    assert long["learner"]["n_features"] == 57 and long["learner"]["kb_per_step"] > 0
     assert long["rss_idle_mb"] < long["rss_mb"][0]  # a session takes memory
     assert long["recorder"]["messages_per_step"] == pytest.approx(6, abs=0.2)
 

@@ -1,11 +1,13 @@
 """The live view (``cfbci view``) in a real headless browser: Debian's Chromium driven by
 Selenium through chromedriver, fed by a real service and source over Zenoh on loopback.
 
-The view runs in a spawned process listening on its own Zenoh endpoint; each test's
-service connects to it and each source connects to both, as ``cfbci view --listen`` is
-used. The pages tell what they show in ``data-*`` attributes of ``#view`` (session,
-status, step, agent, layout, correct, wrong, best), which the tests compare with the
-messages the service published. Without Chromium the tests fail (CI installs it).
+The view runs in a spawned process listening on its own Zenoh endpoint; the services
+(one for the module, one more that records the session the re-publishing test sends
+again) connect to it and the sources connect to both, as ``cfbci view --listen`` is used.
+The pages tell what they show in ``data-*`` attributes of ``#view`` (session, status,
+step, agent, layout, correct, wrong, best), which the tests compare with the messages the
+service published. Without Chromium the tests fail (CI installs it). The last tests check
+the view's bookkeeping (:mod:`cfbci.view_model`) on real encoded messages.
 """
 
 from __future__ import annotations
@@ -384,10 +386,12 @@ def test_a_republished_recording_is_shown_as_it_was_recorded(
     steps = 80
     recorded = tmp_path / "recorded"
     first = free_tcp_endpoint()
-    with service_process(first, recorded, connect=(view_endpoint,)):  # closed: complete
+    # The recording is made on a service of its own network: on the view's network the
+    # fixture's service would serve the session too.
+    with service_process(first, recorded):  # closed: complete
         _wait_for_service(first)
         [future] = _start_sources(sources, [SourceSettings("rec", seed=SEED, steps=steps)],
-                                  [first, view_endpoint])
+                                  [first])
         original = future.result()  # the source's own timeout guards it
     recording = read_recording(recorded / "rec.mcap")
     last_move = recording.messages["/move"][-1][1]

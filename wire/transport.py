@@ -264,6 +264,10 @@ class Resender:
             self._due_ns = time.monotonic_ns() + int(self.interval * 1e9)
         return message
 
+    def also(self, message: protocol.Message) -> None:
+        """Re-send ``message``, sent before, with the pending one until it is answered."""
+        self._group.append(message)
+
     def answered(self) -> None:
         """The pending message is answered: stop re-sending it and its companions."""
         self.pending, self._group = None, []
