@@ -116,8 +116,8 @@ def load_labelled(path: PathLike, *, frame: str = "feedback") -> LabelledFeature
     if suffix != ".npz":
         raise ValueError(
             f"{where}: unknown file extension {path.suffix!r}; expected .mat (MATLAB X and Y), "
-            ".npz (features or epochs), .mcap (a session recording), -epo.fif (MNE epochs) or "
-            ".xdf (an XDF recording)"
+            ".mcap (a session recording), -epo.fif (MNE epochs), .xdf (an XDF recording) or "
+            ".npz (features or epochs)"
         )
     arrays = _read_npz(path)
     if _npz_format(arrays, where) == "epochs":
@@ -168,8 +168,9 @@ def load_epochs(path: PathLike, *, frame: str = "feedback") -> LabelledEpochs:
         return _lab_epochs(path, frame)
     if path.suffix.lower() != ".npz":
         raise ValueError(
-            f"{where}: epochs are read from .npz, .mcap (session recordings of raw epochs), "
-            f"-epo.fif (MNE) or .xdf files; got extension {path.suffix!r}"
+            f"{where}: epochs are stored in .npz files; got extension {path.suffix!r} (session "
+            "recordings of raw epochs, .mcap, MNE epochs, -epo.fif, and XDF recordings, .xdf, "
+            "hold them too)"
         )
     arrays = _read_npz(path)
     if _npz_format(arrays, where) != "epochs":

@@ -619,7 +619,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         return args.run(args, console)
     except (ValueError, FileNotFoundError) as error:
-        Console(stderr=True).print(f"[bold red]error:[/] {error}")
+        # soft_wrap: a long path is never broken across lines (it can be copied)
+        Console(stderr=True).print(f"[bold red]error:[/] {error}", soft_wrap=True)
         return 2
     except zenoh.ZError as error:  # e.g. nobody at the endpoints, or credentials refused
         Console(stderr=True).print(
