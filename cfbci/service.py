@@ -375,9 +375,14 @@ class PipelineService:
             self.close()
 
     def close(self) -> None:
-        """Stop receiving, close every recording and undeclare the publishers."""
+        """Stop receiving, record the truths already received (a source's last truth may
+        still be queued when a stop comes right after its session ended), close every
+        recording and undeclare the publishers."""
         for pump in self._pumps:
             pump.close()
+        for received in self.intake.drain():
+            if received.tag == "truth":
+                self.handle(received)
         self.recordings.close()
         self._outbox.close()
 

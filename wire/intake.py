@@ -137,6 +137,16 @@ class Intake:
             self._stopped = True
             self._changed.notify_all()
 
+    def drain(self) -> list[Received]:
+        """Every message still queued, removed from the queues (for a clean shutdown)."""
+        with self._changed:
+            left = [m for fifo in self._fifos.values() for m in fifo.messages]
+            for fifo in self._fifos.values():
+                fifo.messages.clear()
+                fifo.bytes = 0
+            self._ready.clear()
+            return left
+
     def take_drops(self) -> Counter[str]:
         """Messages dropped per reason since the last call."""
         with self._changed:
