@@ -16,14 +16,18 @@ class SignalPools:
     n_classes : int
         Classes that must have signals (0..n_classes-1).
     rng : Generator
+    purpose : str, optional
+        Ends the error message of a missing class (e.g. " for the guidance frame").
     """
 
-    def __init__(self, labels: np.ndarray, n_classes: int, rng: np.random.Generator) -> None:
+    def __init__(
+        self, labels: np.ndarray, n_classes: int, rng: np.random.Generator, purpose: str = ""
+    ) -> None:
         labels = np.asarray(labels)
         self._members = [np.flatnonzero(labels == k) for k in range(n_classes)]
         empty = [k for k, members in enumerate(self._members) if len(members) == 0]
         if empty:
-            raise ValueError(f"the dataset has no signal of class(es) {empty}")
+            raise ValueError(f"the dataset has no signal of class(es) {empty}{purpose}")
         self._queues: list[list[int]] = [[] for _ in range(n_classes)]
         self.rng = rng
 

@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from acquisition.signal_pools import SignalPools
 from calibration_free.frames import CORRECT, ERROR, FRAMES
 from calibration_free.world import World
 from decoding.validation import check_option, check_range
@@ -67,13 +68,7 @@ class SimulatedUser:
         labels = np.asarray(labels)
         self._guidance = np.array(world.guidance_actions)
         n_classes = 2 if frame == "feedback" else len(self._guidance)
-        self._members = [np.flatnonzero(labels == k) for k in range(n_classes)]
-        empty = [k for k, members in enumerate(self._members) if len(members) == 0]
-        if empty:
-            raise ValueError(
-                f"the dataset has no signal of class(es) {empty} for the {frame} frame"
-            )
-        self._queues: list[list[int]] = [[] for _ in range(n_classes)]
+        self._pools = SignalPools(labels, n_classes, rng, f" for the {frame} frame")
         self.start_state = world.start_state(rng)
         self.target = int(rng.integers(world.n_tasks))
 
@@ -95,10 +90,7 @@ class SimulatedUser:
     def answer(self, state: int, action: int) -> tuple[int, int]:
         """(index of the signal in the dataset, its class) for ``action`` taken in ``state``."""
         label = self.label(state, action)
-        queue = self._queues[label]
-        if not queue:
-            queue.extend(self.rng.permutation(self._members[label]).tolist()[::-1])
-        return queue.pop(), label
+        return self._pools.draw(label), label
 
     def new_target(self) -> int:
         """Pick the next target uniformly among the tasks other than the current one."""
