@@ -189,6 +189,14 @@ class ContinuousGoalLearner:
         """The best particle, shape (2,)."""
         return self.particles[np.argmax(self.confidence)]
 
+    def uncertainty_map(self) -> tuple[np.ndarray, np.ndarray]:
+        """Candidate probe points (n_candidates, 2) and their uncertainty (n_candidates,)
+        under the current pool and weights (draws candidates and signals from the rng)."""
+        labels = np.swapaxes(
+            cardinal_guidance(np.array(self._points), self.particles, self.config.alpha), 0, 1
+        )
+        return self._uncertainty_map(np.array(self._signals), labels)
+
     def _weights(self) -> np.ndarray:
         return self.confidence / self.confidence.sum()
 

@@ -110,14 +110,11 @@ def test_the_uncertainty_map_vanishes_when_one_particle_holds_all_the_weight() -
     rng = np.random.default_rng(8)
     for index in rng.choice(len(data.labels), 20):
         learner.observe(rng.uniform(size=2), data.features[index])
-    signals = np.array(learner._signals)
-    points = np.array(learner._points)
-    labels = np.swapaxes(cardinal_guidance(points, learner.particles, 0.01), 0, 1)
     learner.confidence = np.eye(10)[3]
-    _, uncertainty = learner._uncertainty_map(signals, labels)
+    _, uncertainty = learner.uncertainty_map()
     assert np.allclose(uncertainty, 0.0)
     learner.confidence = np.full(10, 0.1)
-    _, uncertainty = learner._uncertainty_map(signals, labels)
+    _, uncertainty = learner.uncertainty_map()
     assert uncertainty.max() > 1e-3
 
 
