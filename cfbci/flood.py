@@ -171,32 +171,45 @@ def _flood(endpoint: str, limits: ServiceLimits, rounds: int, done: Event, count
             publishers[key_expr].put(data)
             sent[category] += 1
 
-        live_events: queue.SimpleQueue[Received] = queue.SimpleQueue()
-        pumps = [Pump(session, protocol.key(_LIVE, "event"), "event", live_events)]
+        # One subscription to every session's events, declared before the first message:
+        # the real session's ``session_started`` arriving through it shows the service
+        # routes events to it, so the answers to the maximum-size configs cannot be missed
+        # (a subscription declared just before its config could be, on a loaded machine).
+        events: queue.SimpleQueue[Received] = queue.SimpleQueue()
+        pump = Pump(session, f"{protocol.PREFIX}/*/event", "event", events)
+        seen: set[tuple[str, str]] = set()  # (session, event) pairs received so far
 
-        def started() -> bool:
-            while not live_events.empty():
-                message = protocol.decode(live_events.get().data)
-                if message.fields["event"] == "session_started":
-                    return True
-            return False
+        def received(sid: str, names: tuple[str, ...], timeout: float | None) -> bool:
+            """Whether ``sid`` has sent one of the events ``names``; waits up to
+            ``timeout`` s for it (``None``: only what has arrived)."""
+            deadline = None if timeout is None else time.monotonic() + timeout
+            while not any((sid, name) in seen for name in names):
+                try:
+                    if deadline is None:
+                        sample = events.get_nowait()
+                    else:
+                        sample = events.get(timeout=max(0.0, deadline - time.monotonic()))
+                except queue.Empty:
+                    if deadline is None:
+                        return False
+                    raise TimeoutError(f"flood: no {names} from session {sid!r} "
+                                       f"within {timeout} s") from None
+                message = protocol.decode(sample.data)
+                seen.add((message.session, message.fields["event"]))
+            return True
 
         round_ = 0
-        while round_ < rounds and not started():  # before the real session starts
+        while round_ < rounds and not received(_LIVE, ("session_started",), None):
             for category, key_expr, data in attacks(_LIVE, limits, round_):
                 if "config" not in category:
                     put(key_expr, data, category)
             round_ += 1
         for sid, config, n_features in _maximum_sessions(limits):
-            events: queue.SimpleQueue[Received] = queue.SimpleQueue()
-            pumps.append(Pump(session, protocol.key(sid, "event"), "event", events))
             put(protocol.key(sid, "config"),
                 protocol.encode(protocol.Message("config", sid, 0, 1, config)),
                 "maximum-size config")
-            while protocol.decode(events.get(timeout=TIMEOUT).data).fields["event"] not in (
-                "session_started", "session_rejected"
-            ):
-                pass  # an epoch before the session starts would only be an error
+            # an epoch before the session starts would only be an error
+            received(sid, ("session_started", "session_rejected"), TIMEOUT)
             epoch = np.ones(n_features, dtype=np.float32)
             put(protocol.key(sid, "epoch"),
                 protocol.encode(protocol.Message(
@@ -206,8 +219,7 @@ def _flood(endpoint: str, limits: ServiceLimits, rounds: int, done: Event, count
             for category, key_expr, data in attacks(_LIVE, limits, round_):
                 put(key_expr, data, category)
             round_ += 1
-        for pump in pumps:
-            pump.close()
+        pump.close()
         for publisher in publishers.values():
             publisher.undeclare()
     counts.update(dict(sent))
