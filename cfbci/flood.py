@@ -206,7 +206,7 @@ def _flood(endpoint: str, limits: ServiceLimits, rounds: int, done: Event, count
             while not received(sid, ("session_started", "session_rejected"), RESEND_S):
                 if time.monotonic() > give_up:
                     raise TimeoutError(f"flood: session {sid!r} unanswered after {TIMEOUT} s")
-                put(protocol.key(sid, "config"), config_message, "maximum-size config")
+                put(protocol.key(sid, "config"), config_message, "maximum-size config, re-sent")
             # (an epoch before the session starts would only be an error)
             epoch = np.ones(n_features, dtype=np.float32)
             put(protocol.key(sid, "epoch"),
