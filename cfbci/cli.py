@@ -34,6 +34,7 @@ from cfbci.plane_worlds import (
     print_plane_report,
     simulate_plane_world,
 )
+from cfbci.presets import PRESETS, Preset
 from cfbci.simulation import BASELINES, SessionConfig
 from cfbci.soak import add_soak_parser
 from cfbci.sweep import add_sweep_command
@@ -80,7 +81,7 @@ def data_spec(args: argparse.Namespace) -> DataSpec:
     return DataSpec(args.dataset, args.synthetic_accuracy, args.synthetic, args.dims)
 
 
-def _add_simulate(commands: argparse._SubParsersAction) -> None:
+def _add_simulate(commands: argparse._SubParsersAction, chosen: Preset | None) -> None:
     p = commands.add_parser(
         "simulate",
         help="offline closed-loop sessions with a simulated user (no network)",
@@ -121,7 +122,15 @@ def _add_simulate(commands: argparse._SubParsersAction) -> None:
     add_plane_world_options(p)
     p.add_argument("--json", type=Path, help="write the report as JSON")
     p.add_argument("--trace", type=Path, help="write one JSON line per step")
+    p.add_argument(
+        "--preset", choices=PRESETS,
+        help="the settings of one of the thesis's experiments (see --list-presets); explicit "
+        "options override it",
+    )
+    p.add_argument("--list-presets", action="store_true", help="list the presets and exit")
     p.set_defaults(run=_run_simulate)
+    if chosen is not None:
+        p.set_defaults(**chosen.defaults())
 
 
 def _simulate_frame_hypotheses(args: argparse.Namespace, console: Console) -> int:
@@ -154,6 +163,14 @@ def _simulate_frame_hypotheses(args: argparse.Namespace, console: Console) -> in
 def _run_simulate(args: argparse.Namespace, console: Console) -> int:
     from cfbci.simulate import print_report, simulate
 
+    if args.list_presets:
+        for known in PRESETS.values():
+            console.print(known.describe(), soft_wrap=True, highlight=False)
+        return 0
+    if args.preset and PRESETS[args.preset].dataset and args.dataset is None:
+        raise ValueError(
+            f"preset {args.preset!r} needs --dataset {PRESETS[args.preset].dataset}"
+        )
     if args.seeds < 1 or args.steps < 1:
         raise ValueError("--seeds and --steps must be at least 1")
     if args.world in PLANE_WORLDS:
@@ -585,12 +602,13 @@ def _run_report(args: argparse.Namespace, console: Console) -> int:
     return 1 if errors else 0
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(chosen: Preset | None = None) -> argparse.ArgumentParser:
+    """The ``cfbci`` parser; with ``chosen``, its settings are ``simulate``'s defaults."""
     parser = argparse.ArgumentParser(
         prog="cfbci", description="Calibration-free brain-computer interface."
     )
     commands = parser.add_subparsers(dest="command", required=True)
-    _add_simulate(commands)
+    _add_simulate(commands, chosen)
     _add_bench(commands)
     _add_serve(commands)
     _add_source(commands)
@@ -613,6 +631,8 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``cfbci`` console script."""
     args = build_parser().parse_args(argv)
+    if getattr(args, "preset", None):  # parse again, the preset's settings as defaults
+        args = build_parser(PRESETS[args.preset]).parse_args(argv)
     keep_freed_memory()
     single_threaded_blas()
     console = Console(stderr=False)

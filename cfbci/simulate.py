@@ -89,11 +89,13 @@ def simulation_report(
 def print_report(report: dict[str, Any], console: Console) -> None:
     """A readable table of the sessions and the summary."""
     table = Table(title=f"cfbci simulate - {report['config']['dataset']}")
-    for column in ("seed", "first target", "first correct", "correct", "wrong"):
+    columns = ("seed", "first confident", "first target", "first correct", "correct", "wrong")
+    for column in columns:
         table.add_column(column, justify="right")
     for session in report["sessions"]:
         table.add_row(
             str(session["seed"]),
+            str(session["first_confident_step"] or "-"),
             str(session["first_target_step"] or "-"),
             str(session["first_correct_target_step"] or "-"),
             str(session["correct_targets"]),
@@ -105,5 +107,12 @@ def print_report(report: dict[str, Any], console: Console) -> None:
         f"median first target: {summary['median_first_target_step']:g} steps   "
         f"mean correct targets: {summary['mean_correct_targets']:.2f}   "
         f"mean wrong targets: {summary['mean_wrong_targets']:.2f}   "
-        f"wrong-target rate: {100 * summary['wrong_target_rate']:.1f} %"
+        f"wrong-target rate: {100 * summary['wrong_target_rate']:.1f} %\n"
+        f"sessions with a target: {summary['sessions_with_a_target']}/{len(report['sessions'])}"
+        f"   wrong first targets: {100 * summary['wrong_first_target_fraction']:.1f} %   "
+        f"median first confident step: {summary['median_first_confident_step']:g}"
     )
+    likelihood = summary["mean_user_task_likelihood"]
+    if likelihood:
+        shown = [f"{likelihood[s]:.2f} @{s}" for s in list(likelihood)[4::5]]
+        console.print(f"mean normalised likelihood of the user's task: {', '.join(shown)}")

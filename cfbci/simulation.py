@@ -71,9 +71,25 @@ class SessionConfig:
         return asdict(self)
 
 
+#: Steps between two samples of the user's task likelihood (:class:`SessionResult`).
+LIKELIHOOD_EVERY = 10
+
+
 @dataclass(frozen=True)
 class SessionResult:
-    """Figures of one session (steps are 1-based; None when it never happened)."""
+    """Figures of one session (steps are 1-based; None when it never happened).
+
+    Attributes
+    ----------
+    first_confident_step : int or None
+        The first step whose action was chosen while some task was confident.
+    first_confident_correct : bool or None
+        Whether that task was the user's target then.
+    user_task_likelihood : list of float
+        Normalised likelihood ``L_t / sum_u L_u`` of the user's current target (the
+        matching log-likelihood without the power prior, within the current task segment)
+        after steps 10, 20, 30, ... (:data:`LIKELIHOOD_EVERY`).
+    """
 
     seed: int
     steps: int
@@ -81,6 +97,9 @@ class SessionResult:
     first_correct_target_step: int | None
     correct_targets: int
     wrong_targets: int
+    first_confident_step: int | None = None
+    first_confident_correct: bool | None = None
+    user_task_likelihood: list[float] = field(default_factory=list)
 
 
 def make_learner(
@@ -122,10 +141,13 @@ def run_session(
     )
     learner = make_learner(config, world, user, learner_rng)
     state = user.start_state
-    first_target = first_correct = None
+    first_target = first_correct = first_confident = confident_correct = None
     correct = wrong = 0
+    user_likelihood: list[float] = []
     for step in range(1, config.steps + 1):
         beliefs = learner.beliefs()
+        if beliefs.confident and first_confident is None:
+            first_confident, confident_correct = step, beliefs.best_task == user.target
         proposal = learner.propose(state)
         index, _ = user.answer(state, proposal.action)
         next_state = world.step(state, proposal.action, draws.uniform(step))
@@ -151,18 +173,42 @@ def run_session(
                     beliefs.confident, beliefs.best_task, event,
                 )
             )
+        if step % LIKELIHOOD_EVERY == 0:
+            user_likelihood.append(float(normalised(learner.beliefs().log_likelihood)[user.target]))
         state = next_state
-    return SessionResult(seed, config.steps, first_target, first_correct, correct, wrong)
+    return SessionResult(
+        seed, config.steps, first_target, first_correct, correct, wrong, first_confident,
+        confident_correct, user_likelihood,
+    )
 
 
-def summarise(results: list[SessionResult]) -> dict[str, float]:
-    """Median first target (none counts as steps + 1), mean targets, pooled wrong rate."""
+def normalised(log_likelihood: np.ndarray) -> np.ndarray:
+    """``L_t / sum_u L_u`` from log-likelihoods, computed stably: (n_tasks,) -> (n_tasks,)."""
+    weights = np.exp(log_likelihood - log_likelihood.max())
+    return weights / weights.sum()
+
+
+def summarise(results: list[SessionResult]) -> dict[str, Any]:
+    """Median first target and first confident step (none counts as steps + 1), mean
+    targets, pooled wrong rate, the thesis's fraction of wrong *first* targets (among the
+    sessions that reached one), and the mean user-task likelihood at steps 10, 20, ..."""
     firsts = [r.first_target_step or r.steps + 1 for r in results]
+    confident = [r.first_confident_step or r.steps + 1 for r in results]
+    reached = [r for r in results if r.first_target_step is not None]
+    wrong_first = sum(r.first_correct_target_step != r.first_target_step for r in reached)
     correct = sum(r.correct_targets for r in results)
     wrong = sum(r.wrong_targets for r in results)
+    samples = min(len(r.user_task_likelihood) for r in results)
+    likelihood = np.mean([r.user_task_likelihood[:samples] for r in results], axis=0)
     return {
         "median_first_target_step": float(np.median(firsts)),
+        "sessions_with_a_target": len(reached),
+        "median_first_confident_step": float(np.median(confident)),
         "mean_correct_targets": correct / len(results),
         "mean_wrong_targets": wrong / len(results),
         "wrong_target_rate": wrong / (correct + wrong) if correct + wrong else 0.0,
+        "wrong_first_target_fraction": wrong_first / len(reached) if reached else 0.0,
+        "mean_user_task_likelihood": {
+            str(LIKELIHOOD_EVERY * (i + 1)): float(v) for i, v in enumerate(likelihood)
+        },
     }

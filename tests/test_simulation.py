@@ -10,6 +10,7 @@ from acquisition.labelled import LabelledFeatures
 from acquisition.sources import DataSpec
 from acquisition.user import SimulatedUser
 from calibration_free.config import LearnerConfig
+from calibration_free.session import StepRecord
 from calibration_free.world import ACTIONS, GOAL, MOVES, GridWorld
 from cfbci.cli import main
 from cfbci.simulation import SessionConfig, SessionResult, run_session, summarise
@@ -88,12 +89,16 @@ def test_baseline_session_counts_calibration_steps():
 
 def test_summary_statistics():
     results = [
-        SessionResult(0, 100, 10, 10, 3, 1),
-        SessionResult(1, 100, None, None, 0, 0),
-        SessionResult(2, 100, 30, 50, 5, 0),
+        SessionResult(0, 100, 10, 10, 3, 1, 8, True, [0.5, 1.0]),
+        SessionResult(1, 100, None, None, 0, 0, None, None, [0.1, 0.2]),
+        SessionResult(2, 100, 30, 50, 5, 0, 29, False, [0.0, 0.3]),
     ]
     summary = summarise(results)
     assert summary["median_first_target_step"] == 30  # the session with none counts as 101
+    assert summary["median_first_confident_step"] == 29
+    assert summary["sessions_with_a_target"] == 2
+    assert summary["wrong_first_target_fraction"] == pytest.approx(1 / 2)  # seed 2's first
+    assert summary["mean_user_task_likelihood"] == pytest.approx({"10": 0.2, "20": 0.5})
     assert summary["mean_correct_targets"] == pytest.approx(8 / 3)
     assert summary["mean_wrong_targets"] == pytest.approx(1 / 3)
     assert summary["wrong_target_rate"] == pytest.approx(1 / 9)
@@ -111,8 +116,12 @@ def test_simulate_command_writes_report_and_trace(tmp_path, capsys):
     assert [s["seed"] for s in out["sessions"]] == [5, 6]
     assert set(out["summary"]) == {
         "median_first_target_step", "mean_correct_targets", "mean_wrong_targets",
-        "wrong_target_rate",
+        "wrong_target_rate", "sessions_with_a_target", "median_first_confident_step",
+        "wrong_first_target_fraction", "mean_user_task_likelihood",
     }
+    assert {"first_confident_step", "first_confident_correct", "user_task_likelihood"} <= set(
+        out["sessions"][0]
+    )
     lines = [json.loads(line) for line in trace.read_text().splitlines()]
     assert len(lines) == 120
     assert set(lines[0]) == {
@@ -163,3 +172,17 @@ def test_guidance_on_real_finger_data_finds_targets():
     result = run_session(0, config, data)
     assert result.first_target_step is not None and result.first_target_step <= 60
     assert result.correct_targets >= 3 and result.wrong_targets == 0
+
+
+def test_a_session_reports_when_it_was_first_confident_and_its_task_likelihood() -> None:
+    config = SessionConfig(steps=80, grid=5)
+    trace: list[StepRecord] = []
+    result = run_session(1, config, separated(), trace.append)
+    assert result.first_confident_step == next(r.step for r in trace if r.confident)
+    assert result.first_confident_correct  # separable data: the right task
+    assert result.first_confident_step <= result.first_target_step  # declared once confident
+    assert len(result.user_task_likelihood) == 8  # after steps 10, 20, ..., 80
+    assert all(0.0 <= v <= 1.0 for v in result.user_task_likelihood)
+    # Well above uniform (1/25) already after 10 steps, and on average over the session.
+    assert result.user_task_likelihood[0] > 2 / 25
+    assert np.mean(result.user_task_likelihood) > 8 / 25
