@@ -286,7 +286,7 @@ def bridge_session(
             raise TimeoutError(f"no service subscribed to {protocol.key(sid, 'config')} "
                                f"within {settings.timeout:g} s")
         outbox.send("config", sid, {
-            "seed": settings.seed, "grid": settings.grid, "frame": settings.frame,
+            "seed": settings.seed, "world": "grid", "grid": settings.grid, "frame": settings.frame,
             "steps": settings.steps, "learner": settings.learner,
             "dataset": {"description": f"LSL streams {settings.eeg!r} (EEG) and "
                                        f"{settings.markers!r} (markers)"},

@@ -9,14 +9,15 @@ The random streams are those of the simulation (:func:`calibration_free.session.
 the data stream makes the synthetic epochs, the user stream drives
 :class:`acquisition.user.SimulatedUser` with the same draws in the same order (the answer
 to a move, then a new target if the move declared one), and the service derives the
-learner's stream and the start cell from the same seed. A live session therefore makes the
-decisions of ``cfbci simulate --first-seed S --seeds 1 --trace`` step for step.
+learner's stream and the start state from the same seed, in the same world (the
+config's ``world``). A live session therefore makes the decisions of ``cfbci simulate
+--world W --first-seed S --seeds 1 --trace`` step for step.
 
-Synthetic data go out as raw float32 epochs (``signal`` "epochs"), which the service turns
+Synthetic ErrP data go out as raw float32 epochs (``signal`` "epochs"), which the service turns
 into ErrP features exactly as the simulation does; so do the epochs of a session recording
 (``.mcap``) that holds raw epochs, with its ``sfreq``, ``tmin`` and ``ch_names``; other
-dataset files (and recordings of feature vectors) go out as their float32 feature vectors
-(``signal`` "features").
+dataset files (and recordings of feature vectors) and synthetic Gaussian signals go out as
+their float32 feature vectors (``signal`` "features").
 """
 
 from __future__ import annotations
@@ -36,7 +37,9 @@ from acquisition.labelled import LabelledEpochs, LabelledFeatures
 from acquisition.sources import DataSpec, synthetic_epochs
 from acquisition.user import SimulatedUser
 from calibration_free.session import StepRecord, session_streams
-from calibration_free.world import ACTIONS, GridWorld
+from calibration_free.world import World
+from calibration_free.worlds import WORLDS, make_world
+from decoding.validation import check_option
 from wire import protocol
 from wire.protocol import SequenceTracker
 from wire.transport import (
@@ -66,13 +69,14 @@ class SourceSettings:
     session : str
         Session id (``[A-Za-z0-9_-]{1,64}``).
     data : DataSpec
-        A dataset file, or synthetic ErrP data.
+        A dataset file, or synthetic data (ErrP epochs, sent raw; Gaussian signals, sent
+        as feature vectors).
     seed : int
         Session seed.
     steps : int
         Device actions in the session.
     grid : int
-        Side of the grid.
+        Side of the grid (grid world only).
     frame : {"feedback", "guidance"}
     learner : dict
         Learner settings sent in the config (``LearnerConfig`` field: value).
@@ -84,6 +88,8 @@ class SourceSettings:
         Seconds without a message from the service before giving up (a failure guard).
     resend_interval : float
         Seconds between two sendings of the unanswered config or epoch.
+    world : {"grid", "line", "pick-and-place"}
+        The world (:func:`calibration_free.worlds.make_world`).
     """
 
     session: str
@@ -97,6 +103,18 @@ class SourceSettings:
     user_error_rate: float = 0.0
     timeout: float = DEFAULT_TIMEOUT
     resend_interval: float = RESEND_INTERVAL
+    world: str = "grid"
+
+    def __post_init__(self) -> None:
+        check_option("world", self.world, WORLDS)
+
+    def make_world(self) -> World:
+        """The session's world."""
+        return make_world(self.world, grid=self.grid)
+
+    def world_fields(self) -> dict[str, Any]:
+        """The config's ``world`` and, in a grid world, ``grid``."""
+        return {"world": self.world, **({"grid": self.grid} if self.world == "grid" else {})}
 
 
 @dataclass(frozen=True)
@@ -137,8 +155,13 @@ class _Signals:
         self.dataset: dict[str, Any] = {"description": settings.data.describe()}
         data: LabelledEpochs | LabelledFeatures
         if settings.data.path is None:
-            settings.data.resolve(settings.frame)  # rejects synthetic guidance data
-            data = synthetic_epochs(settings.data.synthetic_accuracy, rng)
+            generate = settings.data.resolve(settings.frame)  # rejects ErrP guidance data
+            assert callable(generate)  # synthetic data are generated per session
+            # ErrP epochs go out raw, Gaussian signals as feature vectors.
+            gaussian = settings.data.synthetic == "gaussian"
+            data = generate(rng) if gaussian else synthetic_epochs(
+                settings.data.synthetic_accuracy, rng
+            )
             self.dataset["synthetic_accuracy"] = settings.data.synthetic_accuracy
         else:  # a recording of raw epochs gives them raw, any other file features
             data = settings.data.load_signals(settings.frame)
@@ -196,11 +219,12 @@ def replay_session(
         ``settings.timeout`` seconds.
     RuntimeError
         If the service rejects the session (a ``session_rejected`` event answering its
-        config); ``error`` events about single messages are only logged.
+        config), or moves by an action not of the session's world; ``error`` events
+        about single messages are only logged.
     """
     data_rng, user_rng, _ = session_streams(settings.seed)
     signals = _Signals(settings, data_rng)
-    world = GridWorld(settings.grid)
+    world = settings.make_world()
     user = SimulatedUser(
         world, settings.frame, signals.labels, user_rng, settings.user_error_rate
     )
@@ -216,7 +240,7 @@ def replay_session(
                                f"within {settings.timeout} s")
         resender = Resender(outbox, settings.resend_interval)
         config = resender.send("config", sid, {
-            "seed": settings.seed, "grid": settings.grid, "frame": settings.frame,
+            "seed": settings.seed, **settings.world_fields(), "frame": settings.frame,
             "steps": settings.steps, "learner": settings.learner,
             "dataset": signals.dataset, **signals.config,
         })
@@ -247,7 +271,7 @@ class _Replay:
         self,
         settings: SourceSettings,
         signals: _Signals,
-        world: GridWorld,
+        world: World,
         user: SimulatedUser,
         resender: Resender,
         config_t_ns: int,
@@ -317,8 +341,13 @@ class _Replay:
         fields = move.fields
         step, state = fields["step"], fields["from_state"]
         if state != self.agent:
-            log.warning("step %d: move from cell %d, the agent was in %d", step, state, self.agent)
-        action = ACTIONS.index(fields["action"])
+            log.warning("step %d: move from state %d, the agent was in %d", step, state, self.agent)
+        if fields["action"] not in self.world.action_names:
+            raise RuntimeError(
+                f"the service's move of step {step} is {fields['action']!r}, not an action of "
+                f"the {self.world.name} world: {', '.join(self.world.action_names)}"
+            )
+        action = self.world.action_names.index(fields["action"])
         if self.settings.interval > 0:
             time.sleep(self.settings.interval)  # the user's reaction time
         index, label = self.user.answer(state, action)
@@ -333,7 +362,8 @@ class _Replay:
         self.last_truth = self.resender.send("truth", sid, truth, companion=True)
         event = None
         if fields["target_reached"]:
-            event = "correct_target" if state == target else "wrong_target"
+            reached = state == self.world.task_states[target]
+            event = "correct_target" if reached else "wrong_target"
             self.first_target = self.first_target or step
             self.correct += event == "correct_target"
             self.wrong += event == "wrong_target"

@@ -105,7 +105,8 @@ def _add_simulate(commands: argparse._SubParsersAction, chosen: Preset | None) -
     )
     p.add_argument(
         "--shuffle-labels", action="store_true",
-        help="--frame hypotheses: permute the dataset's labels (the shuffled-label control)",
+        help="--frame hypotheses: answer with signals drawn regardless of the label (the "
+        "shuffled-label control)",
     )
     p.add_argument("--planner", choices=PLANNERS, default="uncertainty")
     p.add_argument("--baseline", choices=BASELINES, help="run the calibrated baseline instead")
@@ -149,7 +150,7 @@ def _simulate_frame_hypotheses(args: argparse.Namespace, console: Console) -> in
         run_frame_job, jobs, scheduler=Scheduler.from_options(args.scheduler, args.jobs),
         description="sessions", console=console,
     )
-    summary = frame_hypotheses_report(sessions, args.steps)
+    summary = frame_hypotheses_report(sessions, args.steps, config.beta)
     console.print(summary)
     if args.json:
         report = {"config": {"world": args.world, "frame": "hypotheses",
@@ -286,6 +287,7 @@ def _add_source_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=int, default=0, help="session seed (default 0)")
     p.add_argument("--steps", type=int, default=500, help="actions in the session (default 500)")
     p.add_argument("--grid", type=int, default=5, help="grid side (default 5)")
+    p.add_argument("--world", choices=WORLDS, default="grid", help="the world (default grid)")
     p.add_argument("--frame", choices=FRAMES, default="feedback")
     p.add_argument(
         "--set", action="append", default=[], metavar="KEY=VALUE",
@@ -311,7 +313,7 @@ def _source_settings(args: argparse.Namespace, session: str) -> Any:
     return SourceSettings(
         session=session, data=data_spec(args), seed=args.seed,
         steps=args.steps, grid=args.grid, frame=args.frame, learner=learner,
-        interval=args.interval, user_error_rate=args.user_error_rate,
+        interval=args.interval, user_error_rate=args.user_error_rate, world=args.world,
     )
 
 

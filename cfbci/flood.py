@@ -83,7 +83,7 @@ def _epoch_header(session: str, seq: int, step: int, shape: list[int]) -> dict[s
 
 def _config(grid: int, steps: int, frame: str = "feedback") -> dict[str, Any]:
     return {
-        "seed": 0, "grid": grid, "frame": frame, "steps": steps, "learner": {},
+        "seed": 0, "world": "grid", "grid": grid, "frame": frame, "steps": steps, "learner": {},
         "dataset": {}, "signal": "features",
     }
 

@@ -1,7 +1,7 @@
 """The service's limits: what one client may make it hold or do, with their defaults.
 
 ``cfbci serve`` takes every limit as a flag (:func:`add_options`, :func:`from_args`); the
-table in docs/protocol.md ("Limits") documents them. :func:`session_memory_bytes` is the
+table in docs/protocol.md ("Limits") documents them. :func:`world_memory_bytes` is the
 upper estimate of the memory a session commits, checked against ``max_session_mb`` when
 its config arrives (without the feature term) and again at its first epoch (with it).
 """
@@ -12,7 +12,7 @@ import argparse
 from dataclasses import dataclass, fields
 
 from calibration_free.task_decoders import DEFAULT_FOLDS
-from calibration_free.world import ACTIONS
+from calibration_free.world import GridWorld, World
 
 #: Bytes a message may hold besides its payload (the JSON header), for ``max_message_bytes``.
 HEADER_ALLOWANCE = 64 * 2**10
@@ -41,7 +41,7 @@ class ServiceLimits:
     max_epoch_values : int
         Most float32 values in an epoch's payload (n_channels x n_times).
     max_session_mb : float
-        Most memory a session may commit by :func:`session_memory_bytes`, MiB.
+        Most memory a session may commit by :func:`world_memory_bytes`, MiB.
     rate : int
         Messages accepted per session id per second (config, epoch and truth together).
     """
@@ -100,28 +100,35 @@ def from_args(args: argparse.Namespace) -> ServiceLimits:
 
 
 def session_memory_bytes(grid: int, n_classes: int, steps: int, n_features: int = 0) -> int:
+    """:func:`world_memory_bytes` of a ``grid x grid`` grid world."""
+    return world_memory_bytes(GridWorld(grid), n_classes, steps, n_features)
+
+
+def world_memory_bytes(world: World, n_classes: int, steps: int, n_features: int = 0) -> int:
     """Upper estimate of the memory a session's learner commits, bytes.
 
-    With T = S = ``grid ** 2`` tasks and states, A = 5 actions, K classes, F = 10 folds and
-    d features: ``8 * ((4 + K) T S A K + 2 T (F + 1) K d^2 + steps (T K + d))`` — the
-    frame's and the planner's tables, the per-fold class scatter matrices and the decoders
-    fitted from them, and the history: an upper bound. Measured (peak resident growth, 30
-    epochs, d = 57) with the learner of its writing: grid 5, 29 MiB (estimate 28); grid 16,
-    313 MiB (estimate 309); the compact statistics since: grid 16, 33 MiB.
+    With T tasks, S states and A actions of the world (a grid: T = S = side², A = 5), K
+    classes, F = 10 folds and d features: ``8 * ((4 + K) T S A K + 2 T (F + 1) K d^2 +
+    steps (T K + d))`` — the frame's and the planner's tables, the per-fold scatter
+    matrices and the decoders fitted from them, and the history: an upper bound. Measured
+    (peak resident growth, 30 epochs, d = 57) with the learner of its writing: grid 5,
+    29 MiB (estimate 28); grid 16, 313 MiB (estimate 309); the compact statistics since:
+    grid 16, 33 MiB; pick-and-place (T = S = 624, A = 4), 200 steps: feedback 45 MiB
+    (estimate 825), guidance 78 MiB (estimate 1745), default LDA decoder.
 
     Parameters
     ----------
-    grid : int
-        Side of the grid.
+    world : World
+        The session's world (only its sizes are read).
     n_classes : int
-        2 (feedback) or 4 (guidance).
+        Classes of the frame: 2 (feedback) or the world's guidance actions (guidance).
     steps : int
         Steps of the session.
     n_features : int
         Length of the learner's feature vectors; 0 when not known yet.
     """
-    tasks = states = grid * grid
-    tables = (4 + n_classes) * tasks * states * len(ACTIONS) * n_classes
+    tasks, states = world.n_tasks, world.n_states
+    tables = (4 + n_classes) * tasks * states * world.n_actions * n_classes
     scatter = 2 * tasks * (DEFAULT_FOLDS + 1) * n_classes * n_features**2
     history = steps * (tasks * n_classes + n_features)
     return _FLOAT * (tables + scatter + history)

@@ -5,13 +5,20 @@ loopback TCP endpoints, multicast scouting off. This process, the display, liste
 own endpoint; the service listens on its own and connects to the display's; the source
 connects to both. The display shows the session as it goes
 (the session's moves, states, events and truth; not its config, whose only subscriber
-must be the service: the source waits for a subscriber to it before sending it).
+must be the service: the source waits for a subscriber to it before sending it): a grid
+world as a text grid, another world as the agent's state and a ranked list of tasks.
+
+The service runs this one session of the user's own on a private loopback network, so its
+memory limit (``max_session_mb``, which guards a shared service against its clients) is the
+machine's physical memory: the estimate it checks is very pessimistic (a pick-and-place
+session of raw epochs is estimated at 825 MiB for its 45 MiB).
 """
 
 from __future__ import annotations
 
 import json
 import multiprocessing
+import os
 import queue
 import re
 import time
@@ -29,6 +36,8 @@ from rich.table import Table
 from rich.text import Text
 
 from acquisition.replay_source import SourceSettings, SourceSummary, run_source
+from calibration_free.world import GridWorld, World
+from cfbci.limits import ServiceLimits
 from cfbci.service import serve
 from wire import protocol
 from wire.protocol import ProtocolError
@@ -40,6 +49,8 @@ SHUTDOWN_TIMEOUT = 30.0
 #: Seconds between two refreshes of the display when nothing arrives.
 REFRESH = 0.1
 _SHADES = " .:-=+*#"
+#: Tasks listed by the display of a world without a grid layout.
+LISTED = 5
 
 
 def session_id_for(path: Path) -> str:
@@ -53,23 +64,23 @@ class Progress:
 
     Attributes
     ----------
-    grid : int
+    world : World
     steps : int
     step : int
         Step of the latest move.
     agent : int
-        The agent's cell after the latest move.
-    confidence : ndarray, shape (grid ** 2,)
-        Latest confidence of every target cell.
+        The agent's state after the latest move.
+    confidence : ndarray, shape (n_tasks,)
+        Latest confidence of every task.
     best_task : int
     confident : bool
     correct, wrong : int
         Declared targets that were (not) the user's target (from the truth).
     target : int or None
-        The user's target in the latest truth.
+        The user's target task in the latest truth.
     """
 
-    grid: int
+    world: World
     steps: int
     step: int = 0
     agent: int = 0
@@ -97,31 +108,49 @@ class Progress:
             self.target = fields["target"]
             self._targets[fields["step"]] = fields["target"]
         for step in [step for step in self._declared if step in self._targets]:
-            correct = self._declared.pop(step) == self._targets[step]
+            correct = self._declared.pop(step) == self.world.task_states[self._targets[step]]
             self.correct += correct
             self.wrong += not correct
         self._targets = {step: t for step, t in self._targets.items() if step >= self.step}
 
     def render(self) -> Group:
-        """Step, score and a text grid: ``@`` the agent, ``T`` the target, shades the belief."""
+        """Step, score and the world (:meth:`_grid_rows` or :meth:`_ranked_rows`)."""
         best = float(self.confidence[self.best_task]) if len(self.confidence) else 0.0
         head = Text(
             f"step {self.step}/{self.steps}   targets correct {self.correct} wrong "
-            f"{self.wrong}   best cell {self.best_task} confidence {best:.3f}"
+            f"{self.wrong}   best task {self.best_task} confidence {best:.3f}"
             f"{' (confident)' if self.confident else ''}"
         )
+        if isinstance(self.world, GridWorld):
+            return Group(head, *self._grid_rows(self.world.size))
+        return Group(head, *self._ranked_rows())
+
+    def _ranked_rows(self) -> list[Text]:
+        """The agent's state, then the :data:`LISTED` most confident tasks (``T``: the
+        user's target), best first."""
+        world = self.world
+        rows = [Text(f"agent: {world.state_name(self.agent)}")]
+        for task in np.argsort(-self.confidence, kind="stable")[:LISTED]:
+            mark = "T" if task == self.target else " "
+            style = "bold green" if task == self.best_task else ""
+            rows.append(Text(f"{mark} {float(self.confidence[task]):.3f}  "
+                             f"{world.task_name(int(task))}", style=style))
+        return rows
+
+    def _grid_rows(self, side: int) -> list[Text]:
+        """A text grid: ``@`` the agent, ``T`` the target, shades the belief."""
         rows = []
-        for row in range(self.grid):
+        for row in range(side):
             line = Text()
-            for col in range(self.grid):
-                cell = row * self.grid + col
+            for col in range(side):
+                cell = row * side + col
                 conf = float(self.confidence[cell]) if len(self.confidence) else 0.0
                 char = _SHADES[min(int(conf * len(_SHADES)), len(_SHADES) - 1)]
                 char = "@" if cell == self.agent else "T" if cell == self.target else char
                 style = "bold green" if cell == self.best_task else ""
                 line.append(f"[{char}]", style=style)
             rows.append(line)
-        return Group(head, *rows)
+        return rows
 
 
 def run_live_session(
@@ -168,7 +197,7 @@ def run_live_session(
             target=serve,
             args=(service_endpoints, [display_endpoint, *connect], record.parent),
             # Not resume: the directory holds the user's other recordings.
-            kwargs={"zenoh_config": zenoh_config, "resume": False},
+            kwargs={"zenoh_config": zenoh_config, "resume": False, "limits": own_limits()},
             name="cfbci-service",
         )
         service.start()
@@ -204,7 +233,7 @@ def _display(
     console: Console,
 ) -> SourceSummary:
     """Show the session until the source is done; return its summary."""
-    progress = Progress(settings.grid, settings.steps)
+    progress = Progress(settings.make_world(), settings.steps)
     inbox: queue.SimpleQueue[Received] = queue.SimpleQueue()
     # Not cfbci/<session>/* : a subscriber to the config would tell the source that the
     # service is listening before it is.
@@ -228,6 +257,13 @@ def _display(
         for pump in pumps:
             pump.close()
     return future.result()
+
+
+def own_limits() -> ServiceLimits:
+    """The limits of the service of ``cfbci session``: the defaults, but a session may
+    commit the machine's physical memory (see the module docstring)."""
+    physical_mb = os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE") / 2**20
+    return ServiceLimits(max_session_mb=max(ServiceLimits().max_session_mb, physical_mb))
 
 
 def print_summary(result: dict[str, Any], console: Console, elapsed: float) -> None:

@@ -190,8 +190,9 @@ def _prepare(recording: Recording, where: str) -> _Published:
                 f"{where}: epoch #{k} is of step {epoch.get('step')}: the recorded epochs' "
                 "steps are not 1, 2, ... in order"
             )
-    spec = protocol.SPECS["config"]
-    names = [*spec.fields, *(spec.if_epochs if config.get("signal") == "epochs" else ())]
+    # A version 2 recording (grid worlds only) names no world.
+    config = {"world": "grid", **config}
+    names = list(protocol.SPECS["config"].fields_for(config))
     missing = [name for name in names if name not in config]
     if missing:
         raise ValueError(f"{where}: the recorded configuration lacks {missing}")

@@ -45,10 +45,9 @@ from typing import Any
 import numpy as np
 
 from calibration_free.config import LearnerConfig
-from calibration_free.world import ACTIONS
 from replay.recording import Recording, read_recording
 from replay.rerun import recorded_learner, recorded_signals
-from wire.messages import learner_settings
+from wire.messages import config_world, learner_settings
 
 #: Name of the recording's own settings in the report.
 OWN = "own settings"
@@ -90,9 +89,11 @@ class RecordedHistory:
     config : dict
         The recorded session configuration.
     states, actions : ndarray, shape (n_steps,), int
-        The cell and action (index into ACTIONS) of every recorded move answered by an epoch.
+        The state and action (index into the world's actions) of every recorded move
+        answered by an epoch.
     declared : ndarray, shape (n_steps,), bool
-        The move declared a target reached (``goal`` in ``states[k]`` while confident).
+        The move declared a target reached (the world's declaration action in
+        ``states[k]`` while confident).
     signals : list of ndarray
         The learner's input of every step, float32.
     targets : list of int or None
@@ -280,7 +281,8 @@ def recorded_history(recording: Recording, where: str = "") -> RecordedHistory:
             )
     truth = {m["step"]: m["target"] for _, m in recording.messages.get("/truth", [])}
     states = [m for _, m in recording.messages.get("/state", [])][: n_steps + 1]
-    n_tasks = recording.config["grid"] ** 2
+    world = config_world(recording.config)
+    n_tasks = world.n_tasks
     recorded = Trajectory(
         confidence=np.array([s["confidence"] for s in states], dtype=np.float32).reshape(
             len(states), n_tasks
@@ -291,7 +293,9 @@ def recorded_history(recording: Recording, where: str = "") -> RecordedHistory:
     return RecordedHistory(
         config=recording.config,
         states=np.array([m["from_state"] for m in moves[:n_steps]], dtype=np.int64),
-        actions=np.array([ACTIONS.index(m["action"]) for m in moves[:n_steps]], dtype=np.int64),
+        actions=np.array(
+            [world.action_names.index(m["action"]) for m in moves[:n_steps]], dtype=np.int64
+        ),
         declared=np.array([m["target_reached"] for m in moves[:n_steps]], dtype=bool),
         signals=recorded_signals(recording)[:n_steps],
         targets=[truth.get(k) for k in range(1, n_steps + 1)],

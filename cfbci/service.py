@@ -26,10 +26,13 @@ itself: a separate :class:`Recordings` object, which holds the session recorders
 learner, owns the only ``cfbci/*/truth`` subscription and writes what arrives there to the
 recordings. :class:`_Session`, the learner's side, is never given a truth message.
 
-The agent's start cell is the first draw of the session's *user* stream
-(:func:`calibration_free.session.session_streams` ``[1]``), as
-:class:`acquisition.user.SimulatedUser` draws it, so that a live session replays
-``cfbci simulate`` exactly; the learner's stream is ``session_streams(seed)[2]``.
+The world is the config's (:func:`wire.messages.config_world`). The agent's start state
+is the world's :meth:`~calibration_free.world.World.start_state` on the session's *user*
+stream (:func:`calibration_free.session.session_streams` ``[1]``; the grid's: its first
+draw), as :class:`acquisition.user.SimulatedUser` draws it, so that a live session replays
+``cfbci simulate`` exactly; the learner's stream is ``session_streams(seed)[2]``, and a
+stochastic move (the line world's edges) takes the number of its step from the world
+stream (:func:`calibration_free.world.transition_draws`).
 """
 
 from __future__ import annotations
@@ -47,17 +50,26 @@ from typing import Any
 import numpy as np
 import zenoh
 
+from calibration_free.frames import Frame
 from calibration_free.learner import CalibrationFreeLearner
-from calibration_free.session import session_streams, start_cell
-from calibration_free.world import ACTIONS, GridWorld
-from cfbci.limits import ServiceLimits, session_memory_bytes
+from calibration_free.session import session_streams
+from calibration_free.world import TransitionDraws, World, transition_draws
+from cfbci.limits import ServiceLimits, world_memory_bytes
 from cfbci.memory import keep_freed_memory
 from decoding.features import ErrPFeatures
 from replay.recording import Recording, SessionRecorder, decode_array, read_recording
 from replay.rerun import STATE_FIELDS, Rerun, move_divergence, recorded_signals, signal_extractor
 from wire import protocol
 from wire.intake import Intake, session_of
-from wire.messages import learner_settings, move_fields, state_fields
+from wire.messages import (
+    config_world,
+    learner_settings,
+    move_fields,
+    start_state,
+    state_fields,
+    target_text,
+    world_text,
+)
 from wire.protocol import NO_SESSION, ProtocolError, SequenceTracker
 from wire.transport import Outbox, Pump, Received
 from wire.zenoh_config import peer_config
@@ -234,15 +246,17 @@ class _Session:
         The config message's fields.
     config_t_ns : int
         The config message's ``t_ns`` (which ``session_started`` and a rejection name).
-    world : GridWorld
+    world : World
+    draws : TransitionDraws
+        The session's world stream (stochastic moves).
     learner : CalibrationFreeLearner
     state : int
-        The agent's cell before the last move.
+        The agent's state before the last move.
     recorder : SessionRecorder or None
     active_ns : int
         ``time.monotonic_ns()`` of the start, the last accepted epoch or the resumption.
     action : int
-        The last move's action (index into ACTIONS).
+        The last move's action (index into the world's actions).
     step : int
         The last move's step (1-based): the step the next epoch must carry.
     epochs : SequenceTracker
@@ -263,7 +277,8 @@ class _Session:
     id: str
     config: dict[str, Any]
     config_t_ns: int
-    world: GridWorld
+    world: World
+    draws: TransitionDraws
     learner: CalibrationFreeLearner
     state: int
     recorder: SessionRecorder | None
@@ -461,7 +476,7 @@ class PipelineService:
                 return  # a re-send: the pending session starts once its source subscribes
             raise reject("a session with this id is already waiting for its source")
         limits = self.limits
-        if not 2 <= config["grid"] <= limits.max_grid:
+        if "grid" in config and not 2 <= config["grid"] <= limits.max_grid:
             raise reject(f"field 'grid' must be in 2..{limits.max_grid}; got {config['grid']}")
         if not 1 <= config["steps"] <= limits.max_steps:
             raise reject(f"field 'steps' must be in 1..{limits.max_steps}; got {config['steps']}")
@@ -490,14 +505,15 @@ class PipelineService:
         n_features: int,
         reject: Callable[[str], Rejection],
     ) -> None:
-        """Reject a session whose :func:`session_memory_bytes` is over the limit."""
-        n_classes = 2 if config["frame"] == "feedback" else 4
-        needed = session_memory_bytes(config["grid"], n_classes, config["steps"], n_features)
+        """Reject a session whose :func:`world_memory_bytes` is over the limit."""
+        world = config_world(config)
+        n_classes = Frame(world, config["frame"]).n_classes
+        needed = world_memory_bytes(world, n_classes, config["steps"], n_features)
         if needed > self.limits.max_session_mb * 2**20:
             what = f"{n_features} features, " if n_features else ""
             raise reject(
-                f"the session would commit about {needed / 2**20:.0f} MiB ({what}grid "
-                f"{config['grid']}, {config['steps']} steps), more than the limit of "
+                f"the session would commit about {needed / 2**20:.0f} MiB ({what}"
+                f"{world_text(world)}, {config['steps']} steps), more than the limit of "
                 f"{self.limits.max_session_mb:g} MiB"
             )
 
@@ -509,21 +525,21 @@ class PipelineService:
                 f"the service runs its maximum of {self.limits.max_sessions} sessions", sid,
                 message.seq, message.t_ns,
             )
-        world = GridWorld(config["grid"])
+        world = config_world(config)
         learner_config = learner_settings(config["learner"], config["frame"])
         learner = CalibrationFreeLearner(world, learner_config, session_streams(config["seed"])[2])
         recorder = self.recordings.open(sid, {"seq": message.seq, "t_ns": message.t_ns, **config})
         session = _Session(
-            sid, config, message.t_ns, world, learner, start_cell(config["seed"], world.n_states),
-            recorder, time.monotonic_ns(),
+            sid, config, message.t_ns, world, transition_draws(config["seed"]), learner,
+            start_state(config["seed"], world), recorder, time.monotonic_ns(),
         )
         self._sessions[sid] = session
         self.intake.open(sid)
         self._event(
             sid,
             "session_started",
-            f"session {sid!r}: {config['steps']} steps on a {config['grid']} x "
-            f"{config['grid']} grid, {config['frame']} frame, {config['signal']}",
+            f"session {sid!r}: {config['steps']} steps, {world_text(world)}, "
+            f"{config['frame']} frame, {config['signal']}",
             message.t_ns,
         )
         self._next_move(session)
@@ -556,9 +572,9 @@ class PipelineService:
         sid = recording.session
         recorder = self.recordings.resume(recording)
         session = _Session(
-            sid, config, recording.config["t_ns"], rerun.world, rerun.learner,
+            sid, config, recording.config["t_ns"], rerun.world, rerun.draws, rerun.learner,
             rerun.moves[-1]["from_state"], recorder, time.monotonic_ns(),
-            action=ACTIONS.index(rerun.moves[-1]["action"]), step=len(rerun.moves),
+            action=rerun.action, step=len(rerun.moves),
         )
         if epochs:
             last = epochs[-1]
@@ -618,7 +634,9 @@ class PipelineService:
             session.recorder.record_array("/features", header, signal_, received.t_ns)
         started_ns = time.perf_counter_ns()
         session.learner.observe(session.state, session.action, signal_)
-        session.state = session.world.step(session.state, session.action)
+        session.state = session.world.step(
+            session.state, session.action, session.draws.uniform(session.step)
+        )
         if session.step < session.config["steps"]:
             self._next_move(session, started_ns, queued_ms)
             return
@@ -705,7 +723,7 @@ class PipelineService:
             timing["queued_ms"] = queued_ms
         session.step += 1
         session.action = proposal.action
-        fields = move_fields(session.world, session.step, session.state, proposal)
+        fields = move_fields(session.world, session.step, session.state, proposal, session.draws)
         self._send(session, "move", fields, recorded_only=timing)
         state, confidence = self._send_state(session)
         session.answer = (fields, state, confidence)
@@ -713,7 +731,7 @@ class PipelineService:
             self._event(
                 session.id,
                 "target_reached",
-                f"step {session.step}: target reached in cell {session.state}",
+                target_text(session.world, session.step, session.state),
             )
 
     def _send_state(
@@ -728,7 +746,7 @@ class PipelineService:
         confidence = np.asarray(confidence, dtype=np.float32)
         message = self._send(session, "state", fields, confidence, record=record)
         if session.recorder is not None and record:
-            session.recorder.record_belief(confidence, session.config["grid"], message.t_ns)
+            session.recorder.record_belief(confidence, session.world, message.t_ns)
         return fields, confidence
 
     def _send(

@@ -22,7 +22,7 @@ from typing import Any
 from calibration_free.config import LearnerConfig
 from calibration_free.world import ACTIONS
 from wire import protocol
-from wire.messages import learner_settings
+from wire.messages import config_world, learner_settings
 
 #: Cells of the agent's recent path kept (current cell included).
 PATH_LENGTH = 12
@@ -307,12 +307,18 @@ class SessionView:
             return [point]
         return []
 
+    def _target_state(self, task: int) -> int:
+        """The state of a truth's target task (a grid's, or without a config: the task)."""
+        if self.config is None or self.config.get("world", "grid") == "grid":
+            return task
+        return int(config_world(self.config).task_states[task])
+
     def _resolve_targets(self) -> bool:
         """Judge the pending targets whose step's truth is in; True if any was."""
         resolved = False
         for target in self.targets:
             if target["status"] == "pending" and target["step"] in self._truth:
-                correct = self._truth[target["step"]] == target["cell"]
+                correct = self._target_state(self._truth[target["step"]]) == target["cell"]
                 target["status"] = "correct" if correct else "wrong"
                 resolved = True
         return resolved

@@ -22,7 +22,8 @@ from matplotlib.lines import Line2D
 from matplotlib.patches import Rectangle
 
 from replay.metrics import SessionMetrics
-from replay.recording import Recording, decode_array
+from replay.recording import RANKED, Recording, decode_array
+from wire.messages import config_world
 
 #: Resolution of the saved PNG files, dots per inch.
 DPI = 150
@@ -122,9 +123,9 @@ def confidence_figure(metrics: SessionMetrics) -> Figure:
     ax = fig.add_subplot()
     steps = np.asarray(metrics.step)
     ax.plot(steps, _series(metrics.confidence_true), color="tab:blue", lw=1.3,
-            label="true target cell", zorder=3)
+            label="true target task", zorder=3)
     ax.plot(steps, _series(metrics.confidence_best_other), color="tab:orange", lw=1.0,
-            label="most confident other cell", zorder=2)
+            label="most confident other task", zorder=2)
     ax.axhline(metrics.beta, color="black", ls="--", lw=0.9,
                label=f"threshold β = {metrics.beta:g}")
     _unit_axes_over_steps(ax, metrics)
@@ -132,7 +133,7 @@ def confidence_figure(metrics: SessionMetrics) -> Figure:
     ax.set_ylabel("confidence $W_t$ (pairwise-min)")
     ax.set_title(
         f"Session {metrics.session}: confidence in the true target\n"
-        f"{metrics.grid}×{metrics.grid} grid, {metrics.frame} frame; {_targets_text(metrics)}",
+        f"{_world_title(metrics)}, {metrics.frame} frame; {_targets_text(metrics)}",
         fontsize=10,
     )
     _legend_beside(ax, metrics)
@@ -151,13 +152,19 @@ def belief_steps(metrics: SessionMetrics, n: int = 4) -> list[int]:
     return sorted(chosen)
 
 
+def _world_title(metrics: SessionMetrics) -> str:
+    """``5×5 grid``, or the description of another world."""
+    return f"{metrics.grid}×{metrics.grid} grid" if metrics.grid else metrics.world_text
+
+
 def _cell_xy(cell: int, grid: int) -> tuple[int, int]:
     row, col = divmod(int(cell), grid)
     return col, row
 
 
 def belief_figure(recording: Recording, metrics: SessionMetrics) -> Figure:
-    """Belief maps (confidence of every target cell) at :func:`belief_steps`.
+    """Belief maps (confidence of every target cell) at :func:`belief_steps`; in a world
+    without a grid layout, :func:`ranking_figure`.
 
     Each panel is the ``/state`` the learner chose that step's move on; row 0 of the grid is
     at the top (``up`` moves towards it). Marked: the agent's cell, the user's true target,
@@ -167,6 +174,8 @@ def belief_figure(recording: Recording, metrics: SessionMetrics) -> Figure:
     states = [m for _, m in recording.messages.get("/state", [])]
     chosen = [k for k in belief_steps(metrics) if k - 1 < len(states)]
     grid = metrics.grid
+    if grid is None:
+        return ranking_figure(recording, states, chosen, metrics)
     fig = Figure(figsize=(2.6 * max(len(chosen), 1) + 1.2, 3.6), layout="constrained")
     axes = fig.subplots(1, max(len(chosen), 1), squeeze=False)[0]
     image = None
@@ -219,6 +228,51 @@ def belief_figure(recording: Recording, metrics: SessionMetrics) -> Figure:
                         facecolor="0.5", framealpha=0.4)
     legend.get_frame().set_edgecolor("none")
     fig.suptitle(f"Session {metrics.session}: belief over target cells", fontsize=10)
+    return fig
+
+
+def ranking_figure(
+    recording: Recording, states: list[dict], chosen: list[int], metrics: SessionMetrics
+) -> Figure:
+    """The :data:`RANKED` most confident tasks, by name, at each of the ``chosen`` steps.
+
+    One panel per step (the ``/state`` that step's move was chosen on), best task on top:
+    the user's true target in red (listed last, below a gap, when it is not among them),
+    the others grey; the agent's state in the panel's title.
+    """
+    world = config_world(recording.config)
+    fig = Figure(figsize=(9.5, 0.3 * RANKED * max(len(chosen), 1) + 1.6 * len(chosen) + 0.8),
+                 layout="constrained")
+    axes = fig.subplots(max(len(chosen), 1), 1, squeeze=False)[:, 0]
+    declared = [t.step for t in metrics.targets]
+    for ax, step in zip(axes, chosen, strict=False):
+        confidence = np.asarray(states[step - 1]["confidence"], dtype=float)
+        ranked = list(np.argsort(-confidence, kind="stable")[:RANKED])
+        target = metrics.true_target[step - 1]
+        if target is not None and target not in ranked:
+            ranked.append(target)
+        colours = ["tab:red" if t == target else "0.55" for t in ranked]
+        rows = np.arange(len(ranked)) + (np.arange(len(ranked)) >= RANKED) * 0.5
+        ax.barh(rows, confidence[ranked], color=colours, height=0.7)
+        ax.set_yticks(rows, [f"{world.task_name(int(t))}" for t in ranked], fontsize=7)
+        ax.invert_yaxis()
+        ax.set_xlim(0, 1)
+        ax.axvline(metrics.beta, color="black", ls="--", lw=0.8)
+        note = " (first target declared)" if step == metrics.first_target_step else (
+            " (target declared)" if step in declared else "")
+        agent = world.state_name(metrics.agent[step - 1])
+        ax.set_title(f"step {step}{note}; agent: {agent}", fontsize=8, loc="right")
+        ax.tick_params(axis="x", labelsize=7)
+        ax.grid(axis="x", alpha=0.3)
+    axes[-1].set_xlabel(f"confidence $W_t$ of the task as target (dashed: β = {metrics.beta:g})",
+                        fontsize=8)
+    handles = [
+        Rectangle((0, 0), 1, 1, color="tab:red", label="true target"),
+        Rectangle((0, 0), 1, 1, color="0.55", label="other task"),
+    ]
+    fig.legend(handles=handles, loc="outside lower center", ncol=2, fontsize=8, frameon=False)
+    fig.suptitle(f"Session {metrics.session}: most confident tasks, {metrics.world_text}",
+                 fontsize=10)
     return fig
 
 
@@ -379,7 +433,7 @@ def latency_figure(metrics: SessionMetrics) -> Figure:
     ax.set_ylabel("steps")
     ax.set_title(
         f"Session {metrics.session}: learner update latency "
-        f"({len(values)} steps, {metrics.grid ** 2} task hypotheses)",
+        f"({len(values)} steps, {metrics.n_tasks} task hypotheses)",
         fontsize=10,
     )
     ax.grid(alpha=0.3)
@@ -409,20 +463,27 @@ def session_figures(
     out_dir.mkdir(parents=True, exist_ok=True)
     erp, erp_what = erp_figure(recording, metrics)
     chosen = ", ".join(str(s) for s in belief_steps(metrics))
+    belief_caption = (
+        f"Confidence of every {'cell' if metrics.grid else 'task'} as the target at steps "
+        f"{chosen} (evenly spaced, and the step of the first declared target), in the state "
+        "each step's move was chosen on."
+    )
     items = [
         ("confidence", confidence_figure(metrics),
          "Confidence W (pairwise-min, in the state the learner chose each move on) of the "
-         "user's true target cell and of the most confident other cell, per step. "
+         "user's true target task and of the most confident other task, per step. "
          f"Dashed: the threshold β = {metrics.beta:g} above which the learner declares a "
          "target; triangles and vertical lines: declared targets (green correct, red wrong). "
          "After each declared target the user picks a new target and the learner restarts "
-         "its likelihoods (all cells at 0.5)."),
-        ("belief", belief_figure(recording, metrics),
-         f"Confidence of every cell as the target at steps {chosen} (evenly spaced, and the "
-         "step of the first declared target), in the state each step's move was chosen on. "
-         "Circle: the agent; star: the user's true target; orange square: the learner's most "
+         "its likelihoods (all tasks at 0.5)."),
+        ("belief", belief_figure(recording, metrics), belief_caption + (
+         " Circle: the agent; star: the user's true target; orange square: the learner's most "
          f"likely cell; white line: the last moves (at most {PATH_MOVES}) since the previous "
-         "declared target, more opaque when more recent. Row 0 is at the top."),
+         "declared target, more opaque when more recent. Row 0 is at the top."
+         if metrics.grid else
+         f" The world has no grid layout: the {RANKED} most confident tasks, best first, by "
+         "their state's name; red: the user's true target (below the others when not among "
+         "them); dashed: the threshold β.")),
         ("accuracy", accuracy_figure(metrics),
          "Cross-validated balanced accuracy of the decoder of the learner's most likely task, "
          "after each signal: against the recorded true labels (out-of-fold predictions of the "

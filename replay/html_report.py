@@ -37,9 +37,10 @@ dl dt { font-weight: bold; margin-top: 0.5em; } dl dd { margin-left: 1.5em; }
 
 #: The definitions a reader needs, shown under the aggregate table.
 DEFINITIONS: dict[str, str] = {
-    "Step": "One device action (move or goal), answered by one epoch (the user's reaction).",
-    "Declared target": "A goal performed while confident; correct when the cell was the "
-    "user's target at that step (recorded truth).",
+    "Step": "One device action, answered by one epoch (the user's reaction).",
+    "Declared target": "The world's declaration action (the grid's goal) performed while "
+    "confident; correct when the state was that of the user's target task at that step "
+    "(recorded truth; in a grid, the same cell).",
     "Steps per correct target": "Steps recorded divided by correct targets (first search "
     "included).",
     "Mean steps between targets": "Mean number of steps between successive declared "
@@ -119,8 +120,8 @@ def metrics_table(metrics: SessionMetrics) -> str:
     rows: list[list[object]] = [
         ["session", metrics.session],
         ["file", metrics.file],
-        ["grid / frame / signal", f"{metrics.grid}×{metrics.grid} / {metrics.frame} / "
-                                  f"{metrics.signal}"],
+        ["world / frame / signal", f"{metrics.world_text} / {metrics.frame} / "
+                                   f"{metrics.signal}"],
         ["steps recorded (configured)", f"{metrics.steps} ({metrics.configured_steps})"],
         ["first target step", metrics.first_target_step],
         ["targets correct / wrong / unverified",

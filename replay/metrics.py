@@ -12,13 +12,13 @@ move ``k`` was made and the true class of that epoch. The ``k``-th ``/state`` ac
 move ``k``: it is the belief the learner chose move ``k`` on, after ``k - 1`` signals (the
 recording holds one more, final, state after the last signal).
 
-* **Declared target** at step ``k``: move ``k`` has ``target_reached`` True, in the cell
-  ``from_state``. It is *correct* when ``from_state`` equals the truth target of step ``k``,
-  *wrong* otherwise, and *unverified* when the truth of step ``k`` is missing (a truncated
-  recording).
+* **Declared target** at step ``k``: move ``k`` has ``target_reached`` True, in the state
+  ``from_state``. It is *correct* when ``from_state`` is the state of the truth target (a
+  task) of step ``k`` (in a grid, the same cell), *wrong* otherwise, and *unverified* when
+  the truth of step ``k`` is missing (a truncated recording).
 * **Confidence of the true task** at step ``k``: ``confidence[target_k]`` of the ``k``-th
   state, with ``target_k`` the truth target of step ``k``; the **best other task** is the
-  cell of highest confidence among the others.
+  task of highest confidence among the others.
 * **Steps per correct target**: ``steps / correct_targets`` (the user's cost of one correct
   selection, first search included). **Mean steps between targets**: mean difference of
   the steps of successive declared targets, correct or wrong (the first search excluded;
@@ -49,16 +49,11 @@ import numpy as np
 
 from calibration_free.frames import FRAMES, Frame
 from calibration_free.learner import CalibrationFreeLearner
-from calibration_free.world import GridWorld
+from calibration_free.world import GridWorld, World
 from replay.recording import Recording
 from replay.rerun import first_divergence, recompute
-from wire.messages import learner_settings
+from wire.messages import config_world, learner_settings, world_text
 
-#: Names of the classes of each frame, in class order (truth ``label`` values).
-CLASS_NAMES: dict[str, tuple[str, ...]] = {
-    "feedback": ("correct", "error"),
-    "guidance": ("up", "down", "left", "right"),
-}
 #: The scalar metrics :func:`aggregate` summarises, with their meaning (and unit).
 SCALAR_METRICS: dict[str, str] = {
     "steps": "moves recorded",
@@ -83,13 +78,13 @@ class DeclaredTarget:
     Attributes
     ----------
     step : int
-        Step of the ``goal`` move (1-based).
+        Step of the declaring move (1-based).
     cell : int
-        The declared cell (the move's ``from_state``).
+        The declared state (the move's ``from_state``; a grid's cell).
     true_target : int or None
-        The user's target at that step (None: no truth recorded for it).
+        The user's target task at that step (None: no truth recorded for it).
     correct : bool or None
-        ``cell == true_target`` (None when unverified).
+        Whether ``cell`` is the state of ``true_target`` (None when unverified).
     """
 
     step: int
@@ -122,8 +117,13 @@ class SessionMetrics:
         Path of the recording, and its session name.
     frame : str
         "feedback" or "guidance"; ``class_names`` its classes (truth labels 0..K-1).
-    grid : int
-        Side of the grid (``grid ** 2`` cells and tasks).
+    world : str
+        The world's kind ("grid", "line", "pick-and-place"); ``world_text`` a description.
+    grid : int or None
+        Side of a grid world (``grid ** 2`` cells and tasks); None in a world without a
+        grid layout (its beliefs are shown as ranked lists of tasks).
+    n_tasks : int
+        Task hypotheses of the world.
     signal : str
         "epochs" (raw epochs recorded) or "features".
     beta : float
@@ -147,14 +147,14 @@ class SessionMetrics:
     step : list of int
         1..steps: the x axis of the per-step series below.
     agent : list of int
-        The agent's cell at each step (the move's ``from_state``).
+        The agent's state at each step (the move's ``from_state``).
     true_target : list of int or None
-        The user's target at each step (truth).
+        The user's target task at each step (truth).
     confidence_true, confidence_best_other : list of float or None
         Confidence of the true task, and of the most confident other task, when the
         learner chose each step's move.
     best_other_task : list of int or None
-        The cell of ``confidence_best_other``.
+        The task of ``confidence_best_other``.
     n_seen : list of int
         1..n_signals: the x axis of the accuracy series (signals observed).
     accuracy_truth : list of float or None
@@ -179,7 +179,10 @@ class SessionMetrics:
     session: str
     frame: str
     class_names: list[str]
-    grid: int
+    world: str
+    world_text: str
+    grid: int | None
+    n_tasks: int
     signal: str
     beta: float
     configured_steps: int
@@ -238,7 +241,7 @@ def latency_summary(update_ms: list[float]) -> Latency | None:
 
 
 def declared_targets(
-    moves: list[dict[str, Any]], truth: dict[int, dict[str, Any]]
+    moves: list[dict[str, Any]], truth: dict[int, dict[str, Any]], world: World
 ) -> list[DeclaredTarget]:
     """The declared targets of the moves, judged against the truth of their step."""
     targets = []
@@ -247,7 +250,8 @@ def declared_targets(
             continue
         step, cell = int(move["step"]), int(move["from_state"])
         true = truth.get(step, {}).get("target")
-        targets.append(DeclaredTarget(step, cell, true, None if true is None else cell == true))
+        correct = None if true is None else cell == int(world.task_states[true])
+        targets.append(DeclaredTarget(step, cell, true, correct))
     return targets
 
 
@@ -354,21 +358,28 @@ def session_metrics(recording: Recording, file: str = "", rerun: bool = True) ->
     Raises
     ------
     ValueError
-        If the recording holds no configuration, or an unknown frame or no grid.
+        If the recording holds no configuration, or an unknown frame or world (or a grid
+        world without its side).
     """
     config = recording.config
     where = file or recording.session or "recording"
     if not config:
         raise ValueError(f"{where}: the recording holds no session configuration")
     frame = config.get("frame", "feedback")
-    if frame not in FRAMES or "grid" not in config:
-        raise ValueError(f"{where}: the configuration has no valid frame and grid: {config}")
-    grid = int(config["grid"])
+    try:
+        if frame not in FRAMES:
+            raise ValueError(f"unknown frame {frame!r}")
+        world = config_world(config)
+    except (KeyError, ValueError) as error:
+        raise ValueError(
+            f"{where}: the configuration has no valid frame and world ({error}): {config}"
+        ) from None
     try:
         beta = learner_settings(config.get("learner", {}), frame).beta
     except (ValueError, TypeError):
         beta = float(config.get("learner", {}).get("beta", 0.9))
-    n_classes = Frame(GridWorld(2), frame).n_classes
+    frame_ = Frame(world, frame)
+    n_classes = frame_.n_classes
     moves = [m for _, m in recording.messages.get("/move", [])]
     states = [m for _, m in recording.messages.get("/state", [])]
     truth = truth_by_step(recording)
@@ -377,7 +388,7 @@ def session_metrics(recording: Recording, file: str = "", rerun: bool = True) ->
     targets = [truth.get(step, {}).get("target") for step in steps]
     true_conf, other_conf, other_task = _confidences(states, targets, n_steps)
 
-    declared = declared_targets(moves, truth)
+    declared = declared_targets(moves, truth, world)
     correct = sum(t.correct is True for t in declared)
     wrong = sum(t.correct is False for t in declared)
     update_ms = [float(m["update_ms"]) for m in moves if m.get("update_ms") is not None]
@@ -402,8 +413,11 @@ def session_metrics(recording: Recording, file: str = "", rerun: bool = True) ->
         file=file,
         session=recording.session,
         frame=frame,
-        class_names=list(CLASS_NAMES[frame]),
-        grid=grid,
+        class_names=list(frame_.class_names()),
+        world=world.name,
+        world_text=world_text(world),
+        grid=world.size if isinstance(world, GridWorld) else None,
+        n_tasks=world.n_tasks,
         signal=str(config.get("signal", "features")),
         beta=float(beta),
         configured_steps=int(config.get("steps", n_steps)),

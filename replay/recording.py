@@ -24,9 +24,12 @@ record and a ChunkIndex in the summary: +11.6 % on a 300-step synthetic session,
 1,567 bytes a message), about 140 us more per message to write and about 500 bytes of
 writer memory per message until the file is closed (the chunk indexes).
 
-Topics are the keys of :data:`SCHEMAS`. ``/belief`` is a ``foxglove.Grid`` whose cell
-``s = row * n + col`` is the state of :class:`calibration_free.world.GridWorld` (Foxglove
-draws row 0 at y = 0), and ``/log`` is a ``foxglove.Log``, so Foxglove Studio shows both.
+Topics are the keys of :data:`SCHEMAS`. The belief over tasks goes, with every state, to
+``/belief`` in a grid world: a ``foxglove.Grid`` whose cell ``s = row * n + col`` is the
+state of :class:`calibration_free.world.GridWorld` (Foxglove draws row 0 at y = 0); a world
+without a grid layout (line, pick-and-place) has no ``/belief`` channel but ``/ranking``
+(JSON): the :data:`RANKED` most confident tasks with their state names, best first.
+``/log`` is a ``foxglove.Log``, so Foxglove Studio shows it and the grid.
 """
 
 from __future__ import annotations
@@ -47,6 +50,8 @@ from mcap.exceptions import EndOfFile, McapError
 from mcap.records import Channel, DataEnd, Header, McapRecord, Message, Metadata, Schema
 from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
+
+from calibration_free.world import GridWorld, World
 
 _MAGIC = b"\x89MCAP0\r\n"
 #: Metadata record holding ``{"session": name, "config": JSON of the configuration}``.
@@ -143,6 +148,28 @@ SCHEMAS: dict[str, dict[str, Any]] = {
             "data": {"type": "string", "contentEncoding": "base64"},
         },
     },
+    "/ranking": {
+        "title": "cfbci.Ranking",
+        "description": "The most confident tasks, best first (a world without a grid layout)",
+        "type": "object",
+        "properties": {
+            "timestamp": _TIME,
+            "tasks": {
+                "type": "array",
+                "items": {
+                    "type": "object",
+                    "properties": {
+                        "task": _COUNT,
+                        "state": _COUNT,
+                        "name": {"type": "string"},
+                        "confidence": {"type": "number"},
+                    },
+                    "required": ["task", "state", "name", "confidence"],
+                },
+            },
+        },
+        "required": ["timestamp", "tasks"],
+    },
     "/log": {
         "title": "foxglove.Log",
         "description": "A log message",
@@ -158,6 +185,14 @@ SCHEMAS: dict[str, dict[str, Any]] = {
     },
 }
 _ARRAY_TOPICS = ("/epoch", "/features")
+#: Tasks listed on ``/ranking``.
+RANKED = 10
+
+
+def belief_topic(config: dict[str, Any]) -> str:
+    """Where a recording of this configuration puts the belief over tasks: ``/belief`` (a
+    grid world, or a configuration of protocol version 2) or ``/ranking``."""
+    return "/belief" if config.get("world", "grid") == "grid" else "/ranking"
 
 
 def _to_json(value: Any) -> bytes:
@@ -198,11 +233,13 @@ class SessionRecorder:
         # chunk_size=0: every message closes its chunk (schemas and channels go into the first)
         self._writer = Writer(self._file, chunk_size=0, compression=CompressionType.NONE)
         self._writer.start(profile="", library="cfbci")
+        unused = ({"/belief", "/ranking"} - {belief_topic(config)}).pop()
         self._channels = {
             topic: self._writer.register_channel(
                 topic, "json", self._writer.register_schema(s["title"], "jsonschema", _to_json(s))
             )
             for topic, s in SCHEMAS.items()
+            if topic != unused
         }
         self._writer.add_metadata(CONFIG_METADATA, {"session": session, "config": config_json})
         self.record("/config", {"session": session, "config": config}, time.time_ns())
@@ -242,8 +279,10 @@ class SessionRecorder:
         ValueError
             On an unknown topic, a missing required field or a NaN.
         """
-        if topic not in SCHEMAS:
-            raise ValueError(f"unknown topic {topic!r}; the topics are {', '.join(SCHEMAS)}")
+        if topic not in self._channels:
+            raise ValueError(
+                f"unknown topic {topic!r}; the topics are {', '.join(self._channels)}"
+            )
         missing = [key for key in SCHEMAS[topic].get("required", ()) if key not in message]
         if missing:
             raise ValueError(f"a {topic} message needs the fields {missing}")
@@ -274,23 +313,29 @@ class SessionRecorder:
         message = {**header, "data": data, "shape": list(payload.shape), "dtype": "<f4"}
         self.record(topic, message, log_time_ns)
 
-    def record_belief(self, confidence: np.ndarray, grid_size: int, log_time_ns: int) -> None:
-        """Record the belief over targets on ``/belief`` as a ``foxglove.Grid``.
+    def record_belief(self, confidence: np.ndarray, world: World, log_time_ns: int) -> None:
+        """Record the belief over tasks: on ``/belief`` as a ``foxglove.Grid`` in a grid
+        world, else on ``/ranking`` (:meth:`record_ranking`).
 
         Parameters
         ----------
-        confidence : ndarray, shape (grid_size ** 2,)
-            Confidence of each target cell ``s = row * grid_size + col``; stored as float32
-            in the field ``confidence``, one cell of 4 bytes, ``grid_size`` cells a row.
-        grid_size : int
-            Side of the grid.
+        confidence : ndarray, shape (n_tasks,)
+            Confidence of each task (a grid's: of each cell ``s = row * side + col``);
+            stored as float32 in the Grid's field ``confidence``, one cell of 4 bytes,
+            ``side`` cells a row.
+        world : World
+            The session's world (the configuration's).
         log_time_ns : int
-            Log time and Grid time stamp, ns.
+            Log time and time stamp, ns.
         """
-        if np.shape(confidence) != (grid_size * grid_size,):
+        if np.shape(confidence) != (world.n_tasks,):
             raise ValueError(
-                f"confidence must have shape ({grid_size * grid_size},); got {np.shape(confidence)}"
+                f"confidence must have shape ({world.n_tasks},); got {np.shape(confidence)}"
             )
+        if not isinstance(world, GridWorld):
+            self.record_ranking(confidence, world, log_time_ns)
+            return
+        grid_size = world.size
         data, _ = _base64_float32(confidence)
         grid = {
             "timestamp": _timestamp(log_time_ns),
@@ -307,6 +352,22 @@ class SessionRecorder:
             "data": data,
         }
         self.record("/belief", grid, log_time_ns)
+
+    def record_ranking(self, confidence: np.ndarray, world: World, log_time_ns: int) -> None:
+        """Record the :data:`RANKED` most confident tasks on ``/ranking``, best first (ties
+        in task order), each with its state and the state's name."""
+        order = np.argsort(-np.asarray(confidence, dtype=np.float64), kind="stable")[:RANKED]
+        tasks = [
+            {
+                "task": int(t),
+                "state": int(world.task_states[t]),
+                "name": world.task_name(int(t)),
+                "confidence": float(confidence[t]),
+            }
+            for t in order
+        ]
+        self.record("/ranking", {"timestamp": _timestamp(log_time_ns), "tasks": tasks},
+                    log_time_ns)
 
     def record_log(self, level: int, message: str, log_time_ns: int) -> None:
         """Record a ``foxglove.Log`` on ``/log``, naming the caller's file and line.

@@ -1,7 +1,7 @@
 """``cfbci replay FILE.mcap``: re-run the learner over a recording and check every decision.
 
 The learner is rebuilt from the recorded configuration exactly as the service built it
-(same settings, same seed-derived streams and start cell), fed the recorded epochs in
+(same world, settings, seed-derived streams and start state), fed the recorded epochs in
 order (raw epochs go through the ErrP feature extractor again), and every move, state
 and target event it produces is compared with the recording: discrete fields exactly,
 floating-point fields (confidences, balanced accuracy, class counts) exactly too, since
@@ -19,11 +19,18 @@ import numpy as np
 
 from calibration_free.config import LearnerConfig
 from calibration_free.learner import CalibrationFreeLearner
-from calibration_free.session import session_streams, start_cell
-from calibration_free.world import GridWorld
+from calibration_free.session import session_streams
+from calibration_free.world import World, transition_draws
 from decoding.features import ErrPFeatures
 from replay.recording import Recording, decode_array, read_recording
-from wire.messages import learner_settings, move_fields, state_fields
+from wire.messages import (
+    config_world,
+    learner_settings,
+    move_fields,
+    start_state,
+    state_fields,
+    target_text,
+)
 
 MOVE_FIELDS = ("step", "from_state", "action", "to_state", "target_reached")
 STATE_FIELDS = ("best_task", "confident", "n_signals", "class_counts", "balanced_accuracy")
@@ -72,7 +79,7 @@ def recorded_learner(
     if settings is None:
         settings = learner_settings(config["learner"], config["frame"])
     return CalibrationFreeLearner(
-        GridWorld(config["grid"]), settings, session_streams(config["seed"])[2]
+        config_world(config), settings, session_streams(config["seed"])[2]
     )
 
 
@@ -105,9 +112,11 @@ class Rerun:
     Attributes
     ----------
     learner : CalibrationFreeLearner
-    world : GridWorld
+    world : World
+    draws : TransitionDraws
+        The session's world stream (stochastic moves).
     state : int
-        The agent's cell before the last move (after it, once the session is over).
+        The agent's state before the last move (after it, once the session is over).
     action : int
         The last move's action.
     moves, states : list of dict
@@ -119,8 +128,9 @@ class Rerun:
     def __init__(self, config: dict[str, Any], settings: LearnerConfig | None = None) -> None:
         self.steps = config["steps"]
         self.learner = recorded_learner(config, settings)
-        self.world = self.learner.world
-        self.state = start_cell(config["seed"], self.world.n_states)
+        self.world: World = self.learner.world
+        self.draws = transition_draws(config["seed"])
+        self.state = start_state(config["seed"], self.world)
         self.moves: list[dict] = []
         self.states: list[dict] = []
         self.events: list[str] = []
@@ -138,10 +148,10 @@ class Rerun:
     def _move(self) -> int:
         proposal = self.learner.propose(self.state)
         step = len(self.moves) + 1
-        self.moves.append(move_fields(self.world, step, self.state, proposal))
+        self.moves.append(move_fields(self.world, step, self.state, proposal, self.draws))
         self._record_state()
         if proposal.declares_target:
-            self.events.append(f"step {step}: target reached in cell {self.state}")
+            self.events.append(target_text(self.world, step, self.state))
         return proposal.action
 
     def observe(self, signal: np.ndarray, on_observe: Observer | None = None) -> None:
@@ -149,7 +159,7 @@ class Rerun:
         self.learner.observe(self.state, self.action, signal)
         if on_observe is not None:
             on_observe(self.learner.n_signals, self.learner)
-        self.state = self.world.step(self.state, self.action)
+        self.state = self.world.step(self.state, self.action, self.draws.uniform(len(self.moves)))
         if self.finished:
             self._record_state()
         else:

@@ -184,7 +184,8 @@ def _event(session: str, event: str) -> Callable[[protocol.Message], bool]:
 
 
 def _config(seed: int, grid: int, steps: int) -> dict[str, Any]:
-    return {"seed": seed, "grid": grid, "frame": "feedback", "steps": steps, "learner": {},
+    return {"seed": seed, "world": "grid", "grid": grid, "frame": "feedback", "steps": steps,
+            "learner": {},
             "dataset": {}, "signal": "features"}
 
 

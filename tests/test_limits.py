@@ -28,7 +28,8 @@ LIMITS = ServiceLimits(
 
 def _config(**changes: object) -> dict:
     return {
-        "seed": 0, "grid": 3, "frame": "feedback", "steps": 10, "learner": {}, "dataset": {},
+        "seed": 0, "world": "grid", "grid": 3, "frame": "feedback", "steps": 10, "learner": {},
+        "dataset": {},
         "signal": "features", **changes,
     }
 

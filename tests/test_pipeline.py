@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 import zenoh
 from jsonschema import Draft202012Validator
-from live import SPAWN, TIMEOUT, service_process
+from live import SPAWN, TIMEOUT, rewrite, service_process
 from mcap.reader import make_reader
 
 from acquisition.replay_source import SourceSettings, SourceSummary, run_source
@@ -30,7 +30,7 @@ from calibration_free.world import ACTIONS, GridWorld
 from cfbci.cli import main
 from cfbci.service import serve
 from cfbci.simulation import SessionConfig, run_session
-from replay.recording import Recording, SessionRecorder, decode_array, read_recording
+from replay.recording import decode_array, read_recording
 from replay.rerun import replay_check
 from wire import protocol
 from wire.transport import Outbox, Pump, Received, reliable_publisher, wait_for_subscribers
@@ -39,9 +39,11 @@ from wire.zenoh_config import free_tcp_endpoint, peer_config
 STEPS, GRID = 60, 3
 
 
-def simulated(seed: int, user_error_rate: float = 0.0) -> tuple[list[StepRecord], object]:
+def simulated(
+    seed: int, user_error_rate: float = 0.0, world: str = "grid"
+) -> tuple[list[StepRecord], object]:
     trace: list[StepRecord] = []
-    config = SessionConfig(steps=STEPS, grid=GRID, user_error_rate=user_error_rate)
+    config = SessionConfig(steps=STEPS, grid=GRID, user_error_rate=user_error_rate, world=world)
     result = run_session(seed, config, DataSpec().resolve("feedback"), trace.append)
     return trace, result
 
@@ -113,16 +115,6 @@ def test_live_session_equals_simulation_and_is_recorded(tmp_path: Path) -> None:
     assert divergence is not None
     assert (divergence.topic, divergence.step, divergence.field) == ("/move", 25, "action")
     assert main(["replay", str(altered)]) == 1 and main(["replay", str(path)]) == 0
-
-
-def rewrite(recording: Recording, path: Path) -> None:
-    """Write a recording's messages (as they are now in memory) to a new file."""
-    with SessionRecorder(path, recording.session, recording.config) as recorder:
-        for topic, messages in recording.messages.items():
-            if topic in ("/config", "/belief", "/log"):
-                continue
-            for log_time_ns, message in messages:
-                recorder.record(topic, message, log_time_ns)
 
 
 def _message(kind: str, session: str, seq: int, fields: dict, payload=None) -> bytes:
@@ -203,7 +195,8 @@ def test_malformed_messages_yield_errors_and_the_session_finishes(tmp_path: Path
             own = Outbox(client)
             assert wait_for_subscribers(own.publisher("cfbci/own/config"), TIMEOUT)
             config = {
-                "seed": 0, "grid": GRID, "frame": "feedback", "steps": 5, "learner": {},
+                "seed": 0, "world": "grid", "grid": GRID, "frame": "feedback", "steps": 5,
+                "learner": {},
                 "dataset": {}, "signal": "features",
             }
             own.send("config", "own", config)
@@ -317,7 +310,8 @@ def _stop_mid_session(
                 outbox.publisher(protocol.key(session, "config")), TIMEOUT
             )
             outbox.send("config", session, {
-                "seed": 0, "grid": GRID, "frame": "feedback", "steps": STEPS, "learner": {},
+                "seed": 0, "world": "grid", "grid": GRID, "frame": "feedback", "steps": STEPS,
+                "learner": {},
                 "dataset": {}, "signal": "features",
             })
             answered = 0

@@ -39,7 +39,7 @@ EXAMPLES: dict[str, Message] = {
     "config_epochs": Message(
         "config", "s-01", 0, 17,
         {
-            "seed": -3, "grid": 5, "frame": "feedback", "steps": 500,
+            "seed": -3, "world": "grid", "grid": 5, "frame": "feedback", "steps": 500,
             "learner": {"eps": 0.1, "decoder": "lda"},
             "dataset": {"name": "synthetic", "accuracy": 0.78},
             "signal": "epochs", "sfreq": 256.0, "tmin": -0.2, "ch_names": CH_NAMES,
@@ -48,7 +48,7 @@ EXAMPLES: dict[str, Message] = {
     "config_features": Message(
         "config", "s_02", 0, 0,
         {
-            "seed": 7, "grid": 3, "frame": "guidance", "steps": 10, "learner": {},
+            "seed": 7, "world": "pick-and-place", "frame": "guidance", "steps": 10, "learner": {},
             "dataset": {"path": "move_finger.mat"}, "signal": "features",
         },
     ),
@@ -189,7 +189,7 @@ def framing_cases() -> list[tuple[bytes, str]]:
         (frame(b"[1, 2]"), "header must be a JSON object; got list"),
         (frame(b"[" * 100_000), "header is not valid JSON"),
         (frame({k: v for k, v in header.items() if k != "v"}), "missing field 'v'"),
-        (frame(header | {"v": 1}), "unknown protocol version 1; .* speaks version 2"),
+        (frame(header | {"v": 2}), "unknown protocol version 2; .* speaks version 3"),
         (frame(header | {"v": True}), "unknown protocol version true"),
         (frame(header | {"kind": "moves"}), 'unknown kind "moves"'),
         (frame(header | {"kind": ["move"]}), "unknown kind"),
@@ -222,7 +222,7 @@ def test_a_missing_required_field_is_named(name, field):
 
 @pytest.mark.parametrize(("name", "field"), REQUIRED)
 def test_a_wrongly_typed_field_is_named(name, field):
-    spec = COMMON | SPECS[EXAMPLES[name].kind].fields | SPECS[EXAMPLES[name].kind].if_epochs
+    spec = COMMON | SPECS[EXAMPLES[name].kind].fields_for(EXAMPLES[name].fields)
     value = BAD_VALUES[spec[field].type]
     rejects(tampered(name, **{field: value}), f"field '{field}' must be")
 
@@ -233,6 +233,7 @@ def test_a_wrongly_typed_field_is_named(name, field):
         ("move", "action", "jump"),
         ("event", "event", "warning"),
         ("config_epochs", "frame", "FEEDBACK"),
+        ("config_epochs", "world", "maze"),
         ("epoch_epochs", "signal", "raw"),
     ],
 )
@@ -252,6 +253,11 @@ def overflowing_sfreq() -> bytes:
         (tampered("move", extra=1), "unknown header field\\(s\\) 'extra' for kind 'move'"),
         (tampered("epoch_features", ch_names=["Cz"]), "unknown header field\\(s\\) 'ch_names'"),
         (tampered("config_features", sfreq=256.0), "unknown header field\\(s\\) 'sfreq'"),
+        (
+            tampered("config_features", grid=5),
+            "unknown header field\\(s\\) 'grid' for kind 'config'; 'grid' is allowed only "
+            "when 'world' is \"grid\"",
+        ),
         (overflowing_sfreq(), "field 'sfreq' must be a finite number"),
         (tampered("move", t_ns=2**63), "field 't_ns' must be .*int64"),
         (tampered("move", seq=-1), "field 'seq' must be an integer >= 0"),

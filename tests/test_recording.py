@@ -20,8 +20,11 @@ from jsonschema import Draft202012Validator
 from mcap.reader import make_reader
 from mcap.records import ChunkIndex
 
+from calibration_free.world import GridWorld
+from calibration_free.worlds import make_world
 from replay.recording import (
     CONFIG_METADATA,
+    RANKED,
     SCHEMAS,
     Recording,
     SessionRecorder,
@@ -33,6 +36,7 @@ from replay.recording import (
 ROOT = Path(__file__).resolve().parents[1]
 CONFIG = {"grid": 3, "frame": "feedback", "learner": {"eps": 0.1, "decoder": "lda"}}
 T0 = 1_700_000_000_123_456_789  # ns
+GRID = GridWorld(3)
 
 
 def schema_errors(instance: Any, schema: dict[str, Any]) -> list[str]:
@@ -66,7 +70,7 @@ def write_session(path: Path) -> list[tuple[str, int, Any]]:
                     (stamp, features),
                     partial(recorder.record_array, "/features", stamp, features),
                 ),
-                ("/belief", confidence, partial(recorder.record_belief, confidence, 3)),
+                ("/belief", confidence, partial(recorder.record_belief, confidence, GRID)),
                 ("/log", f"step {seq}", partial(recorder.record_log, 2, f"step {seq}")),
             ]
             for topic in ("/move", "/state", "/event", "/truth"):
@@ -102,7 +106,7 @@ def check_recorded(recording: Recording, recorded: list[tuple[str, int, Any]]) -
     """Every recorded message, in order per topic, with its log time; arrays bit-exact."""
     assert recording.session == "s01"
     assert recording.config == CONFIG
-    assert set(recording.messages) == set(SCHEMAS)
+    assert set(recording.messages) == set(SCHEMAS) - {"/ranking"}  # a grid world's
     [(_, config)] = recording.messages["/config"]
     assert config == {"session": "s01", "config": CONFIG}
     counts = Counter(["/config", *(topic for topic, _, _ in recorded)])
@@ -219,12 +223,33 @@ def test_the_recorder_rejects_bad_messages(tmp_path: Path) -> None:
         with pytest.raises(ValueError, match="arrays go to"):
             recorder.record_array("/move", {"seq": 0, "t_ns": 0}, np.zeros(2), 0)
         with pytest.raises(ValueError, match="shape"):
-            recorder.record_belief(np.zeros(8), 3, 0)
+            recorder.record_belief(np.zeros(8), GRID, 0)
+        with pytest.raises(ValueError, match="unknown topic '/ranking'"):  # a grid world's
+            recorder.record_ranking(np.zeros(9), GRID, 0)
         with pytest.raises(ValueError, match="log level"):
             recorder.record_log(0, "x", 0)
         with pytest.raises(ValueError, match="JSON compliant"):
             recorder.record("/state", {"seq": 0, "t_ns": 0, "p": float("nan")}, 0)
     assert read_recording(tmp_path / "bad.mcap").n_messages == 1  # the /config message
+
+
+def test_a_world_without_a_grid_layout_records_a_ranking_instead(tmp_path: Path) -> None:
+    path = tmp_path / "pick.mcap"
+    world = make_world("pick-and-place")
+    confidence = np.random.default_rng(1).dirichlet(np.ones(world.n_tasks))
+    confidence[[7, 3]] = 0.5  # a tie: listed in task order
+    with SessionRecorder(path, "pick", {"world": "pick-and-place"}) as recorder:
+        recorder.record_belief(confidence, world, T0)
+        with pytest.raises(ValueError, match="unknown topic '/belief'"):
+            recorder.record("/belief", {}, T0)
+    recording = read_recording(path)
+    assert set(recording.messages) == set(SCHEMAS) - {"/belief"}
+    [(log_time, ranking)] = recording.messages["/ranking"]
+    assert log_time == T0 and schema_errors(ranking, SCHEMAS["/ranking"]) == []
+    expected = sorted(range(world.n_tasks), key=lambda t: (-confidence[t], t))[:RANKED]
+    assert [t["task"] for t in ranking["tasks"]] == expected and expected[:2] == [3, 7]
+    assert ranking["tasks"][0] == {"task": 3, "state": 3, "name": world.state_name(3),
+                                   "confidence": 0.5}
 
 
 def test_a_cut_file_gives_every_complete_message_before_the_cut(tmp_path: Path) -> None:

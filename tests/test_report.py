@@ -21,7 +21,7 @@ from acquisition.sources import DEFAULT_SYNTHETIC_ACCURACY, synthetic_epochs
 from acquisition.user import SimulatedUser
 from calibration_free.learner import CalibrationFreeLearner
 from calibration_free.session import session_streams, start_cell
-from calibration_free.world import ACTIONS, GridWorld
+from calibration_free.world import ACTIONS, GridWorld, transition_draws
 from cfbci.cli import main
 from decoding.features import ErrPFeatures
 from replay.figures import session_figures
@@ -96,7 +96,7 @@ def record_hand_state(recorder: SessionRecorder, n_signals: int, t: int) -> None
         "class_counts": [float(n_signals), 0.0],
         "balanced_accuracy": HAND_SELF_ACCURACY[n_signals], "confidence": confidence,
     }, t)
-    recorder.record_belief(np.asarray(confidence), 2, t)
+    recorder.record_belief(np.asarray(confidence), GridWorld(2), t)
 
 
 # -- a real recording, made in-process as the service and the replay source would ---------
@@ -117,6 +117,7 @@ def write_real(path: Path, seed: int = REAL_SEED, steps: int = REAL_STEPS,
     learner = CalibrationFreeLearner(world, learner_settings({}, "feedback"), learner_rng)
     state = start_cell(seed, world.n_states)
     assert state == user.start_state
+    draws = transition_draws(seed)
     config = {
         "seq": 0, "t_ns": 0, "seed": seed, "grid": grid, "frame": "feedback", "steps": steps,
         "learner": {}, "dataset": {"description": "synthetic"}, "signal": "epochs",
@@ -129,12 +130,12 @@ def write_real(path: Path, seed: int = REAL_SEED, steps: int = REAL_STEPS,
             fields, confidence = state_fields(learner)
             recorder.record("/state", {"seq": t, "t_ns": t, **fields,
                                        "confidence": [float(c) for c in confidence]}, t)
-            recorder.record_belief(confidence, grid, t)
+            recorder.record_belief(confidence, world, t)
 
         for step in range(1, steps + 1):
             t = 10 * step
             proposal = learner.propose(state)
-            move = {"seq": step, "t_ns": t, **move_fields(world, step, state, proposal)}
+            move = {"seq": step, "t_ns": t, **move_fields(world, step, state, proposal, draws)}
             if step > 1:
                 move["update_ms"] = float(1 + step % 7)
             recorder.record("/move", move, t)

@@ -10,6 +10,7 @@ import signal
 from collections import Counter
 from pathlib import Path
 
+import pytest
 import zenoh
 from live import SPAWN, TIMEOUT
 from test_pipeline import GRID, STEPS, simulated, source_process
@@ -26,16 +27,19 @@ from wire.zenoh_config import free_tcp_endpoint, peer_config
 KILL_AT = 25  # the service is killed once the move of this step has been seen
 
 
+# The line world's seed pushes into its walls after the kill: the resumed service's
+# stochastic moves must continue the world stream.
+@pytest.mark.parametrize(("world", "seed"), [("grid", 4), ("line", 2)])
 def test_a_killed_service_resumes_the_session_and_decides_as_if_never_killed(
-    tmp_path: Path,
+    tmp_path: Path, world: str, seed: int
 ) -> None:
-    seed, sid = 4, "resumed"
+    sid = "resumed"
     endpoint, observer_endpoint = free_tcp_endpoint(), free_tcp_endpoint()
     # The source connects to the service's endpoint (as `cfbci source --connect` does) and
     # reconnects to the new service on it; the service connects to the observer.
     args = ([endpoint], [observer_endpoint], tmp_path)
     settings = SourceSettings(sid, seed=seed, steps=STEPS, grid=GRID, timeout=TIMEOUT,
-                              resend_interval=0.2)
+                              resend_interval=0.2, world=world)
     inbox: queue.SimpleQueue[Received] = queue.SimpleQueue()
     with zenoh.open(peer_config([observer_endpoint], ())) as observer:
         moves = Pump(observer, protocol.key(sid, "move"), "move", inbox)
@@ -65,7 +69,12 @@ def test_a_killed_service_resumes_the_session_and_decides_as_if_never_killed(
             assert second.exitcode == 0
         moves.close()
 
-    trace, result = simulated(seed)
+    trace, result = simulated(seed, world=world)
+    if world == "line":  # both outcomes of a push into a wall, after the kill
+        pushes = [(r.state, r.action) in ((0, "left"), (4, "right")) for r in trace]
+        after = {r.next_state == r.state for r, push in zip(trace, pushes, strict=True)
+                 if push and r.step > KILL_AT}
+        assert after == {True, False}
     assert summary.records == trace  # every move, confident flag, best task and event
     assert (summary.correct_targets, summary.wrong_targets) == (
         result.correct_targets, result.wrong_targets,

@@ -495,7 +495,8 @@ def test_latency_pairs_each_epoch_with_the_next_move() -> None:
 
 
 def test_a_new_config_under_a_used_id_starts_the_session_again() -> None:
-    config = {"seed": 0, "grid": 4, "frame": "feedback", "steps": 9, "learner": {"beta": 0.95},
+    config = {"seed": 0, "world": "grid", "grid": 4, "frame": "feedback", "steps": 9,
+              "learner": {"beta": 0.95},
               "dataset": {}, "signal": "features"}
     view = SessionView("s")
     assert view.update(_message("config", t_ns=10, **config), 0) is not None
@@ -529,3 +530,20 @@ def test_layout_is_the_configs_grid_else_a_ranked_list() -> None:
     assert layout_of(None, 24) == {"kind": "list"}
     assert layout_of(None, 25, grid_actions=False) == {"kind": "list"}
     assert json.loads(json.dumps(SessionView("x").snapshot()))["threshold_known"] is False
+
+
+def test_a_target_in_a_world_without_a_grid_is_judged_by_its_task_state() -> None:
+    """Line world: task 1 (G2) is state 4; a target declared in state 4 is the user's when
+    the truth names task 1, not when it names task 0."""
+    config = {"seed": 0, "world": "line", "frame": "feedback", "steps": 9, "learner": {},
+              "dataset": {}, "signal": "features"}
+    view = SessionView("s")
+    view.update(_message("config", t_ns=10, **config), 0)
+    assert view.snapshot()["layout"] == {"kind": "list"}
+    for step, target in ((1, 1), (2, 0)):
+        view.update(_message("move", step=step, from_state=4, action="no-move", to_state=4,
+                             target_reached=True), 0)
+        view.update(_message("truth", step=step, target=target, label=0), 0)
+    assert [(t["step"], t["cell"], t["status"]) for t in view.targets] == [
+        (1, 4, "correct"), (2, 4, "wrong"),
+    ]

@@ -1,19 +1,59 @@
 """Message fields the service publishes and replay recomputes: one definition for both.
 
-``learner_settings`` reads a config message's ``learner`` object; ``move_fields`` and
-``state_fields`` build a ``move`` and a ``state`` message from the learner's proposal and
-beliefs (docs/protocol.md).
+``config_world`` builds a config's world and ``learner_settings`` reads its ``learner``
+object; ``move_fields``, ``state_fields`` and ``target_text`` build a ``move``, a ``state``
+and a ``target_reached`` event's text from the learner's proposal and beliefs
+(docs/protocol.md).
 """
 
 from __future__ import annotations
 
+import functools
 from typing import Any
 
 import numpy as np
 
 from calibration_free.config import LearnerConfig
 from calibration_free.learner import CalibrationFreeLearner, Proposal
-from calibration_free.world import ACTIONS, GridWorld
+from calibration_free.session import session_streams
+from calibration_free.world import GridWorld, TransitionDraws, World
+from calibration_free.worlds import make_world
+
+
+def config_world(config: dict[str, Any]) -> World:
+    """The world of a config message's fields (or of a recorded configuration).
+
+    A configuration without ``world`` (protocol version 2, grid worlds only) is a grid.
+    Worlds are immutable: one instance per kind and side is built and shared (its tables,
+    built on first use, too), so that a config costs no world construction (32 ms for
+    pick-and-place).
+
+    Raises
+    ------
+    ValueError
+        On an unknown world or a grid side outside 2..64.
+    """
+    kind = config.get("world", "grid")
+    return _world(kind, config["grid"] if kind == "grid" else None)
+
+
+@functools.cache
+def _world(kind: str, grid: int | None) -> World:
+    return make_world(kind) if grid is None else make_world(kind, grid=grid)
+
+
+def world_text(world: World) -> str:
+    """A short description of a world, e.g. ``5 x 5 grid`` or ``line world (5 states, 2
+    tasks)``."""
+    if isinstance(world, GridWorld):
+        return f"{world.size} x {world.size} grid"
+    return f"{world.name} world ({world.n_states} states, {world.n_tasks} tasks)"
+
+
+def start_state(seed: int, world: World) -> int:
+    """The agent's start state in a session of ``seed``: :meth:`World.start_state` on the
+    session's user stream, as :class:`acquisition.user.SimulatedUser` draws it first."""
+    return world.start_state(session_streams(seed)[1])
 
 
 def learner_settings(values: dict[str, Any], frame: str) -> LearnerConfig:
@@ -48,15 +88,28 @@ def learner_settings(values: dict[str, Any], frame: str) -> LearnerConfig:
     return LearnerConfig.from_dict({**values, "frame": frame})
 
 
-def move_fields(world: GridWorld, step: int, state: int, proposal: Proposal) -> dict[str, Any]:
-    """The fields of the ``move`` message of ``proposal`` taken in ``state`` at ``step``."""
+def move_fields(
+    world: World, step: int, state: int, proposal: Proposal, draws: TransitionDraws
+) -> dict[str, Any]:
+    """The fields of the ``move`` message of ``proposal`` taken in ``state`` at ``step``.
+
+    ``draws`` is the session's world stream (:func:`calibration_free.world.transition_draws`):
+    a stochastic move takes its outcome from the stream's number of ``step``.
+    """
     return {
         "step": step,
         "from_state": state,
-        "action": ACTIONS[proposal.action],
-        "to_state": world.step(state, proposal.action),
+        "action": world.action_names[proposal.action],
+        "to_state": world.step(state, proposal.action, draws.uniform(step)),
         "target_reached": proposal.declares_target,
     }
+
+
+def target_text(world: World, step: int, state: int) -> str:
+    """The message of the ``target_reached`` event of a target declared in ``state``."""
+    if isinstance(world, GridWorld):  # the text of protocol version 2's recordings
+        return f"step {step}: target reached in cell {state}"
+    return f"step {step}: target reached in state {state} ({world.state_name(state)})"
 
 
 def state_fields(learner: CalibrationFreeLearner) -> tuple[dict[str, Any], np.ndarray]:

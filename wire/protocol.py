@@ -24,15 +24,20 @@ from typing import Any
 import numpy as np
 
 from calibration_free.frames import FRAMES
-from calibration_free.world import ACTIONS
+from calibration_free.worlds import WORLDS, make_world
 
-VERSION: int = 2
+VERSION: int = 3
 PREFIX: str = "cfbci"
 MAX_BYTES: int = 16 * 2**20
 NO_SESSION: str = "_"  # key segment of the service's events about unusable session ids
 SIGNALS: tuple[str, ...] = ("epochs", "features")
 EVENTS: tuple[str, ...] = (
     "error", "target_reached", "session_started", "session_ended", "session_rejected", "info",
+)
+
+#: Every world's action names, in world order then action order (a move's ``action``).
+ACTION_NAMES: tuple[str, ...] = tuple(
+    dict.fromkeys(name for world in WORLDS for name in make_world(world).action_names)
 )
 
 _SESSION = re.compile(r"[A-Za-z0-9_-]{1,64}")
@@ -112,15 +117,30 @@ class Payload:
 class KindSpec:
     """A message kind: who sends it, its header fields, its payload (None: never one).
 
-    ``if_epochs`` are fields required when the header's ``signal`` is ``"epochs"`` and
-    forbidden otherwise.
+    ``conditional`` maps ``(field, value)`` to fields required when the header's ``field``
+    has that value and forbidden otherwise (``("signal", "epochs")``: the raw epochs'
+    description; ``("world", "grid")``: the grid's side).
     """
 
     sender: str
     meaning: str
     fields: Mapping[str, Field]
     payload: Payload | None = None
-    if_epochs: Mapping[str, Field] = field(default_factory=dict)
+    conditional: Mapping[tuple[str, str], Mapping[str, Field]] = field(default_factory=dict)
+
+    def fields_for(self, header: Mapping[str, Any]) -> dict[str, Field]:
+        """The kind's fields a header with these values must hold (conditional ones
+        included where their condition holds)."""
+        fields = dict(self.fields)
+        for (name, value), extra in self.conditional.items():
+            if header.get(name) == value:
+                fields |= extra
+        return fields
+
+    def condition_of(self, name: str) -> tuple[str, str] | None:
+        """The ``(field, value)`` under which a conditional field is allowed (None: not
+        a conditional field)."""
+        return next((c for c, extra in self.conditional.items() if name in extra), None)
 
 
 COMMON: dict[str, Field] = {
@@ -138,6 +158,7 @@ PAYLOAD_FIELDS: dict[str, Field] = {
 _STEP = Field("count", "device action, 1 to `steps`")
 _SIGNAL = Field("str", "raw EEG epochs or feature vectors", SIGNALS)
 _CH_NAMES = Field("str[]", "EEG channel names, in payload row order")
+_EPOCHS = ("signal", "epochs")
 
 SPECS: dict[str, KindSpec] = {
     "config": KindSpec(
@@ -145,17 +166,25 @@ SPECS: dict[str, KindSpec] = {
         "First message of a session: everything the service needs to run it.",
         {
             "seed": Field("int", "session seed (method's random streams)"),
-            "grid": Field("count", "side of the grid; cells are `row * grid + col`"),
+            "world": Field("str", "the world the device acts in (see \"Worlds\")", WORLDS),
             "frame": Field("str", "interaction frame", FRAMES),
             "steps": Field("count", "device actions (epochs) in the session"),
-            "learner": Field("object", "learner settings, as `LearnerConfig` field: value"),
+            "learner": Field(
+                "object", "learner settings, as `LearnerConfig` field: value (the likelihood "
+                "is `learner.likelihood`)"
+            ),
             "dataset": Field("object", "description of the data the source answers from"),
             "signal": _SIGNAL,
         },
-        if_epochs={
-            "sfreq": Field("float", "sampling frequency, Hz"),
-            "tmin": Field("float", "time of the first sample relative to action onset, s"),
-            "ch_names": _CH_NAMES,
+        conditional={
+            ("world", "grid"): {
+                "grid": Field("count", "side of the grid; cells are `row * grid + col`"),
+            },
+            _EPOCHS: {
+                "sfreq": Field("float", "sampling frequency, Hz"),
+                "tmin": Field("float", "time of the first sample relative to action onset, s"),
+                "ch_names": _CH_NAMES,
+            },
         },
     ),
     "epoch": KindSpec(
@@ -167,16 +196,17 @@ SPECS: dict[str, KindSpec] = {
             {"epochs": ("n_channels", "n_times"), "features": ("n_features",)},
             "raw EEG epoch or ErrP feature vector, microvolts",
         ),
-        if_epochs={"ch_names": _CH_NAMES},
+        conditional={_EPOCHS: {"ch_names": _CH_NAMES}},
     ),
     "truth": KindSpec(
         "source",
         "Ground truth of an epoch, for recording and evaluation; the service never reads it.",
         {
             "step": _STEP,
-            "target": Field("count", "the user's target cell when the epoch was produced"),
+            "target": Field("count", "the user's target task when the epoch was produced"),
             "label": Field(
-                "count", "class of the epoch (feedback: 0 correct, 1 error; guidance: 0-3 = move)"
+                "count", "class of the epoch (feedback: 0 correct, 1 error; guidance: the "
+                "guidance action's class)"
             ),
         },
     ),
@@ -185,17 +215,19 @@ SPECS: dict[str, KindSpec] = {
         "The device's next action.",
         {
             "step": _STEP,
-            "from_state": Field("count", "cell before the action"),
-            "action": Field("str", "the action", ACTIONS),
-            "to_state": Field("count", "cell after the action"),
-            "target_reached": Field("bool", "the action is `goal` performed while confident"),
+            "from_state": Field("count", "state before the action"),
+            "action": Field("str", "the action, one of its world's", ACTION_NAMES),
+            "to_state": Field("count", "state after the action"),
+            "target_reached": Field(
+                "bool", "the action is the world's declaration action performed while confident"
+            ),
         },
     ),
     "state": KindSpec(
         "service",
         "The learner's beliefs after its latest epoch, which chose the accompanying move.",
         {
-            "best_task": Field("count", "most likely target cell"),
+            "best_task": Field("count", "most likely task"),
             "confident": Field("bool", "best task's confidence exceeds beta"),
             "n_signals": Field("count", "epochs the learner has observed"),
             "class_counts": Field(
@@ -244,7 +276,9 @@ def markdown_table() -> str:
     for kind, spec in SPECS.items():
         lines += ["", f"### `{kind}`: {PREFIX}/<session>/{kind}, sent by the {spec.sender}", ""]
         lines += [spec.meaning, ""]
-        lines += table(spec.fields) + table(spec.if_epochs, ' (only when `signal` is "epochs")')[2:]
+        lines += table(spec.fields)
+        for (name, value), extra in spec.conditional.items():
+            lines += table(extra, f" (only when `{name}` is {_show(value)})")[2:]
         if spec.payload is None:
             lines += ["", "Payload: none."]
             continue
@@ -467,13 +501,21 @@ def _validate(
         raise ProtocolError(f"kind {kind!r} requires a float32 payload; got none", **context)
     fields = COMMON | spec.fields | (PAYLOAD_FIELDS if spec.payload is not None else {})
     _check_fields(header, fields, kind, context)
-    if header.get("signal") == "epochs":  # valid by now: the if_epochs fields are due
-        _check_fields(header, spec.if_epochs, kind, context)
-        fields |= spec.if_epochs
+    # The conditions' fields are valid by now: the conditional fields due are known.
+    conditional = {k: v for k, v in spec.fields_for(header).items() if k not in spec.fields}
+    _check_fields(header, conditional, kind, context)
+    fields |= conditional
     unknown = [name for name in header if name not in fields]
     if unknown:
+        conditions = [spec.condition_of(name) for name in unknown]
+        allowed = "".join(
+            f"; {name!r} is allowed only when {c[0]!r} is {_show(c[1])}"
+            for name, c in zip(unknown, conditions, strict=True)
+            if c is not None
+        )
         raise ProtocolError(
-            f"unknown header field(s) {', '.join(map(repr, unknown))} for kind {kind!r}",
+            f"unknown header field(s) {', '.join(map(repr, unknown))} for kind {kind!r}"
+            f"{allowed}",
             **context,
         )
     _check_reserved(header["session"], kind, context)
@@ -486,7 +528,7 @@ def _validate(
     payload = None
     if spec.payload is not None:
         payload = _read_payload(header, body, spec.payload, context)
-    own = {name: header[name] for name in header if name in spec.fields | spec.if_epochs}
+    own = {name: header[name] for name in header if name in spec.fields_for(header)}
     return Message(kind, header["session"], header["seq"], header["t_ns"], own, payload)
 
 
