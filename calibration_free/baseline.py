@@ -5,9 +5,10 @@ each action is, with probability ``correct_ratio`` (0.8), an optimal action for 
 calibration target (``goal`` at the target itself) and otherwise a non-optimal one. The
 device labels these signals itself from the known target. One decoder (the configured
 kind) is then trained on them, its k-fold confusion estimated once, and from then on the
-task posterior is a Bayesian filter with that fixed decoder: the same matching update,
-confidence, planning and target-reached rule as the learner, without task relabelling
-and without the power prior. Its steps to the first target include the calibration.
+task posterior is a Bayesian filter with that fixed decoder: the same matching update
+(always confusion-corrected: ``likelihood`` is not used), confidence rule, planner and
+target-reached rule as the learner, without task relabelling and without the power
+prior. Its steps to the first target include the calibration.
 """
 
 from __future__ import annotations
@@ -57,6 +58,7 @@ class CalibratedBaseline(TaskLearner):
         self.calibration_target = self._check_state(calibration_target)
         self.n_calibration = int(n_calibration)
         self.correct_ratio = correct_ratio
+        self.log_likelihood = np.zeros(world.n_tasks)
         self._history: TaskHistory | None = None
         self._models: TaskModels | None = None
 
@@ -103,9 +105,16 @@ class CalibratedBaseline(TaskLearner):
         if self._take_target_reached(state, action) is not None:
             self.log_likelihood[:] = 0.0
 
-    def _corrected_samples(self) -> np.ndarray | None:
+    def _predicted_samples(self) -> np.ndarray | None:
         if self._models is None or self._history is None:
             return None
         signals = self._history.signals[self._sample_indices(self._history.n_signals)]
         corrected = self._models.corrected_proba(signals)
         return np.broadcast_to(corrected, (self.world.n_tasks, *corrected.shape[1:]))
+
+    def _class_means(self) -> np.ndarray | None:
+        """The calibrated decoder's class means, the same for every task."""
+        if self._models is None or self._history is None:
+            return None
+        means = self._history.class_means()
+        return np.broadcast_to(means, (self.world.n_tasks, *means.shape[1:]))

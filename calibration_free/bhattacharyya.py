@@ -63,12 +63,26 @@ def overlap_per_task(
         1 (no information) for a task with a class of fewer than two signals' weight.
     """
     statistics = ClassStatistics.from_signals(signals, np.swapaxes(label_weights, 0, 1))
+    return overlap_of_classes(statistics, shrinkage)
+
+
+def overlap_of_classes(statistics: ClassStatistics, shrinkage: float) -> np.ndarray:
+    """Bhattacharyya coefficient of the two class Gaussians of every labelling.
+
+    ``statistics`` has batch shape (n_tasks,) and two classes; returns (n_tasks,), 1 (no
+    information) for a labelling with a class of fewer than two signals' weight (see
+    :func:`defined_classes`).
+    """
     means, covariances = statistics.class_moments()
     covariances = shrink_towards_identity(covariances, shrinkage)
-    defined = np.all(statistics.counts >= 2, axis=-1)
-    identity = np.eye(signals.shape[1])
-    covariances[~defined] = identity
+    defined = defined_classes(statistics)
+    covariances[~defined] = np.eye(means.shape[-1])
     return np.where(defined, bhattacharyya_coefficient(means, covariances), 1.0)
+
+
+def defined_classes(statistics: ClassStatistics) -> np.ndarray:
+    """Labellings whose every class has at least two signals' weight, shape (n_tasks,)."""
+    return np.all(statistics.counts >= 2, axis=-1)
 
 
 def overlap_log_factor(rho: np.ndarray) -> np.ndarray:

@@ -6,13 +6,13 @@ from dataclasses import asdict, dataclass, fields
 from typing import Any
 
 from calibration_free.frames import FRAMES
-from calibration_free.likelihood import DEFAULT_CONFUSION_SMOOTHING
-from calibration_free.planning import DEFAULT_DISCOUNT, PLANNERS
-from calibration_free.task_decoders import DEFAULT_FOLDS
+from calibration_free.likelihood import CONFIDENCES, DEFAULT_CONFUSION_SMOOTHING
+from calibration_free.planning import DEFAULT_DISCOUNT, DEFAULT_EPSILON, PLANNERS
+from calibration_free.task_decoders import DECODERS, DEFAULT_FOLDS
+from calibration_free.task_likelihoods import LIKELIHOODS
 from decoding.lda import DEFAULT_SHRINKAGE
 from decoding.validation import check_option, check_range
 
-DECODERS: tuple[str, ...] = ("lda", "student_t")
 PLANNING_WEIGHTS: tuple[str, ...] = ("posterior", "confidence")
 
 
@@ -26,10 +26,25 @@ class LearnerConfig:
         Interaction frame (method.md §2).
     eps : float, default 0.1
         The user error rate the learner assumes when matching labels.
-    decoder : {"lda", "student_t"}, default "lda"
+    likelihood : {"matching", "simple", "batch", "bhattacharyya"}, default "matching"
+        How tasks are scored (:mod:`calibration_free.task_likelihoods`): the matching
+        filter with cross-validated confusion correction; the same filter on the raw
+        decoder posterior (no confusion, no cross-validation fits); every step's
+        recomputation of the segment's matches with the latest decoders (Eq.
+        matchingoverfitting, no cross-validation); or the Bhattacharyya overlap until the
+        first target (declared at a normalised likelihood above 0.99), then the matching
+        filter. Feedback frame only for "bhattacharyya".
+    confidence : {"pairwise", "normalised"}, default "pairwise"
+        The confidence compared with ``beta``: the pairwise-min ``W_t = min_u L_t / (L_t +
+        L_u)`` or the normalised likelihood ``L_t / sum_u L_u`` of the scores.
+    decoder : {"lda", "student_t", "gaussian", "categorical"}, default "lda"
         Shrinkage LDA with the pooled within-class covariance, deciding with equal
-        priors (:mod:`decoding.lda`), or the thesis's Student-t predictive (per-class
-        scatters: a slower per-task path, see :mod:`calibration_free.task_decoders`).
+        priors (:mod:`decoding.lda`); the thesis's Student-t predictive (per-class
+        scatters: a slower per-task path, see :mod:`calibration_free.task_decoders`); a
+        plain Gaussian per class (QDA: weighted mean and covariance shrunk by
+        ``shrinkage``, equal priors, :mod:`decoding.gaussian`); or, for symbolic signals
+        (a one-hot vector of the button pressed), per-class button frequencies
+        (:mod:`decoding.categorical`).
     shrinkage : float, default 0.5
         Covariance shrinkage towards the scaled identity, in [0, 1].
     n_folds : int, default 10
@@ -43,18 +58,25 @@ class LearnerConfig:
     power_prior : bool, default True
         Add the ErrP power prior to the scores (feedback frame only).
     beta : float, default 0.9
-        Confidence threshold on the pairwise-min confidence.
-    planner : {"uncertainty", "greedy", "random"}, default "uncertainty"
+        Confidence threshold on the ``confidence`` rule.
+    planner : {"uncertainty", "greedy", "random", "signal", "epsilon-greedy"}, default "uncertainty"
+        How actions are chosen while not confident (:mod:`calibration_free.planning`):
+        meaning-space uncertainty or signal-space uncertainty (class means) with value
+        iteration, greedy on the most likely task, epsilon-greedy, or uniform.
+    epsilon : float, default 0.1
+        The "epsilon-greedy" planner's probability of a uniform action, in [0, 1].
     planning_weights : {"posterior", "confidence"}, default "posterior"
         How the uncertainty planner weighs the tasks: their posterior (softmax of the
         scores), which focuses on the leading hypotheses, or their normalised pairwise
         confidence W of method.md §6, which is flatter.
     novelty_bonus : float, default 4.0
         Exploration bonus ``c * 2 (1 - W_best) / sqrt(1 + visits(s))`` added to the
-        uncertainty reward (scaled to a maximum of 1) until the first target is reached:
-        while no decoder is calibrated by use, it draws the agent to cells it has seen
-        little, where the hypotheses' labels can be told apart (guidance needs cells in
-        the target's row or column), and fades as the best task's confidence W_best grows.
+        uncertainty reward of the "uncertainty" and "signal" planners (scaled to a
+        maximum of 1) until the first target is reached: while no decoder is calibrated
+        by use, it draws the agent to cells it has seen little, where the hypotheses'
+        labels can be told apart (guidance needs cells in the target's row or column),
+        and fades as the best task's confidence W_best grows. The thesis's planners have
+        no such bonus (0 reproduces them).
     n_planning_signals : int, default 20
         Past signals sampled per step by the uncertainty planner.
     discount : float, default 0.9
@@ -65,6 +87,8 @@ class LearnerConfig:
 
     frame: str = "feedback"
     eps: float = 0.1
+    likelihood: str = "matching"
+    confidence: str = "pairwise"
     decoder: str = "lda"
     shrinkage: float = DEFAULT_SHRINKAGE
     n_folds: int = DEFAULT_FOLDS
@@ -73,6 +97,7 @@ class LearnerConfig:
     power_prior: bool = True
     beta: float = 0.9
     planner: str = "uncertainty"
+    epsilon: float = DEFAULT_EPSILON
     planning_weights: str = "posterior"
     novelty_bonus: float = 4.0
     n_planning_signals: int = 20
@@ -81,10 +106,18 @@ class LearnerConfig:
 
     def __post_init__(self) -> None:
         check_option("frame", self.frame, FRAMES)
+        check_option("likelihood", self.likelihood, LIKELIHOODS)
+        check_option("confidence", self.confidence, tuple(CONFIDENCES))
         check_option("decoder", self.decoder, DECODERS)
         check_option("planner", self.planner, PLANNERS)
+        if self.likelihood == "bhattacharyya" and self.frame != "feedback":
+            raise ValueError(
+                "likelihood 'bhattacharyya' compares two classes: it needs frame "
+                f"'feedback'; got frame {self.frame!r}"
+            )
         check_option("planning_weights", self.planning_weights, PLANNING_WEIGHTS)
         check_range("eps", self.eps, 0.0, 0.5)
+        check_range("epsilon", self.epsilon, 0.0, 1.0)
         check_range("shrinkage", self.shrinkage, 0.0, 1.0)
         check_range("beta", self.beta, 0.5, 1.0, inclusive=False)
         check_range("discount", self.discount, 0.0, 1.0, inclusive=False)

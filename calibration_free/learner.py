@@ -3,6 +3,13 @@
 The learner's only inputs are (state, action, signal): it never sees a label nor the
 user's target. Signals enter as float32 (the service's wire format) and are computed on
 in float64, so every path sees the same numbers.
+
+Its parts are plug-ins chosen by :class:`~calibration_free.config.LearnerConfig`: the
+likelihood (:mod:`calibration_free.task_likelihoods`), the confidence rule
+(:data:`calibration_free.likelihood.CONFIDENCES`), the decoders
+(:mod:`calibration_free.task_decoders`) and the planner (:mod:`calibration_free.planning`).
+The decoders are fitted when first needed after each signal (by the next observation or
+proposal), with cross-validation only for a likelihood that corrects by the confusion.
 """
 
 from __future__ import annotations
@@ -13,9 +20,10 @@ import numpy as np
 
 from calibration_free.config import LearnerConfig
 from calibration_free.frames import Frame
-from calibration_free.likelihood import match, pairwise_confidence, power_log_ratio
-from calibration_free.planning import UncertaintyPlanner, greedy_action, random_action
+from calibration_free.likelihood import CONFIDENCES, normalised_likelihood, power_log_ratio
+from calibration_free.planning import PlanningInputs, greedy_action, make_planner, random_action
 from calibration_free.task_decoders import TaskHistory, TaskModels, decoder_fit
+from calibration_free.task_likelihoods import make_likelihood
 from calibration_free.world import World
 from decoding.validation import check_array
 
@@ -45,14 +53,17 @@ class Beliefs:
     Attributes
     ----------
     log_likelihood : ndarray, shape (n_tasks,)
-        Accumulated matching log pseudo-likelihood since the last task switch.
+        The likelihood's log pseudo-likelihood within the current task segment (since the
+        last target; no power prior).
     scores : ndarray, shape (n_tasks,)
         ``log_likelihood`` plus the power prior where it applies.
     confidence : ndarray, shape (n_tasks,)
-        Pairwise-min confidence ``W_t`` in (0, 1).
+        The confidence rule's value of every task, in [0, 1] (pairwise-min ``W_t`` by
+        default, see ``LearnerConfig.confidence``).
     best_task : int
     confident : bool
-        ``confidence[best_task] > beta``.
+        ``confidence[best_task]`` above the threshold (``beta``, or the one the
+        likelihood imposes: Bhattacharyya's 0.99 before its switch).
     n_signals : int
         Signals observed so far.
     """
@@ -64,12 +75,20 @@ class Beliefs:
     confident: bool
     n_signals: int
 
+    def normalised_likelihood(self) -> np.ndarray:
+        """``L_t / sum_u L_u`` of :attr:`log_likelihood` (no power prior), shape (n_tasks,)."""
+        return normalised_likelihood(self.log_likelihood)
+
 
 class TaskLearner:
     """What the calibration-free learner and the calibrated baseline share.
 
-    Subclasses provide :meth:`observe`, :meth:`_scores` and :meth:`_corrected_samples`.
+    Subclasses provide :attr:`log_likelihood`, :meth:`observe`,
+    :meth:`_predicted_samples` and :meth:`_class_means`, and may override :meth:`_scores`
+    and :meth:`_decision_rule`.
     """
+
+    log_likelihood: np.ndarray
 
     def __init__(
         self,
@@ -81,14 +100,15 @@ class TaskLearner:
         self.config = config or LearnerConfig()
         self.frame = Frame(world, self.config.frame, self.config.eps)
         self.rng = np.random.default_rng(rng)
-        self.log_likelihood = np.zeros(world.n_tasks)
         self.n_signals = 0
         self.n_targets = 0
         self._n_features: int | None = None
         self._pending_target: int | None = None
         self._visits = np.zeros(world.n_states)
         self._fit = decoder_fit(self.config.decoder, self.config.shrinkage)
-        self._planner = UncertaintyPlanner(self.frame, self.config.discount)
+        self._planner = make_planner(
+            self.config.planner, self.frame, self.config.discount, self.config.epsilon
+        )
 
     def observe(self, state: int, action: int, signal: np.ndarray) -> None:
         """Take in the signal the user produced after ``action`` was taken in ``state``."""
@@ -98,21 +118,37 @@ class TaskLearner:
         """Log scores of the tasks, shape (n_tasks,)."""
         return self.log_likelihood
 
-    def _corrected_samples(self) -> np.ndarray | None:
-        """``q_t(e)`` of sampled past signals (n_tasks, n, K), or None before any model."""
+    def _predicted_samples(self) -> np.ndarray | None:
+        """Predictions ``q_t(e)`` of sampled past signals (n_tasks, n, K), or None before
+        any model."""
         raise NotImplementedError
+
+    def _class_means(self) -> np.ndarray | None:
+        """Every task decoder's class means (n_tasks, K, d), or None before any signal."""
+        raise NotImplementedError
+
+    def _decision_rule(self) -> tuple[str, float]:
+        """(confidence rule, threshold): by default the configured ones."""
+        return self.config.confidence, self.config.beta
+
+    def normalised_likelihood(self) -> np.ndarray:
+        """``L_t / sum_u L_u`` of every task, shape (n_tasks,): the plain log-likelihood
+        of the current task segment (no power prior), normalised (it restarts uniform at
+        every target)."""
+        return normalised_likelihood(self.log_likelihood)
 
     def beliefs(self) -> Beliefs:
         """The current beliefs over tasks."""
         scores = self._scores()
-        confidence = pairwise_confidence(scores)
+        rule, threshold = self._decision_rule()
+        confidence = CONFIDENCES[rule](scores)
         best = int(np.argmax(scores))
         return Beliefs(
             log_likelihood=self.log_likelihood.copy(),
             scores=scores,
             confidence=confidence,
             best_task=best,
-            confident=bool(confidence[best] > self.config.beta),
+            confident=bool(confidence[best] > threshold),
             n_signals=self.n_signals,
         )
 
@@ -149,13 +185,7 @@ class TaskLearner:
         self._pending_target = self._check_state(task)
 
     def _explore(self, state: int, beliefs: Beliefs) -> int:
-        planner = self.config.planner
-        if planner == "random" or self.n_signals < self.config.warmup_steps:
-            return random_action(self.world, self.rng)
-        if planner == "greedy":
-            return greedy_action(self.world, state, beliefs.best_task, self.rng)
-        corrected = self._corrected_samples()
-        if corrected is None:
+        if self.n_signals < self.config.warmup_steps:
             return random_action(self.world, self.rng)
         if self.config.planning_weights == "posterior":
             weights = np.exp(beliefs.scores - beliefs.scores.max())
@@ -166,7 +196,10 @@ class TaskLearner:
         if self.config.novelty_bonus > 0 and self.n_targets == 0:
             fade = 2.0 * (1.0 - beliefs.confidence[beliefs.best_task])
             novelty = fade * self.config.novelty_bonus / np.sqrt(1.0 + self._visits)
-        return self._planner.action(state, corrected, weights, self.rng, novelty)
+        inputs = PlanningInputs(
+            beliefs.best_task, weights, novelty, self._predicted_samples, self._class_means
+        )
+        return self._planner.action(state, inputs, self.rng)
 
     def _sample_indices(self, n_available: int) -> np.ndarray:
         size = min(self.config.n_planning_signals, n_available)
@@ -237,6 +270,9 @@ def expect_the_chosen_label(
 class CalibrationFreeLearner(TaskLearner):
     """Learns the user's task and a signal decoder at once (method.md §2-§6).
 
+    The likelihood, confidence rule, decoder and planner are plug-ins chosen by the
+    config (``likelihood``, ``confidence``, ``decoder``, ``planner``).
+
     Parameters
     ----------
     world : World
@@ -258,10 +294,24 @@ class CalibrationFreeLearner(TaskLearner):
         rng: np.random.Generator | int | None = None,
     ) -> None:
         super().__init__(world, config, rng)
+        self._likelihood = make_likelihood(
+            self.config.likelihood, world.n_tasks, self.config.shrinkage
+        )
         self._history: TaskHistory | None = None
         self._models: TaskModels | None = None
         self._power_sums = np.zeros((world.n_tasks, self.frame.n_classes))
         self._power_weights = np.zeros((world.n_tasks, self.frame.n_classes))
+
+    @property
+    def log_likelihood(self) -> np.ndarray:
+        """Every task's log pseudo-likelihood within the current task segment."""
+        return self._likelihood.log_likelihood
+
+    @property
+    def likelihood_in_use(self) -> str:
+        """The likelihood scoring the tasks now: the configured one, except that
+        "bhattacharyya" becomes "matching" at the first target."""
+        return self._likelihood.name
 
     @property
     def history(self) -> TaskHistory:
@@ -277,46 +327,69 @@ class CalibrationFreeLearner(TaskLearner):
         (see :meth:`TaskModels.balanced_accuracy`); None before two classes have signals.
 
         Against ``task``'s own labels by default, or against ``label_weights``
-        (n_signals, n_classes), e.g. the true labels in an offline analysis.
+        (n_signals, n_classes), e.g. the true labels in an offline analysis. With a
+        likelihood that needs no cross-validation ("simple", "batch"), the k-fold fits
+        are made here, when asked for (the decisions do not use them).
         """
-        if self._models is None or self._history is None:
+        models = self._current_models()
+        if models is None or self._history is None:
             return None
+        if models.cv_proba is None:
+            models = self._models = self._fit_models(cross_validate=True)
         if label_weights is None:
             label_weights = self._history.task_label_weights(task)
-        return self._models.balanced_accuracy(task, label_weights)
+        return models.balanced_accuracy(task, label_weights)
 
     @property
     def uses_power_prior(self) -> bool:
         return self.config.power_prior and self.frame.kind == "feedback"
 
     def observe(self, state: int, action: int, signal: np.ndarray) -> None:
-        """Update every task's likelihood with the signal, then its decoder and confusion."""
+        """Score every task with the signal, then add it to every task's decoder."""
         x = self._check_input(state, action, signal)
         self._visits[state] += 1
         if self._history is None:
             self._history = TaskHistory(
                 self.world.n_tasks, self.frame.n_classes, x.shape[0], self.config.n_folds,
-                class_scatters=self._fit.class_scatters,
+                class_scatters=self._fit.class_scatters or self._likelihood.needs_class_scatters,
             )
         expected = self.frame.distribution_at(state, action)
         frame_weights = weights = self.frame.weights_at(state, action)
-        if self._models is not None:
-            corrected = self._models.corrected_proba(x[None])[:, 0]
-            weights = resolve_ambiguous_labels(weights, corrected)
+        models = self._current_models()
+        predicted = None
+        if models is not None:
+            predicted = self._likelihood.predict(models, x[None])[:, 0]
+            weights = resolve_ambiguous_labels(weights, predicted)
             expected = expect_the_chosen_label(expected, frame_weights, weights)
-            self.log_likelihood += np.log(match(expected, corrected))
+        self._likelihood.take(expected, predicted)
         self._history.add(x, weights)
+        self._models = None
         self._power_sums += expected * float(x @ x)
         self._power_weights += expected
         self.n_signals += 1
         target = self._take_target_reached(state, action)
         if target is not None:
             self._switch_task(target)
-        self._models = TaskModels.fit(
+        self._likelihood.after_signal(self._history, self._current_models)
+
+    def _current_models(self) -> TaskModels | None:
+        """Every task's decoders on the history so far (fitted on first use after each
+        signal, with cross-validation only if the likelihood needs it); None before any
+        signal."""
+        if self._history is None or self._history.n_signals == 0:
+            return None
+        if self._models is None:
+            self._models = self._fit_models(self._likelihood.corrects_confusion)
+        return self._models
+
+    def _fit_models(self, cross_validate: bool) -> TaskModels:
+        assert self._history is not None
+        return TaskModels.fit(
             self._history,
             self._fit,
             self.config.confusion_smoothing,
             self.config.balanced_confusion,
+            cross_validate=cross_validate,
         )
 
     def _switch_task(self, task: int) -> None:
@@ -325,15 +398,24 @@ class CalibrationFreeLearner(TaskLearner):
         self._history.relabel(task)
         self._power_sums[:] = self._power_sums[task]
         self._power_weights[:] = self._power_weights[task]
-        self.log_likelihood[:] = 0.0
+        self._likelihood.restart()
 
     def _scores(self) -> np.ndarray:
         if not self.uses_power_prior:
             return self.log_likelihood.copy()
         return self.log_likelihood + power_log_ratio(self._power_sums, self._power_weights)
 
-    def _corrected_samples(self) -> np.ndarray | None:
-        if self._models is None or self._history is None:
+    def _decision_rule(self) -> tuple[str, float]:
+        return self._likelihood.decision_rule() or super()._decision_rule()
+
+    def _predicted_samples(self) -> np.ndarray | None:
+        models = self._current_models()
+        if models is None or self._history is None:
             return None
         signals = self._history.signals[self._sample_indices(self._history.n_signals)]
-        return self._models.corrected_proba(signals)
+        return self._likelihood.predict(models, signals)
+
+    def _class_means(self) -> np.ndarray | None:
+        if self._history is None or self._history.n_signals == 0:
+            return None
+        return self._history.class_means()

@@ -1,4 +1,5 @@
-"""The matching pseudo-likelihood of method.md §3: confusion correction, match, power prior."""
+"""The matching pseudo-likelihood of method.md §3 (confusion correction, match, power
+prior) and the confidence rules read from the tasks' log scores."""
 
 from __future__ import annotations
 
@@ -7,6 +8,7 @@ import numpy as np
 #: Pseudo-count added to every cell of a cross-validated confusion matrix before its columns
 #: are normalised: with little data the correction stays close to "trust nothing".
 DEFAULT_CONFUSION_SMOOTHING = 1.0
+_TINY = np.finfo(float).tiny
 
 
 def confusion_matrices(
@@ -59,6 +61,14 @@ def match(label_distribution: np.ndarray, corrected: np.ndarray) -> np.ndarray:
     return np.einsum("tk,tk->t", label_distribution, corrected)
 
 
+def log_match(label_distribution: np.ndarray, predicted: np.ndarray) -> np.ndarray:
+    """``log m``, batched over leading axes ((..., K) x (..., K) -> (...)), floored at the
+    log of the smallest positive float so that a zero match (possible with ``eps = 0``)
+    stays finite; the floor changes no match above about 1e-292."""
+    matches = np.einsum("...k,...k->...", label_distribution, predicted)
+    return np.log(np.maximum(matches, _TINY))
+
+
 def power_log_ratio(power_sums: np.ndarray, weight_sums: np.ndarray) -> np.ndarray:
     """The power prior ``log(P_error / P_correct)`` of every task (feedback frame).
 
@@ -93,3 +103,14 @@ def pairwise_confidence(scores: np.ndarray) -> np.ndarray:
     best_other[order[0]] = second
     gap = np.clip(scores - best_other, -700.0, 700.0)
     return 1.0 / (1.0 + np.exp(-gap))
+
+
+def normalised_likelihood(scores: np.ndarray) -> np.ndarray:
+    """``L_t / sum_u L_u`` from log scores (n_tasks,), computed stably (a softmax)."""
+    weights = np.exp(scores - scores.max())
+    return weights / weights.sum()
+
+
+#: The confidence rules (``LearnerConfig.confidence``): log scores (n_tasks,) -> each
+#: task's confidence (n_tasks,) in [0, 1], compared with the threshold ``beta``.
+CONFIDENCES = {"pairwise": pairwise_confidence, "normalised": normalised_likelihood}

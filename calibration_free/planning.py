@@ -1,14 +1,30 @@
-"""Choosing the next action: random, greedy, or planning upon uncertainty (method.md §6)."""
+"""Choosing the next action while not confident: the planners (method.md §6,
+method-extensions §1(a)7 and §6.3), behind one interface, :class:`Planner`.
+
+:data:`PLANNERS`: ``"uncertainty"`` (meaning-space uncertainty, value iteration),
+``"signal"`` (signal-space uncertainty from the class means, value iteration),
+``"greedy"`` (an optimal action towards the most likely task), ``"epsilon-greedy"``
+(with probability ``epsilon`` a uniform action, else greedy) and ``"random"``. The learner
+takes uniform actions during its warm-up whatever the planner, and walks greedily to its
+task once confident.
+"""
 
 from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from collections.abc import Callable
+from dataclasses import dataclass
 
 import numpy as np
 
 from calibration_free.frames import Frame
+from calibration_free.signal_space import signal_space_uncertainty
 from calibration_free.world import World, value_iteration
+from decoding.validation import check_option, check_range
 
-PLANNERS: tuple[str, ...] = ("uncertainty", "greedy", "random")
+PLANNERS: tuple[str, ...] = ("uncertainty", "greedy", "random", "signal", "epsilon-greedy")
 DEFAULT_DISCOUNT = 0.9
+DEFAULT_EPSILON = 0.1
 #: Indicator elements the uncertainty planner builds at a time (bounds its temporaries).
 _CHUNK_ELEMENTS = 1 << 22
 
@@ -28,7 +44,118 @@ def greedy_action(world: World, state: int, task: int, rng: np.random.Generator)
     return int(rng.choice(np.flatnonzero(world.optimal[task, state])))
 
 
-class UncertaintyPlanner:
+@dataclass(frozen=True)
+class PlanningInputs:
+    """What a planner may use of the learner's state; the costly parts are computed only
+    when a planner asks for them.
+
+    Attributes
+    ----------
+    best_task : int
+        The most likely task.
+    task_weights : ndarray, shape (n_tasks,)
+        Non-negative task weights summing to 1 (``LearnerConfig.planning_weights``).
+    novelty : ndarray, shape (n_states,), or None
+        Exploration bonus of every state, added to an uncertainty reward scaled to a
+        maximum of 1 (None: no bonus).
+    predicted_samples : callable () -> ndarray (n_tasks, n_signals, n_classes) or None
+        Every task's prediction (the likelihood's, see
+        :meth:`calibration_free.task_likelihoods.TaskLikelihood.predict`) of past signals
+        sampled for this step; None before any decoder. Draws the sample from the
+        learner's rng.
+    class_means : callable () -> ndarray (n_tasks, n_classes, n_features) or None
+        Every task decoder's class means; None before any signal.
+    """
+
+    best_task: int
+    task_weights: np.ndarray
+    novelty: np.ndarray | None
+    predicted_samples: Callable[[], np.ndarray | None]
+    class_means: Callable[[], np.ndarray | None]
+
+
+class Planner(ABC):
+    """Chooses an action from a state (the interface of every planner).
+
+    Parameters
+    ----------
+    frame : Frame
+        The interaction frame (and through it the world) the tasks are judged in.
+    """
+
+    def __init__(self, frame: Frame) -> None:
+        self.frame = frame
+        self.world = frame.world
+
+    @abstractmethod
+    def action(self, state: int, inputs: PlanningInputs, rng: np.random.Generator) -> int:
+        """The action to take from ``state``."""
+
+
+class RandomPlanner(Planner):
+    """A uniform action."""
+
+    def action(self, state: int, inputs: PlanningInputs, rng: np.random.Generator) -> int:
+        return random_action(self.world, rng)
+
+
+class GreedyPlanner(Planner):
+    """An optimal action towards the most likely task."""
+
+    def action(self, state: int, inputs: PlanningInputs, rng: np.random.Generator) -> int:
+        return greedy_action(self.world, state, inputs.best_task, rng)
+
+
+class EpsilonGreedyPlanner(Planner):
+    """With probability ``epsilon`` a uniform action, else greedy on the most likely task.
+
+    One uniform draw from the rng decides, then the action's own draw.
+    """
+
+    def __init__(self, frame: Frame, epsilon: float = DEFAULT_EPSILON) -> None:
+        super().__init__(frame)
+        self.epsilon = check_range("epsilon", epsilon, 0.0, 1.0)
+
+    def action(self, state: int, inputs: PlanningInputs, rng: np.random.Generator) -> int:
+        if rng.random() < self.epsilon:
+            return random_action(self.world, rng)
+        return greedy_action(self.world, state, inputs.best_task, rng)
+
+
+class RewardPlanner(Planner):
+    """Value iteration on an uncertainty reward, then the best action (ties at random).
+
+    Subclasses provide :meth:`reward`. Before it can be computed (no decoder yet) the
+    action is uniform.
+
+    Parameters
+    ----------
+    frame : Frame
+    discount : float, default 0.9
+        Discount of the value iteration.
+    """
+
+    def __init__(self, frame: Frame, discount: float = DEFAULT_DISCOUNT) -> None:
+        super().__init__(frame)
+        self.discount = discount
+
+    @abstractmethod
+    def reward(self, inputs: PlanningInputs) -> np.ndarray | None:
+        """Uncertainty of every (state, action), shape (n_states, n_actions), or None."""
+
+    def action(self, state: int, inputs: PlanningInputs, rng: np.random.Generator) -> int:
+        """The best action from ``state`` under the reward plus ``inputs.novelty``."""
+        reward = self.reward(inputs)
+        if reward is None:
+            return random_action(self.world, rng)
+        if inputs.novelty is not None:
+            reward = reward / max(reward.max(), np.finfo(float).tiny) + inputs.novelty[:, None]
+        q = value_iteration(reward, self.world.transitions, discount=self.discount)[state]
+        best = np.flatnonzero(q >= q.max() - 1e-12 * max(1.0, abs(q.max())))
+        return int(rng.choice(best))
+
+
+class UncertaintyPlanner(RewardPlanner):
     """Rewards state-actions whose expected signal would best tell hypotheses apart.
 
     For sampled past signals ``e`` and every (s, a, t), the expected match is
@@ -53,10 +180,9 @@ class UncertaintyPlanner:
         Discount of the value iteration.
     """
 
-    def __init__(self, frame: Frame, discount: float = DEFAULT_DISCOUNT) -> None:
-        self.frame = frame
-        self.world = frame.world
-        self.discount = discount
+    def reward(self, inputs: PlanningInputs) -> np.ndarray | None:
+        predicted = inputs.predicted_samples()
+        return None if predicted is None else self.rewards(predicted, inputs.task_weights)
 
     def rewards(self, corrected: np.ndarray, task_weights: np.ndarray) -> np.ndarray:
         """Uncertainty of every state-action.
@@ -97,22 +223,49 @@ class UncertaintyPlanner:
         variance = np.maximum(variance, 0.0).reshape(n_states, n_kinds)
         return np.broadcast_to(variance, (n_states, self.world.n_actions)).copy()
 
-    def action(
-        self,
-        state: int,
-        corrected: np.ndarray,
-        task_weights: np.ndarray,
-        rng: np.random.Generator,
-        novelty: np.ndarray | None = None,
-    ) -> int:
-        """The best action from ``state`` under the uncertainty reward, ties drawn at random.
 
-        ``novelty`` (n_states,), optional, is added to the uncertainty reward scaled to a
-        maximum of 1, for every action taken in that state.
+class SignalPlanner(RewardPlanner):
+    """Rewards state-actions where the hypotheses expect far-apart signals (the code's
+    ``'signal_trace'``, method-extensions §1(a)7).
+
+    For every (s, a) and task t, the frame's most probable label ``l*_t(s, a)`` (ties to
+    the lower class) and the mean of that class in task t's decoder give the signal t
+    expects; the reward is the weighted spread of those means,
+    ``U(s, a) = sum_t w_t ||mu_t(s, a) - mu_bar(s, a)||^2``
+    (:func:`calibration_free.signal_space.signal_space_uncertainty`).
+
+    Parameters
+    ----------
+    frame : Frame
+    discount : float, default 0.9
+        Discount of the value iteration (the thesis: 0.95).
+    """
+
+    def reward(self, inputs: PlanningInputs) -> np.ndarray | None:
+        means = inputs.class_means()
+        return None if means is None else self.rewards(means, inputs.task_weights)
+
+    def rewards(self, class_means: np.ndarray, task_weights: np.ndarray) -> np.ndarray:
+        """Uncertainty of every state-action, shape (n_states, n_actions).
+
+        ``class_means`` (n_tasks, n_classes, n_features), ``task_weights`` (n_tasks,)
+        non-negative summing to 1.
         """
-        reward = self.rewards(corrected, task_weights)
-        if novelty is not None:
-            reward = reward / max(reward.max(), np.finfo(float).tiny) + novelty[:, None]
-        q = value_iteration(reward, self.world.transitions, discount=self.discount)[state]
-        best = np.flatnonzero(q >= q.max() - 1e-12 * max(1.0, abs(q.max())))
-        return int(rng.choice(best))
+        most_probable_row = np.argmax(self.frame.distribution_rows, axis=1).astype(np.uint8)
+        labels = most_probable_row[self.frame.row_index]  # (n_tasks, n_states, A or 1)
+        uncertainty = signal_space_uncertainty(class_means, labels, task_weights)
+        return np.broadcast_to(uncertainty, (self.world.n_states, self.world.n_actions)).copy()
+
+
+def make_planner(
+    kind: str, frame: Frame, discount: float = DEFAULT_DISCOUNT, epsilon: float = DEFAULT_EPSILON
+) -> Planner:
+    """The planner of kind ``kind`` (one of :data:`PLANNERS`)."""
+    check_option("planner", kind, PLANNERS)
+    if kind == "uncertainty":
+        return UncertaintyPlanner(frame, discount)
+    if kind == "signal":
+        return SignalPlanner(frame, discount)
+    if kind == "epsilon-greedy":
+        return EpsilonGreedyPlanner(frame, epsilon)
+    return GreedyPlanner(frame) if kind == "greedy" else RandomPlanner(frame)

@@ -16,6 +16,9 @@ from __future__ import annotations
 
 import numpy as np
 
+#: Indicator elements built at a time (bounds the temporaries' size).
+_CHUNK_ELEMENTS = 1 << 22
+
 
 def signal_space_uncertainty(
     class_means: np.ndarray, most_probable: np.ndarray, weights: np.ndarray
@@ -27,24 +30,30 @@ def signal_space_uncertainty(
     class_means : ndarray, shape (n_tasks, n_classes, n_features)
         Each task decoder's class means.
     most_probable : ndarray of int, shape (n_tasks, n_states, n_actions)
-        The frame's most probable label of each (s, a) under each task.
+        The frame's most probable label of each (s, a) under each task (any trailing
+        shape: e.g. (n_tasks, n_states, 1) where labels do not depend on the action).
     weights : ndarray, shape (n_tasks,)
         Normalised task probabilities.
 
     Returns
     -------
-    ndarray, shape (n_states, n_actions)
+    ndarray, shape ``most_probable.shape[1:]``
         Non-negative; 0 where every weighted task expects the same mean.
     """
     n_tasks, n_classes, n_features = class_means.shape
     shape = most_probable.shape[1:]
     flat = most_probable.reshape(n_tasks, -1)
     squared_norms = np.einsum("tkd,tkd->tk", class_means, class_means)
-    second = np.zeros(flat.shape[1])
-    mean = np.zeros((n_features, flat.shape[1]))
-    for k in range(n_classes):
-        chosen = (flat == k).astype(float)  # (T, S*A)
-        second += (weights * squared_norms[:, k]) @ chosen
-        mean += (weights[:, None] * class_means[:, k]).T @ chosen
-    uncertainty = second - np.einsum("ds,ds->s", mean, mean)
+    weighted_means = weights[:, None, None] * class_means  # (T, K, d)
+    uncertainty = np.empty(flat.shape[1])
+    chunk = max(1, _CHUNK_ELEMENTS // n_tasks)
+    for start in range(0, flat.shape[1], chunk):
+        block = flat[:, start : start + chunk]
+        second = np.zeros(block.shape[1])
+        mean = np.zeros((n_features, block.shape[1]))
+        for k in range(n_classes):
+            chosen = (block == k).astype(float)  # (T, columns)
+            second += (weights * squared_norms[:, k]) @ chosen
+            mean += weighted_means[:, k].T @ chosen
+        uncertainty[start : start + chunk] = second - np.einsum("ds,ds->s", mean, mean)
     return np.maximum(uncertainty, 0.0).reshape(shape)

@@ -10,9 +10,13 @@ eigendecomposition per training set and a K x K solve per task
 Fold ``f`` holds the signals ``i`` with ``i % n_folds == f`` (0-based arrival order), so
 folds never move as the history grows.
 
-The Student-t decoder needs each class's own scatter matrix: with it, the history also
-keeps per task, fold and class a d x d scatter (T x F x K x d^2 numbers, updated every
-step), the cost the shared form avoids.
+The Student-t and Gaussian (QDA) decoders need each class's own scatter matrix: with
+them, the history also keeps per task, fold and class a d x d scatter (T x F x K x d^2
+numbers, updated every step), the cost the shared form avoids. The categorical decoder
+(symbolic signals) needs only the class counts and sums.
+
+A likelihood that matches the decoders' raw predictions (simple or batch matching) fits
+the whole history's decoders only (``with_folds=False``): no cross-validation.
 
 After a target, every task adopts that task's labels of the whole history (method.md
 §5). No per-task statistic is copied: each is kept as a part shared by all tasks (the
@@ -22,14 +26,18 @@ restarts at zero.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 
 from calibration_free.likelihood import confusion_matrices, corrected_proba
+from decoding.categorical import fit_categorical
+from decoding.gaussian import fit_gaussian
 from decoding.lda import fit_pooled_lda
 from decoding.statistics import BatchedDecoders, ClassStatistics, PooledStatistics
 from decoding.student_t import fit_student_t
+from decoding.validation import check_option
 
 DEFAULT_FOLDS = 10
 
@@ -180,35 +188,50 @@ class TaskHistory:
             if sums is not None:
                 sums.adopt(task)
 
-    def pooled_statistics(self) -> PooledStatistics:
+    def pooled_statistics(self, with_folds: bool = True) -> PooledStatistics:
         """The pooled statistics of every fold's training set (all signals but that
-        fold's), then of the whole history: batch shape (n_folds + 1, n_tasks)."""
+        fold's), then of the whole history: batch shape (n_folds + 1, n_tasks); without
+        the folds, of the whole history only: batch shape (1, n_tasks)."""
 
-        def with_whole(held_out: np.ndarray, whole: np.ndarray) -> np.ndarray:
-            return np.concatenate([held_out, whole[None]])
+        def training_sets(held_out: Callable[[], np.ndarray], whole: np.ndarray) -> np.ndarray:
+            if not with_folds:
+                return whole[None]
+            return np.concatenate([held_out(), whole[None]])
 
         def shared(per_fold: np.ndarray) -> np.ndarray:
             total = per_fold.sum(axis=0)
-            return with_whole(total - per_fold, total)
+            return training_sets(lambda: total - per_fold, total)
 
         return PooledStatistics(
             scatter=shared(self._scatter),
             n_signals=shared(self._fold_size),
             signal_sum=shared(self._signal_sum),
-            counts=with_whole(self._counts.held_out(), self._counts.total()),
-            sums=with_whole(self._sums.held_out(), self._sums.total()),
+            counts=training_sets(self._counts.held_out, self._counts.total()),
+            sums=training_sets(self._sums.held_out, self._sums.total()),
         )
 
-    def class_statistics(self) -> tuple[ClassStatistics, ClassStatistics]:
+    def class_statistics(
+        self, with_folds: bool = True
+    ) -> tuple[ClassStatistics, ClassStatistics | None]:
         """Per-class statistics of the whole history (n_tasks, ...) and of each fold's
-        training set (n_folds, n_tasks, ...); needs ``class_scatters``."""
+        training set (n_folds, n_tasks, ...; None without ``with_folds``); needs
+        ``class_scatters``."""
         if self._scatters is None:
             raise RuntimeError("this history keeps no per-class scatter matrices")
         parts = (self._counts, self._sums, self._scatters)
-        return (
-            ClassStatistics(*(part.total() for part in parts)),
-            ClassStatistics(*(part.held_out() for part in parts)),
-        )
+        whole = ClassStatistics(*(part.total() for part in parts))
+        if not with_folds:
+            return whole, None
+        return whole, ClassStatistics(*(part.held_out() for part in parts))
+
+    def class_means(self) -> np.ndarray:
+        """Every task's class means on the whole history, shape (n_tasks, n_classes,
+        n_features); a class without signals gets the mean of all the signals."""
+        counts, sums = self._counts.total(), self._sums.total()
+        filled = counts > 0
+        means = sums / np.where(filled, counts, 1.0)[..., None]
+        overall = self.signals.mean(axis=0) if self.n_signals else np.zeros(self.n_features)
+        return np.where(filled[..., None], means, overall)
 
     def label_confusion_counts(self, proba: np.ndarray) -> np.ndarray:
         """``sum_i w_i(t) p_i(t)^T`` for every task: (n_tasks, K, K).
@@ -242,70 +265,108 @@ class TaskHistory:
         return in_order[:, :n_signals]
 
 
+DECODERS: tuple[str, ...] = ("lda", "student_t", "gaussian", "categorical")
+
+
 @dataclass(frozen=True)
 class DecoderFit:
     """How every task's decoders are fitted on a :class:`TaskHistory`.
 
     Attributes
     ----------
-    kind : {"lda", "student_t"}
-        Pooled-covariance shrinkage LDA on the shared statistics, or the Student-t
-        predictive on per-class statistics.
+    kind : {"lda", "student_t", "gaussian", "categorical"}
+        Pooled-covariance shrinkage LDA on the shared statistics
+        (:mod:`decoding.lda`); the Student-t predictive (:mod:`decoding.student_t`) or
+        a plain Gaussian per class (QDA, :mod:`decoding.gaussian`), both on per-class
+        statistics; or button frequencies of symbolic signals
+        (:mod:`decoding.categorical`), on the class counts and sums alone.
     shrinkage : float
+        Covariance shrinkage (not used by "categorical").
     """
 
     kind: str
     shrinkage: float
 
+    def __post_init__(self) -> None:
+        check_option("decoder", self.kind, DECODERS)
+
     @property
     def class_scatters(self) -> bool:
         """Whether the history must keep per-class scatter matrices."""
-        return self.kind == "student_t"
+        return self.kind in ("student_t", "gaussian")
 
-    def __call__(self, history: TaskHistory) -> tuple[BatchedDecoders, BatchedDecoders]:
+    def __call__(
+        self, history: TaskHistory, with_folds: bool = True
+    ) -> tuple[BatchedDecoders, BatchedDecoders | None]:
         """Every task's full decoder (batch (n_tasks,)) and fold decoders (batch
-        (n_folds, n_tasks))."""
-        if self.kind == "student_t":
-            whole, training = history.class_statistics()
-            return (
-                fit_student_t(whole, self.shrinkage),
-                fit_student_t(training, self.shrinkage),
-            )
-        decoders = fit_pooled_lda(history.pooled_statistics(), self.shrinkage)
-        return decoders.select(-1), decoders.select(slice(0, -1))
+        (n_folds, n_tasks); None without ``with_folds``: no cross-validation fit)."""
+        if self.class_scatters:
+            fit = fit_student_t if self.kind == "student_t" else fit_gaussian
+            whole, training = history.class_statistics(with_folds)
+            folds = fit(training, self.shrinkage) if training is not None else None
+            return fit(whole, self.shrinkage), folds
+        statistics = history.pooled_statistics(with_folds)
+        if self.kind == "categorical":
+            decoders: BatchedDecoders = fit_categorical(statistics.counts, statistics.sums)
+        else:
+            decoders = fit_pooled_lda(statistics, self.shrinkage)
+        return decoders.select(-1), decoders.select(slice(0, -1)) if with_folds else None
 
 
 def decoder_fit(decoder: str, shrinkage: float) -> DecoderFit:
-    """The fitting of decoders of kind ``decoder`` ("lda" or "student_t")."""
+    """The fitting of decoders of kind ``decoder`` (one of :data:`DECODERS`)."""
     return DecoderFit(decoder, shrinkage)
 
 
 @dataclass(frozen=True)
 class TaskModels:
-    """Every task's decoder on the whole history, with its cross-validated confusion.
+    """Every task's decoder on the whole history, with its cross-validated confusion
+    when it was fitted with one.
 
     Attributes
     ----------
-    decoders : BatchedDecoders (LDA or Student-t), batch shape (n_tasks,)
-    confusion : ndarray, shape (n_tasks, n_classes, n_classes)
-        ``p(true label i | predicted j)`` from k-fold cross-validation.
-    cv_proba : ndarray, shape (n_tasks, n_signals, n_classes)
+    decoders : BatchedDecoders, batch shape (n_tasks,)
+    confusion : ndarray, shape (n_tasks, n_classes, n_classes), or None
+        ``p(true label i | predicted j)`` from k-fold cross-validation; None when fitted
+        without cross-validation.
+    cv_proba : ndarray, shape (n_tasks, n_signals, n_classes), or None
         The out-of-fold class probabilities the confusion matrices were built from.
     """
 
     decoders: BatchedDecoders
-    confusion: np.ndarray
-    cv_proba: np.ndarray
+    confusion: np.ndarray | None = None
+    cv_proba: np.ndarray | None = None
 
     @classmethod
     def fit(
-        cls, history: TaskHistory, fit: DecoderFit, smoothing: float, balanced: bool = True
+        cls,
+        history: TaskHistory,
+        fit: DecoderFit,
+        smoothing: float,
+        balanced: bool = True,
+        cross_validate: bool = True,
     ) -> TaskModels:
-        """Fit all tasks' decoders and their k-fold confusion matrices on ``history``.
+        """Fit all tasks' decoders and (with ``cross_validate``) their k-fold confusion
+        matrices on ``history``.
 
         ``smoothing`` and ``balanced``: see :func:`~calibration_free.likelihood.confusion_matrices`.
         """
-        decoders, fold_decoders = fit(history)
+        decoders, fold_decoders = fit(history, with_folds=cross_validate)
+        if fold_decoders is None:
+            return cls(decoders=decoders)
+        return cls.cross_validated(history, decoders, fold_decoders, smoothing, balanced)
+
+    @classmethod
+    def cross_validated(
+        cls,
+        history: TaskHistory,
+        decoders: BatchedDecoders,
+        fold_decoders: BatchedDecoders,
+        smoothing: float,
+        balanced: bool = True,
+    ) -> TaskModels:
+        """The models of fitted ``decoders`` (batch (n_tasks,)) with the confusion of
+        their ``fold_decoders`` (batch (n_folds, n_tasks)) on ``history``."""
         cv_proba = history.cross_validated_proba(fold_decoders)
         confusion = confusion_matrices(
             history.label_confusion_counts(cv_proba), decoders.present, smoothing, balanced
@@ -321,6 +382,8 @@ class TaskModels:
         soft); the result is the mean recall over the classes that have signals, or None
         while fewer than two have.
         """
+        if self.cv_proba is None:
+            raise RuntimeError("these models were fitted without cross-validation")
         totals = label_weights.sum(axis=0)
         present = totals > 0
         if present.sum() < 2:
@@ -336,7 +399,7 @@ class TaskModels:
         return self.decoders.informative
 
     def corrected_proba(self, signals: np.ndarray) -> np.ndarray:
-        """``q = C p`` for signals (n, d): (n_tasks, n, K).
+        """``q = C p`` for signals (n, d): (n_tasks, n, K); needs the confusion.
 
         A task's decoder may not know every class yet (too few signals of it). Under equal
         class priors a new signal belongs to a known class with probability
@@ -344,7 +407,18 @@ class TaskModels:
         class gets ``1 / K``. A decoder that cannot tell its classes apart thus gives 1/K
         everywhere, like an uninformative one, whatever the number of classes it knows.
         """
-        q = corrected_proba(self.confusion, self.decoders.proba(signals))
+        if self.confusion is None:
+            raise RuntimeError("these models were fitted without cross-validation")
+        return self._share_unknown_classes(
+            corrected_proba(self.confusion, self.decoders.proba(signals))
+        )
+
+    def proba(self, signals: np.ndarray) -> np.ndarray:
+        """The decoders' own class probabilities ``p`` of signals (n, d): (n_tasks, n, K),
+        with unknown classes treated as in :meth:`corrected_proba`."""
+        return self._share_unknown_classes(self.decoders.proba(signals))
+
+    def _share_unknown_classes(self, q: np.ndarray) -> np.ndarray:
         n_classes = q.shape[-1]
         known = self.decoders.present & self.informative[:, None]
         share = known.sum(axis=1)[:, None, None] / n_classes

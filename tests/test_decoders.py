@@ -2,16 +2,18 @@
 
 import numpy as np
 import pytest
-from scipy.stats import multivariate_t
+from scipy.stats import multivariate_normal, multivariate_t
 from sklearn.base import clone
 from sklearn.model_selection import cross_val_score
 from sklearn.pipeline import make_pipeline
 
+from decoding.categorical import fit_categorical
+from decoding.gaussian import GaussianClassifier, fit_gaussian
 from decoding.lda import ShrinkageLDA, fit_lda
-from decoding.statistics import ClassStatistics, one_hot
+from decoding.statistics import ClassStatistics, one_hot, shrink_towards_identity
 from decoding.student_t import StudentTClassifier, fit_student_t
 
-ESTIMATORS = [ShrinkageLDA, StudentTClassifier]
+ESTIMATORS = [ShrinkageLDA, StudentTClassifier, GaussianClassifier]
 
 
 def two_blobs(n=80, d=4, seed=0):
@@ -71,7 +73,49 @@ def test_student_t_gives_no_information_while_classes_have_at_most_d_signals():
         StudentTClassifier().fit(X, y)
 
 
-@pytest.mark.parametrize("fit", [fit_lda, fit_student_t])
+@pytest.mark.parametrize("shrinkage", [0.0, 0.5])
+def test_gaussian_equals_the_scipy_normal_densities_with_shrunk_covariances(shrinkage):
+    X, y = two_blobs(n=60, d=4, seed=2)
+    y = np.where(np.arange(60) < 10, 0, y)  # unequal class sizes: equal priors still
+    model = GaussianClassifier(shrinkage=shrinkage).fit(X, y)
+    log_density = []
+    for k in (0, 1):
+        Xk = X[y == k]
+        covariance = shrink_towards_identity(np.cov(Xk.T, bias=True), shrinkage)
+        log_density.append(multivariate_normal(Xk.mean(axis=0), covariance).logpdf(X))
+    log_density = np.array(log_density).T
+    expected = np.exp(log_density - np.logaddexp(log_density[:, :1], log_density[:, 1:]))
+    np.testing.assert_allclose(model.predict_proba(X), expected, atol=1e-10)
+
+
+def test_gaussian_leaves_out_a_class_with_a_singular_covariance():
+    rng = np.random.default_rng(0)
+    X, y = rng.normal(size=(20, 5)), (np.arange(20) < 3).astype(int)  # class 1: 3 signals
+    decoders = fit_gaussian(ClassStatistics.from_signals(X, one_hot(y, 2)), shrinkage=0.0)
+    assert decoders.present.tolist() == [True, False] and not decoders.informative
+    np.testing.assert_allclose(np.exp(decoders.log_proba(X)), 0.5)
+    shrunk = fit_gaussian(ClassStatistics.from_signals(X, one_hot(y, 2)), shrinkage=0.5)
+    assert shrunk.informative
+
+
+def test_categorical_decoder_reads_button_frequencies():
+    """Class 0 pressed B 3 times and O once, class 1 O twice: p(0 | B) = 1 (class 1
+    never pressed B), p(0 | O) = 0.25 / (0.25 + 1); an unseen third button is uniform."""
+    presses = np.eye(3)[[0, 0, 0, 1, 1, 1]]
+    labels = one_hot([0, 0, 0, 0, 1, 1], 2)
+    statistics = ClassStatistics.from_signals(presses, labels)
+    decoders = fit_categorical(statistics.counts, statistics.sums)
+    np.testing.assert_allclose(decoders.frequencies, [[0.75, 0.25, 0], [0, 1, 0]])
+    proba = decoders.proba(np.eye(3))
+    np.testing.assert_allclose(proba, [[1, 0], [0.2, 0.8], [0.5, 0.5]])
+    with pytest.raises(ValueError, match="symbolic signals"):
+        decoders.proba(-np.eye(3))
+    alone = fit_categorical(statistics.counts * [1, 0], statistics.sums * [[1], [0]])
+    assert not alone.informative
+    np.testing.assert_allclose(alone.proba(np.eye(3)), 0.5)
+
+
+@pytest.mark.parametrize("fit", [fit_lda, fit_student_t, fit_gaussian])
 def test_batched_fits_equal_one_at_a_time(fit):
     rng = np.random.default_rng(3)
     X = rng.normal(size=(50, 3))

@@ -29,22 +29,36 @@ def make_baseline(config=None, rng=0):
 LEARNERS = [make_calibration_free, make_baseline]
 
 
-def run(learner: TaskLearner, target: int, steps: int, seed: int = 0, start: int = 0):
+def run(
+    learner: TaskLearner,
+    target: int,
+    steps: int,
+    seed: int = 0,
+    start: int = 0,
+    signal=separated_signal,
+    on_step=None,
+):
     """Drive a learner with a perfect feedback user; return the targets it declared.
 
-    The user aims at ``target``, after the calibration target while a baseline calibrates.
+    The user aims at ``target``, after the calibration target while a baseline calibrates,
+    and answers label ``l`` with ``signal(l, rng)``. ``on_step(step, learner, proposal,
+    beliefs)``, if given, is called before every observation with the beliefs the
+    proposal was made from.
     """
     rng = np.random.default_rng(seed)
     state, declared = start, []
     final_target = target
-    for _ in range(steps):
+    for step in range(steps):
         calibrating = getattr(learner, "calibrating", False)
         target = learner.calibration_target if calibrating else final_target
+        beliefs = learner.beliefs()
         proposal = learner.propose(state)
+        if on_step is not None:
+            on_step(step, learner, proposal, beliefs)
         label = 0 if WORLD.optimal[target, state, proposal.action] else 1
         if proposal.declares_target:
             declared.append(state)
-        learner.observe(state, proposal.action, separated_signal(label, rng))
+        learner.observe(state, proposal.action, signal(label, rng))
         state = WORLD.step(state, proposal.action)
     return declared
 
@@ -114,7 +128,9 @@ def test_bad_state_action_or_signal_length_are_rejected(make):
         learner.observe(0, 0, np.zeros(5, np.float32))
 
 
-@pytest.mark.parametrize("planner", ["uncertainty", "greedy", "random"])
+@pytest.mark.parametrize(
+    "planner", ["uncertainty", "greedy", "random", "signal", "epsilon-greedy"]
+)
 def test_learner_identifies_the_target_on_well_separated_signals(planner):
     config = LearnerConfig(planner=planner)
     for target in (0, 9, 15):

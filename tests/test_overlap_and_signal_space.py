@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from calibration_free import signal_space
 from calibration_free.bhattacharyya import (
     bhattacharyya_coefficient,
     overlap_log_factor,
@@ -97,3 +98,16 @@ def test_the_signal_space_map_vanishes_for_one_hypothesis_or_shared_means() -> N
     assert signal_space_uncertainty(swapped, relabelled, w) == pytest.approx(
         signal_space_uncertainty(means, labels, w)
     )
+
+
+def test_the_signal_space_map_is_the_same_computed_in_chunks(monkeypatch) -> None:
+    rng = np.random.default_rng(4)
+    means = rng.normal(size=(5, 2, 3))
+    labels = rng.integers(2, size=(5, 9, 1))  # labels that do not depend on the action
+    weights = rng.dirichlet(np.ones(5))
+    whole = signal_space_uncertainty(means, labels, weights)
+    monkeypatch.setattr(signal_space, "_CHUNK_ELEMENTS", 10)  # 2 columns per chunk
+    chunked = signal_space_uncertainty(means, labels, weights)
+    assert chunked.shape == (9, 1)
+    np.testing.assert_allclose(chunked, whole, rtol=1e-12, atol=1e-12)
+    assert chunked == pytest.approx(_reference_uncertainty(means, labels, weights))

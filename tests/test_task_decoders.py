@@ -173,7 +173,7 @@ def test_single_class_task_gives_no_information():
     assert np.allclose(q[0], 0.5) and not np.allclose(q[1], 0.5)
 
 
-@pytest.mark.parametrize("decoder", ["lda", "student_t"])
+@pytest.mark.parametrize("decoder", ["lda", "student_t", "gaussian"])
 def test_relabelling_equals_copying_the_task_labels(decoder):
     """Relabel at a switch, go on with per-task labels, switch again: every model equals
     that of a history built from scratch with the copied labels."""
@@ -201,6 +201,27 @@ def test_relabelling_equals_copying_the_task_labels(decoder):
     np.testing.assert_allclose(
         fast.corrected_proba(probe), slow.corrected_proba(probe), rtol=0, atol=1e-10
     )
+
+
+@pytest.mark.parametrize("decoder", ["lda", "student_t", "gaussian", "categorical"])
+def test_fits_without_folds_equal_the_whole_history_decoders(decoder):
+    """What "simple" and "batch" matching fit: the whole history's decoders alone, equal to
+    those of the cross-validated fit, and no confusion."""
+    rng = np.random.default_rng(5)
+    n_signals, n_features = 60, 3
+    signals = rng.normal(size=(n_signals, n_features)) + 2.0
+    if decoder == "categorical":
+        signals = np.eye(n_features)[rng.integers(0, n_features, size=n_signals)]
+    weights = soft_weights(rng, 4, n_signals, 2, unlabelled_share=0.0)
+    fit = decoder_fit(decoder, 0.5)
+    history = history_of(signals, weights, class_scatters=fit.class_scatters)
+    alone = TaskModels.fit(history, fit, 1.0, cross_validate=False)
+    assert alone.confusion is None and alone.cv_proba is None
+    with pytest.raises(RuntimeError, match="without cross-validation"):
+        alone.corrected_proba(signals[:2])
+    validated = TaskModels.fit(history, fit, 1.0)
+    assert alone.decoders.informative.all()
+    np.testing.assert_allclose(alone.proba(signals), validated.proba(signals), atol=1e-12)
 
 
 def test_relabelling_allocates_no_per_task_statistics():
