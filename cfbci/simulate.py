@@ -113,6 +113,6 @@ def print_report(report: dict[str, Any], console: Console) -> None:
         f"median first confident step: {summary['median_first_confident_step']:g}"
     )
     likelihood = summary["mean_user_task_likelihood"]
-    if likelihood:
-        shown = [f"{likelihood[s]:.2f} @{s}" for s in list(likelihood)[4::5]]
+    shown = [f"{likelihood[s]:.2f} @{s}" for s in list(likelihood)[4::5]]  # every 50 steps
+    if shown:
         console.print(f"mean normalised likelihood of the user's task: {', '.join(shown)}")
