@@ -10,15 +10,24 @@ all their (task, frame) pairs, hypothesis ``h = f * n_tasks + t``.
 for a decoder that knows nothing (``q`` uniform over its ``K`` classes) it is ``1 / K``, so
 frames with more classes would lose ``log K`` per step to the others whatever the signals.
 Each frame's log-likelihood is therefore scored against its own chance level,
-``sum_i log(K J_i)``: uninformative signals leave every (task, frame) pair at 0, and the
-pairwise confidence compares what the signals explain beyond chance.
+``sum_i log(K J_i)``. This is the likelihood ratio of the signal against its marginal: a
+decoder with equal class priors ``1/K`` has ``p(e | l) = K q(l | e) p(e)``, so
+``p(e | s, a, t) = sum_l p(l | s, a, t) p(e | l) = K J p(e)``, and ``p(e)`` is the same for
+every pair. Uninformative signals leave every (task, frame) pair at 0 whatever its class
+count (tested), and the pairwise confidence compares what the signals explain beyond chance.
 
 **Confident only beyond chance.** Pseudo-likelihoods of hypotheses that all explain noise
-still drift apart like random walks (the pairwise confidence of the best one passes 0.9 in
-about one shuffled-label session in six by step 200), so a pair is confident only when its
+still drift apart like random walks (the pairwise confidence of the best pair passes 0.9 by
+step 200 in 10 to 20 % of shuffled-label sessions), so a pair is confident only when its
 pairwise confidence exceeds ``beta`` *and* its decoder's cross-validated balanced accuracy
-on its own labels beats chance significantly (by 2.33 binomial standard errors). A
-shuffled-label control then stays undecided (tested).
+on its own labels beats chance by :data:`CHANCE_MARGIN_Z` standard errors, counted per
+class (:func:`beats_chance`). A shuffled-label control then stays undecided (tested).
+
+**The thesis code's Student-t.** With ``decoder="student_t"`` each frame's decoders use,
+by default, the thesis code's count (every class's predictive with the total number of
+signals, ``fit_student_t(..., counts="total")``): a class such as the line world's
+no-move, labelled only at a goal, takes part from its second signal instead of its 12th
+(11-D signals), and it is the class that tells the two goals apart under guidance.
 
 Actions are uniform (the thesis code's setting: the uncertainty planner over pairs of
 different class counts is not implemented), the power prior is off (it is feedback's own)
@@ -35,10 +44,45 @@ from calibration_free.config import LearnerConfig
 from calibration_free.learner import CalibrationFreeLearner, Proposal
 from calibration_free.likelihood import pairwise_confidence
 from calibration_free.planning import random_action
+from calibration_free.task_decoders import DecoderFit, TaskHistory
 from calibration_free.world import World
+from decoding.statistics import BatchedDecoders
+from decoding.student_t import STUDENT_T_COUNTS, fit_student_t
+from decoding.validation import check_option
 
-#: Standard errors by which a confident pair's decoder must beat chance (one-sided 1 %).
-CHANCE_MARGIN_Z = 2.33
+#: Standard errors by which a confident pair's decoder must beat chance: a one-sided 1 %
+#: level, Bonferroni-corrected for the 800 looks of a 200-step session at 4 pairs
+#: (``scipy.stats.norm.isf(0.01 / 800)``).
+CHANCE_MARGIN_Z = 4.21
+
+
+@dataclass(frozen=True)
+class TotalCountStudentTFit(DecoderFit):
+    """The Student-t decoders with the thesis code's count: every class's predictive uses
+    the training set's total weight (``fit_student_t(..., counts="total")``)."""
+
+    def __call__(
+        self, history: TaskHistory, with_folds: bool = True
+    ) -> tuple[BatchedDecoders, BatchedDecoders | None]:
+        whole, training = history.class_statistics(with_folds)
+        folds = None if training is None else fit_student_t(training, self.shrinkage, "total")
+        return fit_student_t(whole, self.shrinkage, "total"), folds
+
+
+class FrameLearner(CalibrationFreeLearner):
+    """The learner of one candidate frame; with the Student-t decoder, ``student_t_counts``
+    chooses its count (:func:`decoding.student_t.fit_student_t`)."""
+
+    def __init__(
+        self,
+        world: World,
+        config: LearnerConfig,
+        rng: np.random.Generator,
+        student_t_counts: str = "total",
+    ) -> None:
+        super().__init__(world, config, rng)
+        if config.decoder == "student_t" and student_t_counts == "total":
+            self._fit = TotalCountStudentTFit("student_t", config.shrinkage)
 
 
 @dataclass(frozen=True)
@@ -79,6 +123,10 @@ class FrameHypothesesLearner:
         Shared settings (its ``frame`` and ``power_prior`` are overridden per frame).
     rng : Generator
         Draws the actions.
+    student_t_counts : {"total", "class"}, default "total"
+        With ``config.decoder == "student_t"``: the thesis code's count (every class's
+        predictive uses the total number of signals) or each class's own (the main
+        learner's, :func:`decoding.student_t.fit_student_t`).
     """
 
     def __init__(
@@ -87,12 +135,16 @@ class FrameHypothesesLearner:
         frames: tuple[str, ...] = ("feedback", "guidance"),
         config: LearnerConfig | None = None,
         rng: np.random.Generator | None = None,
+        student_t_counts: str = "total",
     ) -> None:
         config = config or LearnerConfig()
+        check_option("student_t_counts", student_t_counts, STUDENT_T_COUNTS)
         self.world, self.frames, self.config = world, frames, config
         self.rng = np.random.default_rng(rng)
         self._learners = [
-            CalibrationFreeLearner(world, replace(config, frame=f, power_prior=False), self.rng)
+            FrameLearner(
+                world, replace(config, frame=f, power_prior=False), self.rng, student_t_counts
+            )
             for f in frames
         ]
         self._chance = np.array([np.log(learner.frame.n_classes) for learner in self._learners])
@@ -130,15 +182,40 @@ class FrameHypothesesLearner:
         return PairBeliefs(scores, confidence, best, confident)
 
     def _beats_chance(self, hypothesis: int) -> bool:
-        """Whether the pair's decoder is better than chance on its own labels: its 10-fold
-        balanced accuracy exceeds chance (``1/K`` of the ``K`` classes its labels use) by
-        :data:`CHANCE_MARGIN_Z` binomial standard errors at the history's length."""
+        """Whether the pair's decoder beats chance on its own labels (:func:`beats_chance`
+        of its 10-fold balanced accuracy and its class weights)."""
         frame, task = divmod(hypothesis, self.world.n_tasks)
         learner = self._learners[frame]
         accuracy = learner.balanced_accuracy(task)
         if accuracy is None:
             return False
-        present = np.count_nonzero(learner.history.task_label_weights(task).sum(axis=0) > 0)
-        chance = 1.0 / max(present, 1)  # balanced accuracy averages the classes present
-        margin = CHANCE_MARGIN_Z * np.sqrt(chance * (1.0 - chance) / learner.n_signals)
-        return accuracy > chance + margin
+        return beats_chance(accuracy, learner.history.task_label_weights(task).sum(axis=0))
+
+
+def beats_chance(
+    balanced_accuracy: float, class_weights: np.ndarray, z: float = CHANCE_MARGIN_Z
+) -> bool:
+    """Whether a balanced accuracy is significantly above chance.
+
+    Chance is ``1/K`` of the ``K`` classes with a positive weight. Under predictions
+    independent of the labels each class's recall is a proportion of its ``n_k`` signals,
+    of variance at most ``1 / (4 n_k)``, so the balanced accuracy (their mean, expected at
+    most ``1/K``) has a standard error of at most ``sqrt(sum_k 1 / (4 n_k)) / K``; the
+    accuracy must exceed chance by ``z`` of them. A rare class (the line world's no-move,
+    labelled only at a goal) thus widens the margin, as it should: its recall rests on a
+    few signals.
+
+    Parameters
+    ----------
+    balanced_accuracy : float
+        Mean recall over the classes with signals, in [0, 1].
+    class_weights : ndarray, shape (n_classes,)
+        Total label weight of each class (0 for a class without signals).
+    z : float, default :data:`CHANCE_MARGIN_Z`
+    """
+    weights = np.asarray(class_weights, dtype=float)
+    weights = weights[weights > 0]
+    if len(weights) < 2:
+        return False
+    standard_error = np.sqrt(np.sum(0.25 / weights)) / len(weights)
+    return bool(balanced_accuracy > 1.0 / len(weights) + z * standard_error)

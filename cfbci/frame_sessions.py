@@ -44,6 +44,9 @@ class FrameSessionResult:
         First step (1-based) whose beliefs, after that step's signal, are confident.
     first_confident_correct : bool or None
         Whether that pair is the user's (task, frame).
+    user_pair_confident_step : int or None
+        First step at which the user's pair is the confident one (it may come after a
+        wrong first decision).
     winning_frame : str
         Frame of the best pair at the end.
     user_pair_confidence : tuple of float
@@ -57,6 +60,7 @@ class FrameSessionResult:
     task: int
     first_confident_step: int | None
     first_confident_correct: bool | None
+    user_pair_confident_step: int | None
     winning_frame: str
     user_pair_confidence: tuple[float, ...]
     user_task_likelihood: tuple[float, ...]
@@ -66,6 +70,7 @@ class FrameSessionResult:
             "seed": self.seed, "teacher_frame": self.teacher_frame, "task": self.task,
             "first_confident_step": self.first_confident_step,
             "first_confident_correct": self.first_confident_correct,
+            "user_pair_confident_step": self.user_pair_confident_step,
             "winning_frame": self.winning_frame,
             "user_pair_confidence": list(self.user_pair_confidence),
             "user_task_likelihood": list(self.user_task_likelihood),
@@ -79,16 +84,20 @@ def run_frame_session(
     data: LabelledFeatures,
     steps: int,
     shuffle_labels: bool = False,
+    student_t_counts: str = "total",
 ) -> FrameSessionResult:
-    """One closed-loop session of ``steps`` actions."""
+    """One closed-loop session of ``steps`` actions (``student_t_counts``: see
+    :class:`~calibration_free.frame_hypotheses.FrameHypothesesLearner`)."""
     data_rng, user_rng, learner_rng = session_streams(seed)
     teacher_frame = TEACHER_FRAMES[seed % 2]
     user = SimulatedUser(world, teacher_frame, data.labels, user_rng)
-    learner = FrameHypothesesLearner(world, TEACHER_FRAMES, replace(config), learner_rng)
+    learner = FrameHypothesesLearner(
+        world, TEACHER_FRAMES, replace(config), learner_rng, student_t_counts
+    )
     truth = TEACHER_FRAMES.index(teacher_frame) * world.n_tasks + user.target
     draws = transition_draws(seed)
     state = user.start_state
-    first, correct, confidence, likelihood = None, None, [], []
+    first, correct, user_first, confidence, likelihood = None, None, None, [], []
     for step in range(1, steps + 1):
         action = learner.propose(state).action
         index, _ = user.answer(state, action)
@@ -101,11 +110,13 @@ def run_frame_session(
             likelihood.append(float(beliefs.normalised()[truth]))
         if first is None and beliefs.confident:
             first, correct = step, beliefs.best == truth
+        if user_first is None and beliefs.confident and beliefs.best == truth:
+            user_first = step
         state = world.step(state, action, draws.uniform(step))
     winning = learner.pair(learner.beliefs().best)[1]
     return FrameSessionResult(
-        seed, teacher_frame, user.target, first, correct, winning, tuple(confidence),
-        tuple(likelihood),
+        seed, teacher_frame, user.target, first, correct, user_first, winning,
+        tuple(confidence), tuple(likelihood),
     )
 
 
@@ -133,16 +144,54 @@ def run_frame_job(job: FrameJob) -> dict[str, object]:
     ).to_dict()
 
 
-def frame_hypotheses_report(sessions: list[dict[str, object]], steps: int) -> dict[str, object]:
-    """Summary of frame-hypotheses sessions: how often and how soon the user's pair wins."""
+#: Steps at which the thesis reports the mean W of the user's pair (method-extensions §4).
+THESIS_CHECKPOINTS: tuple[int, ...] = (21, 31, 41, 51, 71, 101, 200)
+
+
+def frame_hypotheses_report(
+    sessions: list[dict[str, object]], steps: int, beta: float = 0.9
+) -> dict[str, object]:
+    """Summary of frame-hypotheses sessions: how often and how soon the user's pair wins,
+    over all sessions and per teacher frame.
+
+    ``user_pair_confident_by_step_100`` counts the learner's own decisions (pairwise
+    confidence above ``beta`` *and* beating chance); ``user_pair_w_above_beta_by_step_100``
+    is the thesis's measure, the pairwise confidence W above ``beta`` alone.
+    ``mean_user_pair_w`` is the mean W of the user's pair at the thesis's checkpoints
+    within ``steps``.
+    """
+    summary = _summary(sessions, steps, beta)
+    for frame in TEACHER_FRAMES:
+        taught = [s for s in sessions if s["teacher_frame"] == frame]
+        if taught:
+            summary[f"{frame}_teacher"] = _summary(taught, steps, beta)
+    return summary
+
+
+def _summary(sessions: list[dict[str, object]], steps: int, beta: float) -> dict[str, object]:
     first = [s["first_confident_step"] for s in sessions]
-    by_100 = [max(s["user_pair_confidence"][:100]) > 0.9 for s in sessions]
+    user_first = [s["user_pair_confident_step"] for s in sessions]
+    confidence = np.array([s["user_pair_confidence"] for s in sessions])
     return {
+        "sessions": len(sessions),
         "sessions_confident": sum(f is not None for f in first),
         "first_confident_correct": sum(bool(s["first_confident_correct"]) for s in sessions),
-        "user_pair_confident_by_step_100": float(np.mean(by_100)),
+        "winning_frame_is_teachers": sum(
+            s["winning_frame"] == s["teacher_frame"] for s in sessions
+        ),
+        "user_pair_confident_by_step_100": float(
+            np.mean([f is not None and f <= 100 for f in user_first])
+        ),
+        "user_pair_w_above_beta_by_step_100": float(
+            np.mean(confidence[:, :100].max(axis=1) > beta)
+        ),
         "median_first_confident_step": float(
             np.median([f if f is not None else steps + 1 for f in first])
         ),
         "undecided": float(np.mean([f is None for f in first])),
+        "mean_user_pair_w": {
+            str(step): round(float(confidence[:, step - 1].mean()), 3)
+            for step in THESIS_CHECKPOINTS
+            if step <= steps
+        },
     }

@@ -8,6 +8,20 @@ matrix (shrunk towards the identity scaled to its mean variance, as in the thesi
 "shrink 0.5"). Class probabilities are the normalised predictive densities (equal priors).
 A class with ``n <= d`` signals has an improper predictive: it takes no part (probability
 0); while fewer than two classes take part the decoder gives no information (uniform).
+
+**The thesis code's count** (``counts="total"``): the thesis's
+``GaussianUninformativePrior_classifier`` (lfui) puts the *total* number of signals ``N``
+of the training set in place of ``n`` for every class (``nu = N - d``, scale
+``S (N + 1) / (N nu)`` with ``S = Sigma (N - 1)``, ``Sigma`` the class's weighted, shrunk
+covariance), although each class's mean and covariance come from its own (soft-labelled)
+signals. Every class then takes part as soon as the training set has more signals than
+dimensions, however few of them it holds, provided it has a covariance of its own: with
+hard labels (the thesis trains on soft ones, where every class weighs every signal) a
+class needs a weight of at least 2 (:data:`MIN_CLASS_WEIGHT`) and signals that are not
+all the same (:data:`MIN_RELATIVE_SPREAD`); without shrinkage, more signals than
+dimensions. ``N`` is the sum of the class weights, the number of signals when every
+signal is labelled. The default,
+``counts="class"``, is the exact predictive of each class's own data.
 """
 
 from __future__ import annotations
@@ -25,6 +39,18 @@ from decoding.statistics import (
     log_softmax,
     shrink_towards_identity,
 )
+from decoding.validation import check_option
+
+#: How the predictive counts a class's signals (see :func:`fit_student_t`).
+STUDENT_T_COUNTS: tuple[str, ...] = ("class", "total")
+
+#: Weight a class needs with ``counts="total"``: two signals give it a covariance.
+MIN_CLASS_WEIGHT = 2.0
+
+#: With ``counts="total"``, a class whose total variance is below this fraction of its
+#: signals' mean squared norm holds copies of one signal (rounding leaves ~1e-16): no
+#: covariance of its own.
+MIN_RELATIVE_SPREAD = 1e-9
 
 
 @dataclass(frozen=True)
@@ -65,15 +91,36 @@ class StudentTDecoders(BatchedDecoders):
 
 
 def fit_student_t(
-    statistics: ClassStatistics, shrinkage: float = DEFAULT_SHRINKAGE
+    statistics: ClassStatistics,
+    shrinkage: float = DEFAULT_SHRINKAGE,
+    counts: str = "class",
 ) -> StudentTDecoders:
-    """Student-t predictive decoders from class statistics (batched over leading axes)."""
+    """Student-t predictive decoders from class statistics (batched over leading axes).
+
+    Parameters
+    ----------
+    statistics : ClassStatistics
+        Class statistics, batch shape ``B``.
+    shrinkage : float, default 0.5
+        Weight of the scaled-identity target in each class scatter, in [0, 1].
+    counts : {"class", "total"}, default "class"
+        The ``n`` of each class's predictive: its own weight, or the training set's total
+        weight for every class (the thesis code's, see the module docstring).
+    """
+    check_option("counts", counts, STUDENT_T_COUNTS)
     means, covariances = statistics.class_moments()
     n_features = means.shape[-1]
-    counts = statistics.counts
-    present = counts > n_features
+    own = statistics.counts
+    if counts == "class":  # S: the class's scatter about its mean
+        counts, present, scatter_weight = own, own > n_features, own
+    else:  # S = Sigma (N - 1), as the thesis code computes it
+        counts = np.broadcast_to(own.sum(axis=-1, keepdims=True), own.shape)
+        present = (counts > n_features) & _has_own_covariance(
+            statistics, covariances, shrinkage
+        )
+        scatter_weight = counts - 1.0
     dof = np.maximum(counts - n_features, 1.0)
-    scatter = shrink_towards_identity(covariances * counts[..., None, None], shrinkage)
+    scatter = shrink_towards_identity(covariances * scatter_weight[..., None, None], shrinkage)
     scale = scatter * ((counts + 1.0) / (np.maximum(counts, 1.0) * dof))[..., None, None]
     scale = np.where(present[..., None, None], scale, np.eye(n_features))
     _, log_det = np.linalg.slogdet(scale)
@@ -90,6 +137,22 @@ def fit_student_t(
         dof=dof,
         present=present,
     )
+
+
+def _has_own_covariance(
+    statistics: ClassStatistics, covariances: np.ndarray, shrinkage: float
+) -> np.ndarray:
+    """Classes whose shrunk covariance is positive definite, shape (*B, n_classes):
+    weight at least :data:`MIN_CLASS_WEIGHT` (more than ``d`` without shrinkage) and
+    signals spread beyond :data:`MIN_RELATIVE_SPREAD`."""
+    counts = statistics.counts
+    n_features = covariances.shape[-1]
+    enough = counts >= MIN_CLASS_WEIGHT if shrinkage > 0 else counts > n_features
+    variance = np.trace(covariances, axis1=-2, axis2=-1)
+    power = np.trace(statistics.scatters, axis1=-2, axis2=-1) / np.maximum(
+        counts, np.finfo(float).tiny
+    )
+    return enough & (variance > MIN_RELATIVE_SPREAD * power)
 
 
 class StudentTClassifier(StatisticsClassifier):
