@@ -11,6 +11,7 @@ from calibration_free.planning import DEFAULT_DISCOUNT, DEFAULT_EPSILON, PLANNER
 from calibration_free.task_decoders import DECODERS, DEFAULT_FOLDS
 from calibration_free.task_likelihoods import LIKELIHOODS
 from decoding.lda import DEFAULT_SHRINKAGE
+from decoding.student_t import STUDENT_T_COUNTS
 from decoding.validation import check_option, check_range
 
 PLANNING_WEIGHTS: tuple[str, ...] = ("posterior", "confidence")
@@ -47,6 +48,10 @@ class LearnerConfig:
         (:mod:`decoding.categorical`).
     shrinkage : float, default 0.5
         Covariance shrinkage towards the scaled identity, in [0, 1].
+    student_t_counts : {"class", "total"}, default "class"
+        With ``decoder="student_t"``: the count in each class's predictive, the class's own
+        weight or the training set's total (the thesis code's, which lets a rarely labelled
+        class take part from its second signal; :func:`decoding.student_t.fit_student_t`).
     n_folds : int, default 10
         Folds of the cross-validated confusion matrices.
     confusion_smoothing : float, default 1.0
@@ -91,6 +96,7 @@ class LearnerConfig:
     confidence: str = "pairwise"
     decoder: str = "lda"
     shrinkage: float = DEFAULT_SHRINKAGE
+    student_t_counts: str = "class"
     n_folds: int = DEFAULT_FOLDS
     confusion_smoothing: float = DEFAULT_CONFUSION_SMOOTHING
     balanced_confusion: bool = True
@@ -119,6 +125,7 @@ class LearnerConfig:
         check_range("eps", self.eps, 0.0, 0.5)
         check_range("epsilon", self.epsilon, 0.0, 1.0)
         check_range("shrinkage", self.shrinkage, 0.0, 1.0)
+        check_option("student_t_counts", self.student_t_counts, STUDENT_T_COUNTS)
         check_range("beta", self.beta, 0.5, 1.0, inclusive=False)
         check_range("discount", self.discount, 0.0, 1.0, inclusive=False)
         check_range("confusion_smoothing", self.confusion_smoothing, 0.0, 1e6)

@@ -23,9 +23,9 @@ pairwise confidence exceeds ``beta`` *and* its decoder's cross-validated balance
 on its own labels beats chance by :data:`CHANCE_MARGIN_Z` standard errors, counted per
 class (:func:`beats_chance`). A shuffled-label control then stays undecided (tested).
 
-**The thesis code's Student-t.** With ``decoder="student_t"`` each frame's decoders use,
-by default, the thesis code's count (every class's predictive with the total number of
-signals, ``fit_student_t(..., counts="total")``): a class such as the line world's
+**The thesis code's Student-t.** With ``decoder="student_t"`` frame hypotheses use, by
+default (:data:`FRAME_DEFAULTS`), the thesis code's count (``student_t_counts="total"``:
+every class's predictive with the total number of signals): a class such as the line world's
 no-move, labelled only at a goal, takes part from its second signal instead of its 12th
 (11-D signals), and it is the class that tells the two goals apart under guidance.
 
@@ -44,45 +44,15 @@ from calibration_free.config import LearnerConfig
 from calibration_free.learner import CalibrationFreeLearner, Proposal
 from calibration_free.likelihood import pairwise_confidence
 from calibration_free.planning import random_action
-from calibration_free.task_decoders import DecoderFit, TaskHistory
 from calibration_free.world import World
-from decoding.statistics import BatchedDecoders
-from decoding.student_t import STUDENT_T_COUNTS, fit_student_t
-from decoding.validation import check_option
 
 #: Standard errors by which a confident pair's decoder must beat chance: a one-sided 1 %
 #: level, Bonferroni-corrected for the 800 looks of a 200-step session at 4 pairs
 #: (``scipy.stats.norm.isf(0.01 / 800)``).
 CHANCE_MARGIN_Z = 4.21
-
-
-@dataclass(frozen=True)
-class TotalCountStudentTFit(DecoderFit):
-    """The Student-t decoders with the thesis code's count: every class's predictive uses
-    the training set's total weight (``fit_student_t(..., counts="total")``)."""
-
-    def __call__(
-        self, history: TaskHistory, with_folds: bool = True
-    ) -> tuple[BatchedDecoders, BatchedDecoders | None]:
-        whole, training = history.class_statistics(with_folds)
-        folds = None if training is None else fit_student_t(training, self.shrinkage, "total")
-        return fit_student_t(whole, self.shrinkage, "total"), folds
-
-
-class FrameLearner(CalibrationFreeLearner):
-    """The learner of one candidate frame; with the Student-t decoder, ``student_t_counts``
-    chooses its count (:func:`decoding.student_t.fit_student_t`)."""
-
-    def __init__(
-        self,
-        world: World,
-        config: LearnerConfig,
-        rng: np.random.Generator,
-        student_t_counts: str = "total",
-    ) -> None:
-        super().__init__(world, config, rng)
-        if config.decoder == "student_t" and student_t_counts == "total":
-            self._fit = TotalCountStudentTFit("student_t", config.shrinkage)
+#: Learner settings frame hypotheses start from (the thesis code's): uniform actions, no
+#: power prior, the Student-t count of every class the total one.
+FRAME_DEFAULTS = {"planner": "random", "power_prior": False, "student_t_counts": "total"}
 
 
 @dataclass(frozen=True)
@@ -123,10 +93,6 @@ class FrameHypothesesLearner:
         Shared settings (its ``frame`` and ``power_prior`` are overridden per frame).
     rng : Generator
         Draws the actions.
-    student_t_counts : {"total", "class"}, default "total"
-        With ``config.decoder == "student_t"``: the thesis code's count (every class's
-        predictive uses the total number of signals) or each class's own (the main
-        learner's, :func:`decoding.student_t.fit_student_t`).
     """
 
     def __init__(
@@ -135,16 +101,12 @@ class FrameHypothesesLearner:
         frames: tuple[str, ...] = ("feedback", "guidance"),
         config: LearnerConfig | None = None,
         rng: np.random.Generator | None = None,
-        student_t_counts: str = "total",
     ) -> None:
-        config = config or LearnerConfig()
-        check_option("student_t_counts", student_t_counts, STUDENT_T_COUNTS)
+        config = config or LearnerConfig(**FRAME_DEFAULTS)
         self.world, self.frames, self.config = world, frames, config
         self.rng = np.random.default_rng(rng)
         self._learners = [
-            FrameLearner(
-                world, replace(config, frame=f, power_prior=False), self.rng, student_t_counts
-            )
+            CalibrationFreeLearner(world, replace(config, frame=f, power_prior=False), self.rng)
             for f in frames
         ]
         self._chance = np.array([np.log(learner.frame.n_classes) for learner in self._learners])

@@ -105,7 +105,9 @@ class TaskLearner:
         self._n_features: int | None = None
         self._pending_target: int | None = None
         self._visits = np.zeros(world.n_states)
-        self._fit = decoder_fit(self.config.decoder, self.config.shrinkage)
+        self._fit = decoder_fit(
+            self.config.decoder, self.config.shrinkage, self.config.student_t_counts
+        )
         self._planner = make_planner(
             self.config.planner, self.frame, self.config.discount, self.config.epsilon
         )

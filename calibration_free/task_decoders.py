@@ -36,7 +36,7 @@ from decoding.categorical import fit_categorical
 from decoding.gaussian import fit_gaussian
 from decoding.lda import fit_pooled_lda
 from decoding.statistics import BatchedDecoders, ClassStatistics, PooledStatistics
-from decoding.student_t import fit_student_t
+from decoding.student_t import STUDENT_T_COUNTS, fit_student_t
 from decoding.validation import check_option
 
 DEFAULT_FOLDS = 10
@@ -282,13 +282,18 @@ class DecoderFit:
         (:mod:`decoding.categorical`), on the class counts and sums alone.
     shrinkage : float
         Covariance shrinkage (not used by "categorical").
+    student_t_counts : {"class", "total"}, default "class"
+        The count in the Student-t predictive (:func:`decoding.student_t.fit_student_t`):
+        each class's own, or the training set's total (the thesis code's).
     """
 
     kind: str
     shrinkage: float
+    student_t_counts: str = "class"
 
     def __post_init__(self) -> None:
         check_option("decoder", self.kind, DECODERS)
+        check_option("student_t_counts", self.student_t_counts, STUDENT_T_COUNTS)
 
     @property
     def class_scatters(self) -> bool:
@@ -301,10 +306,9 @@ class DecoderFit:
         """Every task's full decoder (batch (n_tasks,)) and fold decoders (batch
         (n_folds, n_tasks); None without ``with_folds``: no cross-validation fit)."""
         if self.class_scatters:
-            fit = fit_student_t if self.kind == "student_t" else fit_gaussian
             whole, training = history.class_statistics(with_folds)
-            folds = fit(training, self.shrinkage) if training is not None else None
-            return fit(whole, self.shrinkage), folds
+            folds = self._fit_classes(training) if training is not None else None
+            return self._fit_classes(whole), folds
         statistics = history.pooled_statistics(with_folds)
         if self.kind == "categorical":
             decoders: BatchedDecoders = fit_categorical(statistics.counts, statistics.sums)
@@ -313,9 +317,15 @@ class DecoderFit:
         return decoders.select(-1), decoders.select(slice(0, -1)) if with_folds else None
 
 
-def decoder_fit(decoder: str, shrinkage: float) -> DecoderFit:
+    def _fit_classes(self, statistics: ClassStatistics) -> BatchedDecoders:
+        if self.kind == "student_t":
+            return fit_student_t(statistics, self.shrinkage, self.student_t_counts)
+        return fit_gaussian(statistics, self.shrinkage)
+
+
+def decoder_fit(decoder: str, shrinkage: float, student_t_counts: str = "class") -> DecoderFit:
     """The fitting of decoders of kind ``decoder`` (one of :data:`DECODERS`)."""
-    return DecoderFit(decoder, shrinkage)
+    return DecoderFit(decoder, shrinkage, student_t_counts)
 
 
 @dataclass(frozen=True)

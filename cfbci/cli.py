@@ -136,10 +136,10 @@ def _add_simulate(commands: argparse._SubParsersAction, chosen: Preset | None) -
 
 def _simulate_frame_hypotheses(args: argparse.Namespace, console: Console) -> int:
     """``--frame hypotheses``: (task, frame) pairs, the user's frame unknown."""
+    from calibration_free.frame_hypotheses import FRAME_DEFAULTS
     from cfbci.frame_sessions import FrameJob, frame_hypotheses_report, run_frame_job
 
-    settings = {"planner": "random", "power_prior": False, **parse_settings(args.set)}
-    config = LearnerConfig.from_dict(settings)
+    config = LearnerConfig.from_dict({**FRAME_DEFAULTS, **parse_settings(args.set)})
     data = data_spec(args)
     data.resolve("guidance")  # fail early on a bad dataset
     jobs = [

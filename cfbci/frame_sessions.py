@@ -14,7 +14,7 @@ line world's edge moves.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -84,16 +84,12 @@ def run_frame_session(
     data: LabelledFeatures,
     steps: int,
     shuffle_labels: bool = False,
-    student_t_counts: str = "total",
 ) -> FrameSessionResult:
-    """One closed-loop session of ``steps`` actions (``student_t_counts``: see
-    :class:`~calibration_free.frame_hypotheses.FrameHypothesesLearner`)."""
+    """One closed-loop session of ``steps`` actions."""
     data_rng, user_rng, learner_rng = session_streams(seed)
     teacher_frame = TEACHER_FRAMES[seed % 2]
     user = SimulatedUser(world, teacher_frame, data.labels, user_rng)
-    learner = FrameHypothesesLearner(
-        world, TEACHER_FRAMES, replace(config), learner_rng, student_t_counts
-    )
+    learner = FrameHypothesesLearner(world, TEACHER_FRAMES, config, learner_rng)
     truth = TEACHER_FRAMES.index(teacher_frame) * world.n_tasks + user.target
     draws = transition_draws(seed)
     state = user.start_state

@@ -62,10 +62,12 @@ PRESETS: dict[str, Preset] = {
             "frame-hypotheses",
             "thesis §7.6 (method-extensions §4): (task, frame) pairs on the line world, the "
             "teacher's frame alternating with the seed; 200 runs of 200 steps, random "
-            "actions, Student-t decoder, eps 0.01, 12 initial steps",
+            "actions, the thesis code's Student-t decoder (total count), eps 0.01, 12 "
+            "initial steps",
             {"world": "line", "frame": "hypotheses", "seeds": 200, "steps": 200,
              "planner": "random"},
-            {"decoder": "student_t", "eps": 0.01, "warmup_steps": 12},
+            {"decoder": "student_t", "student_t_counts": "total", "eps": 0.01,
+             "warmup_steps": 12},
             dataset="move_finger.mat (../shared/datasets/finger-moves/)",
         ),
         Preset(

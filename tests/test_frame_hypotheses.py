@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -10,12 +11,12 @@ import pytest
 
 from acquisition.gaussian import generate_gaussian_features
 from calibration_free.config import LearnerConfig
-from calibration_free.frame_hypotheses import FrameHypothesesLearner, beats_chance
+from calibration_free.frame_hypotheses import FRAME_DEFAULTS, FrameHypothesesLearner, beats_chance
 from calibration_free.worlds import make_world
 from cfbci.cli import main
 from cfbci.frame_sessions import frame_hypotheses_report, run_frame_session
 
-CONFIG = LearnerConfig(decoder="student_t", eps=0.01, planner="random")
+CONFIG = LearnerConfig(**{**FRAME_DEFAULTS, "decoder": "student_t", "eps": 0.01})
 
 
 @pytest.fixture(scope="module")
@@ -56,7 +57,9 @@ def test_the_thesis_codes_count_finds_a_guidance_teacher_sooner(signals) -> None
     guidance_seeds = range(1, 16, 2)
     steps = {
         counts: [
-            run_frame_session(seed, world, CONFIG, signals, 100, False, counts)
+            run_frame_session(
+                seed, world, replace(CONFIG, student_t_counts=counts), signals, 100
+            )
             for seed in guidance_seeds
         ]
         for counts in ("total", "class")
