@@ -6,10 +6,16 @@ checks an epochs ``.npz``. Both need optional packages: ``mne`` (``pip install
 which to install.
 
 **Class names.** A label is named as in :data:`CLASS_NAMES`: feedback ``correct`` (0),
-``error`` (1); guidance ``up``, ``down``, ``left``, ``right`` (0..3, the moves). An MNE
-event name or an XDF marker value carries a class when one of its ``/``-separated tags
+``error`` (1); guidance ``up``, ``down``, ``left``, ``right`` (0..3, the grid's moves). An
+MNE event name or an XDF marker value carries a class when one of its ``/``-separated tags
 (MNE's tag convention, case-insensitive) is a class name: ``error``, ``feedback/error``
-and ``Error/visual`` all mean error.
+and ``Error/visual`` all mean error. Guidance in another world names its classes by that
+world's guidance actions, tagged with the world (:func:`class_names`): ``line/right``,
+``line/left``, ``line/no-move``; ``pick-and-place/right``, ``pick-and-place/left``,
+``pick-and-place/grasp``, ``pick-and-place/release`` (0..K-1, in action order). The world
+tag is needed: ``right`` is class 3 on the grid but 0 in pick-and-place; a name tagged
+with a world reads with that world's names (MNE's ``epochs["grasp"]`` still selects by the
+action alone).
 
 **MNE epochs** (:func:`read_fif_epochs`): the EEG channels not marked bad, volts turned
 into microvolts, with the file's ``sfreq``, ``tmin`` and channel names. Labels come from the
@@ -35,6 +41,7 @@ removed.
 
 from __future__ import annotations
 
+import functools
 import warnings
 from pathlib import Path
 from typing import Any
@@ -42,10 +49,14 @@ from typing import Any
 import numpy as np
 
 from acquisition.lsl_epochs import Epoch, SampleBuffer
-from calibration_free.world import MOVES
+from calibration_free.frames import Frame
+from calibration_free.world import MOVES, GridWorld, World
+from calibration_free.worlds import WORLDS, make_world
 
-#: Class names per frame, in label order.
+#: Class names per frame, in label order (a grid world's: guidance classes are its moves).
 CLASS_NAMES: dict[str, tuple[str, ...]] = {"feedback": ("correct", "error"), "guidance": MOVES}
+#: Worlds whose guidance classes are named with their world's tag (:func:`class_names`).
+TAGGED_WORLDS: tuple[str, ...] = tuple(kind for kind in WORLDS if kind != "grid")
 
 #: Epoch window around an XDF marker (tmin, tmax), seconds: that of the synthetic epochs.
 XDF_EPOCH_WINDOW = (-0.2, 1.0)
@@ -61,22 +72,52 @@ _VOLTS_TO_MICROVOLTS = 1e6
 Arrays = dict[str, Any]
 
 
+def class_names(frame: str, world: World | None = None) -> tuple[str, ...]:
+    """The names of a frame's classes in ``world``, in label order (see the module
+    docstring): :data:`CLASS_NAMES`, except guidance outside the grid, whose classes are the
+    world's guidance actions tagged with the world (``pick-and-place/grasp``).
+
+    Parameters
+    ----------
+    frame : {"feedback", "guidance"}
+    world : World, optional
+        The session's world; None: a grid.
+    """
+    if frame != "guidance" or world is None or isinstance(world, GridWorld):
+        return CLASS_NAMES[frame]
+    return tuple(f"{world.name}/{action}" for action in Frame(world, frame).class_names())
+
+
+@functools.cache
+def _guidance_actions(kind: str) -> tuple[str, ...]:
+    """The guidance action names of a world kind (built once: pick-and-place takes 30 ms)."""
+    return Frame(make_world(kind), "guidance").class_names()
+
+
 def class_of(name: str, frame: str) -> int | None:
     """The class an event name or marker value names (see the module docstring), or None.
 
     Parameters
     ----------
     name : str
-        E.g. ``"error"``, ``"feedback/correct"``, ``"left"``.
+        E.g. ``"error"``, ``"feedback/correct"``, ``"left"``, ``"pick-and-place/grasp"``.
     frame : {"feedback", "guidance"}
 
     Returns
     -------
     int or None
-        The 0-based label, or None when no tag, or more than one class, is named.
+        The 0-based label, or None when no tag, or more than one class, is named (or
+        more than one world is).
     """
     tags = {tag.strip().lower() for tag in name.split("/")}
-    named = [k for k, class_name in enumerate(CLASS_NAMES[frame]) if class_name in tags]
+    names = CLASS_NAMES[frame]
+    if frame == "guidance":
+        worlds = tags.intersection(TAGGED_WORLDS)
+        if len(worlds) > 1:
+            return None
+        if worlds:
+            names = _guidance_actions(worlds.pop())
+    named = [k for k, class_name in enumerate(names) if class_name in tags]
     return named[0] if len(named) == 1 else None
 
 
@@ -134,7 +175,8 @@ def read_fif_epochs(path: Path, frame: str) -> Arrays:
             raise ValueError(
                 f"{where}: event name(s) {unknown} name no {frame} class; name each event "
                 f"with one of {list(CLASS_NAMES[frame])} (or a /-tag of it, e.g. "
-                f"'feedback/{CLASS_NAMES[frame][-1]}')"
+                f"'feedback/{CLASS_NAMES[frame][-1]}'; another world's guidance: its action "
+                f"tagged with the world, e.g. 'pick-and-place/grasp')"
             )
     return {
         "epochs": eeg.get_data() * _VOLTS_TO_MICROVOLTS,
@@ -145,20 +187,34 @@ def read_fif_epochs(path: Path, frame: str) -> Arrays:
     }
 
 
-def write_fif_epochs(path: Path, arrays: Arrays, frame: str) -> None:
+def write_fif_epochs(
+    path: Path, arrays: Arrays, frame: str, world: World | None = None
+) -> None:
     """Write epochs ``.npz`` arrays as an MNE epochs file (float64, EEG channels).
 
     ``epochs`` microvolts become volts; events are ``[i, 0, label + 1]`` for epoch ``i``
     (the epochs' order; no continuous recording lies behind them) with ``event_id``
-    ``{class name: label + 1}`` for the frame's classes (:data:`CLASS_NAMES`).
+    ``{class name: label + 1}`` for the classes present, named as in ``world``
+    (:func:`class_names`; None: a grid).
+
+    Raises
+    ------
+    ValueError
+        If a label is not one of the frame's classes in ``world``.
     """
     where = str(path)
     mne = _optional("mne", "mne", where, "writing MNE .fif epochs")
     labels = np.asarray(arrays["labels"], dtype=np.int64)
+    names = class_names(frame, world)
+    outside = sorted({int(k) for k in labels} - set(range(len(names))))
+    if outside:
+        raise ValueError(
+            f"{where}: label(s) {outside} are no {frame} class of this world ({len(names)} "
+            f"classes: {list(names)})"
+        )
     info = mne.create_info(list(arrays["ch_names"]), float(arrays["sfreq"]), ch_types="eeg")
     events = np.column_stack([np.arange(len(labels)), np.zeros_like(labels), labels + 1])
-    event_id = {name: k + 1 for k, name in enumerate(CLASS_NAMES[frame])
-                if k in set(labels.tolist())}
+    event_id = {name: k + 1 for k, name in enumerate(names) if k in set(labels.tolist())}
     epochs = mne.EpochsArray(
         np.asarray(arrays["epochs"], dtype=np.float64) / _VOLTS_TO_MICROVOLTS, info,
         events=events, tmin=float(arrays["tmin"]), event_id=event_id, baseline=None,

@@ -52,6 +52,7 @@ import scipy.io
 
 from acquisition.lab_formats import read_fif_epochs, read_xdf_epochs, write_fif_epochs
 from acquisition.labelled import LabelledEpochs, LabelledFeatures
+from calibration_free.world import World
 from decoding.features import ErrPFeatures
 from decoding.validation import check_array, check_option
 from replay.recording import decode_array, read_recording
@@ -346,7 +347,7 @@ def save_epochs_npz(path: PathLike, epochs: LabelledEpochs) -> None:
     np.savez(path, **arrays)
 
 
-def save_epochs_fif(path: PathLike, epochs: LabelledEpochs) -> None:
+def save_epochs_fif(path: PathLike, epochs: LabelledEpochs, world: World | None = None) -> None:
     """Write labelled epochs as an MNE epochs file that :func:`load_epochs` reads back.
 
     Parameters
@@ -358,8 +359,10 @@ def save_epochs_fif(path: PathLike, epochs: LabelledEpochs) -> None:
         Epochs in microvolts (written in volts, float64), with ``sfreq``, ``tmin``,
         ``ch_names`` (EEG channels) and 0-based labels, which become events
         ``[i, 0, label + 1]`` named after their classes (``correct``, ``error``; guidance
-        ``up``, ``down``, ``left``, ``right``); see
+        ``up``, ``down``, ``left``, ``right``, or ``world``'s guidance actions); see
         :func:`acquisition.lab_formats.write_fif_epochs`.
+    world : World, optional
+        The world whose guidance classes name the events (None: a grid).
 
     Raises
     ------
@@ -378,7 +381,7 @@ def save_epochs_fif(path: PathLike, epochs: LabelledEpochs) -> None:
         "ch_names": np.array(epochs.ch_names, dtype=str), "labels": epochs.labels,
     }
     _parse_epochs(arrays, str(path))
-    write_fif_epochs(path, arrays, frames[epochs.n_classes])
+    write_fif_epochs(path, arrays, frames[epochs.n_classes], world)
 
 
 def _lab_format(path: Path) -> str | None:

@@ -3,8 +3,11 @@
 The exported epochs are those a recording gives as a dataset
 (:func:`acquisition.loaders.load_recording_dataset`: every accepted epoch with a ``/truth``
 of its step, in step order), with their truth labels as events (see
-:func:`acquisition.loaders.save_epochs_fif`). Only raw epochs can be exported: a recording of
-feature vectors is refused.
+:func:`acquisition.loaders.save_epochs_fif`) named by the recorded world's classes
+(:func:`acquisition.lab_formats.class_names`: ``correct``/``error``; guidance ``up``,
+``down``, ``left``, ``right`` on a grid, the world's guidance actions elsewhere, e.g.
+``pick-and-place/grasp``). Only raw epochs can be exported: a recording of feature vectors
+is refused.
 """
 
 from __future__ import annotations
@@ -16,6 +19,8 @@ from rich.console import Console
 
 from acquisition.labelled import LabelledEpochs
 from acquisition.loaders import load_recording_dataset, save_epochs_fif
+from replay.recording import read_recording
+from wire.messages import config_world
 
 #: ``--format`` choices.
 FORMATS = ("fif",)
@@ -40,7 +45,7 @@ def export_fif(recording: Path, out: Path) -> LabelledEpochs:
             f"{recording}: the session sent feature vectors, not raw epochs, so there are no "
             "epochs to export as MNE Epochs (record a session whose source sends raw epochs)"
         )
-    save_epochs_fif(out, data)
+    save_epochs_fif(out, data, config_world(read_recording(recording).config))
     return data
 
 
@@ -50,7 +55,8 @@ def add_export_command(commands: argparse._SubParsersAction) -> None:
         "export",
         help="write a recording's raw epochs and truth labels in another format (MNE .fif)",
         description="Export the raw epochs a session recording holds, labelled by its truth "
-        "(events named correct/error, or up/down/left/right for guidance), as MNE Epochs "
+        "(events named correct/error, or by the world's guidance actions: up/down/left/right "
+        "on a grid, e.g. pick-and-place/grasp elsewhere), as MNE Epochs "
         "(-epo.fif, EEG in volts). A recording of feature vectors cannot be exported.",
     )
     p.add_argument("file", type=Path, help="the recording (.mcap)")

@@ -36,7 +36,9 @@ from rich.table import Table
 
 from acquisition.replay_source import SourceSettings, SourceSummary, run_source
 from acquisition.sources import DataSpec
-from cfbci.limits import ServiceLimits, session_memory_bytes
+from calibration_free.config import LearnerConfig
+from calibration_free.world import GridWorld
+from cfbci.limits import ServiceLimits, world_memory_bytes
 from cfbci.service import serve
 from cfbci.simulation import SessionConfig, run_session
 from replay.recording import read_recording
@@ -129,11 +131,13 @@ def attacks(live: str, limits: ServiceLimits, round_: int) -> list[tuple[str, st
 
 
 def largest_fitting_features(limits: ServiceLimits, grid: int, steps: int) -> int:
-    """The longest feature vector (<= ``max_features``) with which a feedback session of
-    ``grid`` and ``steps`` stays within ``max_session_mb``; 0 if none does."""
+    """The longest feature vector (<= ``max_features``) with which a session of
+    :func:`_config` (``grid``, ``steps``, feedback, default learner) stays within
+    ``max_session_mb`` by :func:`~cfbci.limits.world_memory_bytes`; 0 if none does."""
+    world, learner, budget = GridWorld(grid), LearnerConfig(), limits.max_session_mb * 2**20
     fits = [
         d for d in range(1, limits.max_features + 1)
-        if session_memory_bytes(grid, 2, steps, d) <= limits.max_session_mb * 2**20
+        if world_memory_bytes(world, learner, steps, d) <= budget
     ]
     return max(fits, default=0)
 

@@ -11,12 +11,12 @@ from __future__ import annotations
 import argparse
 from dataclasses import dataclass, fields
 
-from calibration_free.task_decoders import DEFAULT_FOLDS
-from calibration_free.world import GridWorld, World
+from calibration_free.config import LearnerConfig
+from calibration_free.world import World
+from cfbci.memory_estimate import estimate
 
 #: Bytes a message may hold besides its payload (the JSON header), for ``max_message_bytes``.
 HEADER_ALLOWANCE = 64 * 2**10
-_FLOAT = 8  # bytes of a float64
 
 
 @dataclass(frozen=True)
@@ -99,36 +99,15 @@ def from_args(args: argparse.Namespace) -> ServiceLimits:
     return ServiceLimits(**{spec.name: getattr(args, spec.name) for spec in fields(ServiceLimits)})
 
 
-def session_memory_bytes(grid: int, n_classes: int, steps: int, n_features: int = 0) -> int:
-    """:func:`world_memory_bytes` of a ``grid x grid`` grid world."""
-    return world_memory_bytes(GridWorld(grid), n_classes, steps, n_features)
-
-
-def world_memory_bytes(world: World, n_classes: int, steps: int, n_features: int = 0) -> int:
+def world_memory_bytes(
+    world: World, learner: LearnerConfig, steps: int, n_features: int = 0
+) -> int:
     """Upper estimate of the memory a session's learner commits, bytes.
 
-    With T tasks, S states and A actions of the world (a grid: T = S = side², A = 5), K
-    classes, F = 10 folds and d features: ``8 * ((4 + K) T S A K + 2 T (F + 1) K d^2 +
-    steps (T K + d))`` — the frame's and the planner's tables, the per-fold scatter
-    matrices and the decoders fitted from them, and the history: an upper bound. Measured
-    (peak resident growth, 30 epochs, d = 57) with the learner of its writing: grid 5,
-    29 MiB (estimate 28); grid 16, 313 MiB (estimate 309); the compact statistics since:
-    grid 16, 33 MiB; pick-and-place (T = S = 624, A = 4), 200 steps: feedback 45 MiB
-    (estimate 825), guidance 78 MiB (estimate 1745), default LDA decoder.
-
-    Parameters
-    ----------
-    world : World
-        The session's world (only its sizes are read).
-    n_classes : int
-        Classes of the frame: 2 (feedback) or the world's guidance actions (guidance).
-    steps : int
-        Steps of the session.
-    n_features : int
-        Length of the learner's feature vectors; 0 when not known yet.
+    :func:`cfbci.memory_estimate.estimate`'s total (documented term by term there): the
+    world's tables and their building, the history and every task's per-fold statistics,
+    one step's fit, cross-validation and planning, as functions of the world's sizes, the
+    learner settings (frame, decoder, likelihood, planner, folds), ``steps`` and
+    ``n_features`` (0 when not known yet: at the config).
     """
-    tasks, states = world.n_tasks, world.n_states
-    tables = (4 + n_classes) * tasks * states * world.n_actions * n_classes
-    scatter = 2 * tasks * (DEFAULT_FOLDS + 1) * n_classes * n_features**2
-    history = steps * (tasks * n_classes + n_features)
-    return _FLOAT * (tables + scatter + history)
+    return estimate(world, learner, steps, n_features).total

@@ -17,7 +17,7 @@ from test_recording_dataset import STEPS, recordings  # noqa: F401 (a fixture)
 from acquisition.labelled import LabelledEpochs
 from acquisition.loaders import load_epochs, load_recording_dataset
 from cfbci.cli import main
-from replay.recording import read_recording
+from replay.recording import SessionRecorder, read_recording
 
 
 def printed_error(capsys: pytest.CaptureFixture[str]) -> str:
@@ -82,3 +82,50 @@ def test_a_recording_of_features_or_a_bad_name_is_refused(
     assert "raw.fif: an MNE epochs file name must end in -epo.fif" in printed_error(capsys)
     assert main(["export", str(tmp_path / "missing.mcap")]) == 2
     assert "missing.mcap: no such file" in printed_error(capsys)
+
+
+def _guidance_recording(
+    path: Path, world: dict[str, object], labels: list[int]
+) -> np.ndarray:
+    """A recording of a guidance session of raw epochs in ``world`` (a real MCAP file by the
+    service's recorder), one epoch and truth per label; returns the epochs (float32 µV).
+    ``world``: the config's world fields."""
+    rng = np.random.default_rng(0)
+    epochs = rng.normal(0.0, 5.0, size=(len(labels), 2, 16)).astype(np.float32)
+    config = {
+        "seed": 0, **world, "frame": "guidance", "steps": len(labels), "learner": {},
+        "dataset": {}, "signal": "epochs", "sfreq": 64.0, "tmin": -0.25, "ch_names": ["Fz", "Cz"],
+    }
+    with SessionRecorder(path, "guided", config) as recorder:
+        for step, (epoch, label) in enumerate(zip(epochs, labels, strict=True), start=1):
+            header = {"seq": step - 1, "t_ns": step, "step": step, "units": "uV"}
+            recorder.record_array("/epoch", header, epoch, step)
+            truth = {"seq": step - 1, "t_ns": step, "step": step, "target": 0, "label": label}
+            recorder.record("/truth", truth, step)
+    return epochs
+
+
+def test_guidance_classes_are_named_by_the_recorded_worlds_actions(tmp_path: Path) -> None:
+    labels = [0, 1, 2, 3, 2, 1, 0, 3, 3, 2]
+    recording = tmp_path / "pick.mcap"
+    epochs = _guidance_recording(recording, {"world": "pick-and-place"}, labels)
+    out = tmp_path / "pick-epo.fif"
+    assert main(["export", str(recording), "--out", str(out)]) == 0
+
+    written = mne.read_epochs(out, preload=True, verbose="error")
+    assert written.event_id == {
+        "pick-and-place/right": 1, "pick-and-place/left": 2, "pick-and-place/grasp": 3,
+        "pick-and-place/release": 4,
+    }
+    assert written.events[:, 2].tolist() == [k + 1 for k in labels]
+    assert len(written["grasp"]) == labels.count(2)  # MNE selects by the action's tag
+    again = load_epochs(out, frame="guidance")  # read back with the world's names
+    assert again.labels.tolist() == labels
+    assert np.array_equal((written.get_data() * 1e6).astype(np.float32), epochs)
+
+    grid = tmp_path / "grid.mcap"
+    _guidance_recording(grid, {"world": "grid", "grid": 4}, [0, 1, 2, 3] * 2)
+    assert main(["export", str(grid), "--out", str(tmp_path / "grid-epo.fif")]) == 0
+    assert mne.read_epochs(tmp_path / "grid-epo.fif", verbose="error").event_id == {
+        "up": 1, "down": 2, "left": 3, "right": 4,
+    }

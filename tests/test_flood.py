@@ -5,12 +5,14 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from calibration_free.config import LearnerConfig
+from calibration_free.world import GridWorld
 from cfbci.flood import attacks, bench_flood, largest_fitting_features, memory_bound
-from cfbci.limits import ServiceLimits, session_memory_bytes
+from cfbci.limits import ServiceLimits, world_memory_bytes
 from wire import protocol
 
 LIMITS = ServiceLimits(
-    max_sessions=4, idle_timeout=30.0, max_grid=6, max_steps=400, max_features=128,
+    max_sessions=4, idle_timeout=30.0, max_grid=6, max_steps=400, max_features=1024,
     max_epoch_values=4096, max_session_mb=48.0,
 )
 
@@ -36,8 +38,9 @@ def test_the_maximum_sessions_fit_the_memory_limit_exactly() -> None:
     d = largest_fitting_features(LIMITS, LIMITS.max_grid, LIMITS.max_steps)
     budget = LIMITS.max_session_mb * 2**20
     assert 0 < d < LIMITS.max_features
-    assert session_memory_bytes(LIMITS.max_grid, 2, LIMITS.max_steps, d) <= budget
-    assert session_memory_bytes(LIMITS.max_grid, 2, LIMITS.max_steps, d + 1) > budget
+    world, learner = GridWorld(LIMITS.max_grid), LearnerConfig()
+    assert world_memory_bytes(world, learner, LIMITS.max_steps, d) <= budget
+    assert world_memory_bytes(world, learner, LIMITS.max_steps, d + 1) > budget
 
 
 def test_a_real_session_under_a_flood_decides_as_alone(tmp_path: Path) -> None:

@@ -13,7 +13,11 @@ import pytest
 import zenoh
 from live import SPAWN, TIMEOUT
 
-from cfbci.limits import ServiceLimits, add_options, from_args, session_memory_bytes
+from calibration_free.config import LearnerConfig
+from calibration_free.world import GridWorld
+from calibration_free.worlds import make_world
+from cfbci.limits import ServiceLimits, add_options, from_args, world_memory_bytes
+from cfbci.memory_probe import MemoryCase, measure
 from cfbci.service import serve, unfinished
 from replay.recording import read_recording
 from wire import protocol
@@ -22,7 +26,7 @@ from wire.zenoh_config import free_tcp_endpoint, peer_config
 
 LIMITS = ServiceLimits(
     max_sessions=2, idle_timeout=2.0, subscriber_timeout=1.0, max_grid=6, max_steps=100,
-    max_session_mb=1.0,
+    max_session_mb=2.0,
 )
 
 
@@ -55,12 +59,42 @@ def test_the_cli_flags_give_the_limits_and_bad_ones_are_refused() -> None:
         ServiceLimits(max_sessions=0)
 
 
-def test_the_memory_estimate_grows_with_grid_steps_and_features() -> None:
-    base = session_memory_bytes(5, 2, 100)
-    assert session_memory_bytes(6, 2, 100) > base
-    assert session_memory_bytes(5, 2, 200) > base
-    assert session_memory_bytes(5, 2, 100, 57) > base
-    assert session_memory_bytes(5, 4, 100) > base  # guidance: four classes
+def test_the_memory_estimate_grows_with_world_steps_features_classes_and_decoder() -> None:
+    def estimate(world: object = None, steps: int = 100, d: int = 57, **learner: object) -> int:
+        return world_memory_bytes(
+            world or GridWorld(5), LearnerConfig(**learner), steps, d  # type: ignore[arg-type]
+        )
+
+    base = estimate()
+    assert estimate(GridWorld(6)) > base
+    assert estimate(steps=200) > base
+    assert estimate(d=58) > base
+    assert estimate(frame="guidance") > base  # four classes
+    assert estimate(make_world("pick-and-place")) > estimate(GridWorld(20)) > base
+    # per-class scatter matrices: O(T F K d^2) against the pooled O(T F K d)
+    assert estimate(decoder="student_t") > 5 * base
+    assert estimate(decoder="gaussian", d=4) < estimate(decoder="gaussian", d=8)
+    assert estimate(likelihood="bhattacharyya") > 3 * base  # keeps per-class scatters too
+    assert estimate(d=0) < base  # at the config: no feature term yet
+
+
+#: Small real sessions, measured in a fresh process each (peak resident growth, the
+#: learner stepped as the service steps it). Each commits several MiB, so that the
+#: estimate's constant overhead (1 MiB) does not decide the ratio.
+MEASURED = (
+    MemoryCase("pick-and-place", steps=20, features=8),  # value iteration's first epoch
+    MemoryCase("grid", 10, steps=30, features=20, learner={"decoder": "student_t"}),
+    MemoryCase("grid", 8, steps=150, features=40, learner={"frame": "guidance"}),
+    MemoryCase("line", steps=60, features=60,
+               learner={"frame": "guidance", "decoder": "gaussian"}),
+)
+
+
+@pytest.mark.parametrize("case", MEASURED, ids=MemoryCase.describe)
+def test_the_memory_estimate_bounds_a_real_session_within_2_5_times(case: MemoryCase) -> None:
+    result = measure(case)
+    assert result.measured_mib > 0.5  # the session was measured
+    assert result.measured_mib <= result.estimate_mib <= 2.5 * result.measured_mib
 
 
 def test_rejections_idle_timeout_and_a_re_sent_config(tmp_path: Path) -> None:
@@ -79,7 +113,9 @@ def test_rejections_idle_timeout_and_a_re_sent_config(tmp_path: Path) -> None:
             rejected = {
                 "big": (_config(grid=7), "field 'grid' must be in 2..6"),
                 "long": (_config(steps=101), "field 'steps' must be in 1..100"),
-                "heavy": (_config(grid=6, frame="guidance", steps=100), "MiB"),
+                # pick-and-place's tables alone (and their value iteration) exceed 2 MiB
+                "heavy": ({k: v for k, v in _config(frame="guidance").items() if k != "grid"}
+                          | {"world": "pick-and-place"}, "MiB"),
                 "eps": (_config(learner={"eps": 0.9}), "bad config"),
             }
             for sid, (config, problem) in rejected.items():

@@ -16,9 +16,17 @@ import mne
 import numpy as np
 import pytest
 
-from acquisition.lab_formats import XDF_EPOCH_WINDOW, class_of
+from acquisition.lab_formats import (
+    XDF_EPOCH_WINDOW,
+    class_names,
+    class_of,
+    read_fif_epochs,
+    write_fif_epochs,
+)
 from acquisition.loaders import features_from_epochs, load_epochs, load_labelled
 from acquisition.synthetic import generate_errp_epochs
+from calibration_free.world import GridWorld
+from calibration_free.worlds import make_world
 from cfbci.cli import main
 
 SFREQ = 256.0
@@ -244,3 +252,29 @@ def test_class_names_follow_mne_tags() -> None:
     assert class_of("correct/error", "feedback") is None
     assert class_of("left", "guidance") == 2
     assert class_of("errors", "feedback") is None
+
+
+def test_guidance_classes_outside_the_grid_carry_their_worlds_tag(tmp_path: Path) -> None:
+    line, pick = make_world("line"), make_world("pick-and-place")
+    assert class_names("guidance", GridWorld(3)) == class_names("guidance") == (
+        "up", "down", "left", "right")
+    assert class_names("guidance", line) == ("line/right", "line/left", "line/no-move")
+    assert class_names("feedback", pick) == ("correct", "error")
+    assert class_of("right", "guidance") == 3  # the grid's
+    assert class_of("pick-and-place/right", "guidance") == 0
+    assert class_of("Pick-and-Place/Release", "guidance") == 3
+    assert class_of("line/no-move", "guidance") == 2
+    assert class_of("line/grasp", "guidance") is None  # no such class in the line world
+    assert class_of("line/pick-and-place/right", "guidance") is None  # two worlds
+
+    # A line-world guidance file (3 classes) written and read back with its names.
+    labels = np.array([0, 1, 2, 2, 0, 1])
+    arrays = {"epochs": np.ones((6, 1, 8)), "sfreq": 64.0, "tmin": 0.0,
+              "ch_names": np.array(["Cz"]), "labels": labels}
+    path = tmp_path / "line-epo.fif"
+    write_fif_epochs(path, arrays, "guidance", line)
+    assert mne.read_epochs(path, verbose="error").event_id == {
+        "line/right": 1, "line/left": 2, "line/no-move": 3}
+    assert read_fif_epochs(path, "guidance")["labels"].tolist() == labels.tolist()
+    with pytest.raises(ValueError, match=r"label\(s\) \[3\] are no guidance class of this world"):
+        write_fif_epochs(path, {**arrays, "labels": np.array([0, 3])}, "guidance", line)
