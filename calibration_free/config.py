@@ -88,6 +88,10 @@ class LearnerConfig:
         Discount of the planner's value iteration.
     warmup_steps : int, default 10
         Random actions taken first, before decoders can be trained.
+    declare_targets : bool, default True
+        False: the device never declares a target and keeps acting with its planner
+        whatever its confidence (the thesis's chapter 4 runs, where the teacher teaches one
+        task for the whole run and the figure is that task's normalised likelihood).
     """
 
     frame: str = "feedback"
@@ -109,6 +113,7 @@ class LearnerConfig:
     n_planning_signals: int = 20
     discount: float = DEFAULT_DISCOUNT
     warmup_steps: int = 10
+    declare_targets: bool = True
 
     def __post_init__(self) -> None:
         check_option("frame", self.frame, FRAMES)

@@ -158,12 +158,13 @@ class TaskLearner:
         """The next action from ``state``.
 
         Confident about task t: walk greedily to t and perform ``goal`` there (declaring a
-        target reached). Otherwise explore with the configured planner.
+        target reached). Otherwise, or always without ``declare_targets``, explore with the
+        configured planner.
         """
         state = self._check_state(state)
         beliefs = self.beliefs()
         self._pending_target = None
-        if beliefs.confident:
+        if beliefs.confident and self.config.declare_targets:
             action = greedy_action(self.world, state, beliefs.best_task, self.rng)
             declares = self.world.declares(state, action, beliefs.best_task)
             if declares:

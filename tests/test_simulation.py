@@ -186,3 +186,13 @@ def test_a_session_reports_when_it_was_first_confident_and_its_task_likelihood()
     # Well above uniform (1/25) already after 10 steps, and on average over the session.
     assert result.user_task_likelihood[0] > 2 / 25
     assert np.mean(result.user_task_likelihood) > 8 / 25
+
+
+def test_without_declarations_the_user_teaches_one_task_whose_likelihood_rises() -> None:
+    learner = LearnerConfig(declare_targets=False, planner="epsilon-greedy", power_prior=False)
+    config = SessionConfig(steps=120, grid=3, learner=learner)
+    trace: list[StepRecord] = []
+    result = run_session(0, config, separated(), trace.append)
+    assert result.first_target_step is None and not any(r.event for r in trace)
+    assert result.first_confident_step is not None  # confident, yet it declares nothing
+    assert result.user_task_likelihood[-1] > 0.9 > result.user_task_likelihood[0]
