@@ -33,6 +33,7 @@ from typing import Any
 import numpy as np
 import zenoh
 
+from acquisition.cardinal_teacher import CardinalTeacher
 from acquisition.labelled import LabelledEpochs, LabelledFeatures
 from acquisition.sources import DataSpec, synthetic_epochs
 from acquisition.user import SimulatedUser
@@ -41,6 +42,7 @@ from calibration_free.world import World
 from calibration_free.worlds import WORLDS, make_world
 from decoding.validation import check_option
 from wire import protocol
+from wire.plane import PLANE_FRAMES
 from wire.protocol import SequenceTracker
 from wire.transport import (
     Outbox,
@@ -88,8 +90,12 @@ class SourceSettings:
         Seconds without a message from the service before giving up (a failure guard).
     resend_interval : float
         Seconds between two sendings of the unanswered config or epoch.
-    world : {"grid", "line", "pick-and-place"}
-        The world (:func:`calibration_free.worlds.make_world`).
+    world : {"grid", "line", "pick-and-place", "continuous"}
+        The world (:func:`calibration_free.worlds.make_world`; "continuous": the plane of
+        goal points, frame "cardinal", ``learner`` the ``ContinuousConfig`` settings).
+    class_order : tuple of int or None
+        Continuous world: the dataset class of each direction (default: class k for
+        direction k); sent in the config's ``dataset``.
     """
 
     session: str
@@ -104,9 +110,10 @@ class SourceSettings:
     timeout: float = DEFAULT_TIMEOUT
     resend_interval: float = RESEND_INTERVAL
     world: str = "grid"
+    class_order: tuple[int, ...] | None = None
 
     def __post_init__(self) -> None:
-        check_option("world", self.world, WORLDS)
+        check_option("world", self.world, (*WORLDS, *PLANE_FRAMES))
 
     def make_world(self) -> World:
         """The session's world."""
@@ -154,7 +161,13 @@ class _Signals:
     def __init__(self, settings: SourceSettings, rng: np.random.Generator) -> None:
         self.dataset: dict[str, Any] = {"description": settings.data.describe()}
         data: LabelledEpochs | LabelledFeatures
-        if settings.data.path is None:
+        if settings.world == "continuous":  # as cfbci simulate --world continuous has them
+            resolved = settings.data.resolve("guidance")
+            data = resolved(np.random.default_rng(settings.seed)) if callable(resolved) else (
+                resolved)
+            self.dataset["class_order"] = (
+                None if settings.class_order is None else list(settings.class_order))
+        elif settings.data.path is None:
             generate = settings.data.resolve(settings.frame)  # rejects ErrP guidance data
             assert callable(generate)  # synthetic data are generated per session
             # ErrP epochs go out raw, Gaussian signals as feature vectors.
@@ -224,10 +237,6 @@ def replay_session(
     """
     data_rng, user_rng, _ = session_streams(settings.seed)
     signals = _Signals(settings, data_rng)
-    world = settings.make_world()
-    user = SimulatedUser(
-        world, settings.frame, signals.labels, user_rng, settings.user_error_rate
-    )
     sid = settings.session
     inbox: queue.SimpleQueue[Received] = queue.SimpleQueue()
     pumps = [Pump(session, protocol.key(sid, kind), kind, inbox) for kind in ("move", "state",
@@ -244,7 +253,7 @@ def replay_session(
             "steps": settings.steps, "learner": settings.learner,
             "dataset": signals.dataset, **signals.config,
         })
-        replay = _Replay(settings, signals, world, user, resender, config.t_ns, on_step)
+        replay = _replay(settings, signals, user_rng, resender, config.t_ns, on_step)
         heard = time.monotonic()
         while not replay.done:
             try:
@@ -262,6 +271,25 @@ def replay_session(
         for pump in pumps:
             pump.close()
         outbox.close()
+
+
+def _replay(
+    settings: SourceSettings,
+    signals: _Signals,
+    user_rng: np.random.Generator,
+    resender: Resender,
+    config_t_ns: int,
+    on_step: Callable[[StepRecord], None] | None,
+) -> _Replay:
+    """The source's side of the session's world: its user (or teacher) and its replay."""
+    if settings.world == "continuous":
+        teacher = CardinalTeacher(signals.labels, user_rng, class_order=settings.class_order)
+        return _ContinuousReplay(settings, signals, teacher, resender, config_t_ns, on_step)
+    world = settings.make_world()
+    user = SimulatedUser(
+        world, settings.frame, signals.labels, user_rng, settings.user_error_rate
+    )
+    return _Replay(settings, signals, world, user, resender, config_t_ns, on_step)
 
 
 class _Replay:
@@ -289,7 +317,7 @@ class _Replay:
         self.latency_ns: dict[int, int] = {}  # step k -> epoch k published to move k + 1
         self.next_step = 1  # the next move to answer
         self.last_truth: protocol.Message | None = None  # re-sent with the next epoch
-        self.agent = user.start_state
+        self.agent = None if user is None else user.start_state  # none in the plane
         self.first_target: int | None = None
         self.correct = self.wrong = 0
 
@@ -337,6 +365,17 @@ class _Replay:
         else:  # errors about single messages, information, others' sessions on this id
             (log.warning if event == "error" else log.info)("%s: %s", event, text)
 
+    def _send_answer(self, step: int, index: int, target: Any, label: int) -> None:
+        """Publish the epoch of ``step`` (dataset signal ``index``) and the step's truth."""
+        sid = self.settings.session
+        epoch = self.signals.values[index]
+        sent = self.resender.send("epoch", sid, self.signals.epoch_fields(step), epoch)
+        self.epoch_sent_ns[step] = sent.t_ns
+        if self.last_truth is not None:  # lost if the service restarted before it came
+            self.resender.also(self.last_truth)
+        truth = {"step": step, "target": target, "label": label}
+        self.last_truth = self.resender.send("truth", sid, truth, companion=True)
+
     def _answer(self, move: protocol.Message) -> None:
         fields = move.fields
         step, state = fields["step"], fields["from_state"]
@@ -352,14 +391,7 @@ class _Replay:
             time.sleep(self.settings.interval)  # the user's reaction time
         index, label = self.user.answer(state, action)
         target = self.user.target
-        sid = self.settings.session
-        epoch = self.signals.values[index]
-        sent = self.resender.send("epoch", sid, self.signals.epoch_fields(step), epoch)
-        self.epoch_sent_ns[step] = sent.t_ns
-        if self.last_truth is not None:  # lost if the service restarted before it came
-            self.resender.also(self.last_truth)
-        truth = {"step": step, "target": target, "label": label}
-        self.last_truth = self.resender.send("truth", sid, truth, companion=True)
+        self._send_answer(step, index, target, label)
         event = None
         if fields["target_reached"]:
             reached = state == self.world.task_states[target]
@@ -388,3 +420,37 @@ class _Replay:
             self.settings.session, len(self.records), self.first_target, self.correct,
             self.wrong, self.records, [self.latency_ns[step] for step in sorted(self.latency_ns)],
         )
+
+
+class _ContinuousReplay(_Replay):
+    """The continuous world's source: a :class:`CardinalTeacher` answers each probe point
+    (the move's ``to_state``) with a signal of its direction's class; the truth holds its
+    goal point and the direction (``label``)."""
+
+    def __init__(
+        self,
+        settings: SourceSettings,
+        signals: _Signals,
+        teacher: CardinalTeacher,
+        resender: Resender,
+        config_t_ns: int,
+        on_step: Callable[[StepRecord], None] | None,
+    ) -> None:
+        super().__init__(
+            settings, signals, None, None, resender, config_t_ns, on_step  # type: ignore[arg-type]
+        )
+        self.teacher = teacher
+
+    def _answer(self, move: protocol.Message) -> None:
+        fields = move.fields
+        if fields["action"] != "probe" or not isinstance(fields["to_state"], list):
+            raise RuntimeError(
+                f"the service's move of step {fields['step']} is {fields['action']!r} to "
+                f"{fields['to_state']!r}, not a probe point of the continuous world"
+            )
+        if self.settings.interval > 0:
+            time.sleep(self.settings.interval)  # the user's reaction time
+        index, direction = self.teacher.answer(np.asarray(fields["to_state"], dtype=float))
+        goal = [float(x) for x in self.teacher.goal]
+        self._send_answer(fields["step"], index, goal, direction)
+        self.events[fields["step"]] = None

@@ -30,7 +30,9 @@ from cfbci.memory import keep_freed_memory
 from cfbci.parallel import Scheduler, add_scheduler_options, run_parallel
 from cfbci.plane_worlds import (
     PLANE_WORLDS,
+    add_live_plane_options,
     add_plane_world_options,
+    live_source_fields,
     print_plane_report,
     simulate_plane_world,
 )
@@ -40,6 +42,7 @@ from cfbci.soak import add_soak_parser
 from cfbci.sweep import add_sweep_command
 from cfbci.view import add_view_command
 from cfbci.world_check import add_world_command
+from wire.plane import PLANE_FRAMES as LIVE_PLANE_WORLDS
 
 
 def parse_settings(pairs: Sequence[str]) -> dict[str, Any]:
@@ -287,8 +290,10 @@ def _add_source_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=int, default=0, help="session seed (default 0)")
     p.add_argument("--steps", type=int, default=500, help="actions in the session (default 500)")
     p.add_argument("--grid", type=int, default=5, help="grid side (default 5)")
-    p.add_argument("--world", choices=WORLDS, default="grid", help="the world (default grid)")
-    p.add_argument("--frame", choices=FRAMES, default="feedback")
+    p.add_argument("--world", choices=(*WORLDS, *LIVE_PLANE_WORLDS), default="grid",
+                   help="the world (default grid)")
+    p.add_argument("--frame", choices=(*FRAMES, *LIVE_PLANE_WORLDS.values()), default="feedback")
+    add_live_plane_options(p)
     p.add_argument(
         "--set", action="append", default=[], metavar="KEY=VALUE",
         help="a learner setting sent in the config (see calibration_free.config.LearnerConfig)",
@@ -309,11 +314,12 @@ def _source_settings(args: argparse.Namespace, session: str) -> Any:
     if args.steps < 1 or args.interval < 0:
         raise ValueError("--steps must be at least 1 and --interval at least 0")
     learner = parse_settings(args.set)
-    LearnerConfig.from_dict({"frame": args.frame, **learner})  # fail early on a bad setting
+    plane = live_source_fields(args.world, args.frame, learner, args.class_order)  # fail early
     return SourceSettings(
         session=session, data=data_spec(args), seed=args.seed,
         steps=args.steps, grid=args.grid, frame=args.frame, learner=learner,
         interval=args.interval, user_error_rate=args.user_error_rate, world=args.world,
+        **plane,
     )
 
 

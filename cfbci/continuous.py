@@ -7,15 +7,17 @@ learner stream the :class:`calibration_free.continuous_goals.ContinuousGoalLearn
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
+from threadpoolctl import threadpool_limits
 
 from acquisition.cardinal_teacher import CardinalTeacher
 from acquisition.labelled import LabelledFeatures
 from calibration_free.continuous_goals import ContinuousConfig, ContinuousGoalLearner
 from calibration_free.session import session_streams
+from wire.plane import ONE_BLAS_THREAD
 
 
 @dataclass(frozen=True)
@@ -56,16 +58,38 @@ def run_continuous_session(
     data: LabelledFeatures,
     steps: int = 200,
     class_order: Sequence[int] | None = None,
+    on_step: Callable[[ContinuousGoalLearner], None] | None = None,
 ) -> ContinuousResult:
-    """One closed-loop session of ``steps`` probes on a 4-class dataset."""
+    """One closed-loop session of ``steps`` probes on a 4-class dataset; ``on_step`` is
+    called with the learner after each observation (it must not change it).
+
+    The learner gets each signal as float32, the wire format (as
+    :func:`cfbci.simulation.run_session` does), and computes with one BLAS thread (see
+    :mod:`wire.plane`), so that a live session equals this one.
+    """
+    with threadpool_limits(**ONE_BLAS_THREAD):
+        return _run(seed, config, data, steps, class_order, on_step)
+
+
+def _run(
+    seed: int,
+    config: ContinuousConfig,
+    data: LabelledFeatures,
+    steps: int,
+    class_order: Sequence[int] | None,
+    on_step: Callable[[ContinuousGoalLearner], None] | None,
+) -> ContinuousResult:
     _, user_rng, learner_rng = session_streams(seed)
     teacher = CardinalTeacher(data.labels, user_rng, class_order=class_order)
     learner = ContinuousGoalLearner(config, learner_rng)
+    signals = np.asarray(data.features, dtype=np.float32)
     distances, probes = [], []
     for _ in range(steps):
         point = learner.propose()
         index, _ = teacher.answer(point)
-        learner.observe(point, data.features[index])
+        learner.observe(point, signals[index])
+        if on_step is not None:
+            on_step(learner)
         distances.append(float(np.linalg.norm(learner.estimate() - teacher.goal)))
         probes.append((float(point[0]), float(point[1])))
     return ContinuousResult(

@@ -40,6 +40,7 @@ from calibration_free.world import GridWorld, World
 from cfbci.limits import ServiceLimits
 from cfbci.service import serve
 from wire import protocol
+from wire.plane import PLANE_FRAMES
 from wire.protocol import ProtocolError
 from wire.transport import Pump, Received
 from wire.zenoh_config import free_tcp_endpoint, peer_config
@@ -226,6 +227,54 @@ def run_live_session(
     }
 
 
+@dataclass
+class PlaneProgress:
+    """What the display knows of a continuous-world session: the latest probe, the best
+    particle and the user's goal (from the truth).
+
+    Attributes
+    ----------
+    steps, step : int
+    probe : list of float
+        The latest probe point.
+    best : list of float
+        The best particle after the latest epoch.
+    confidence : float
+        Its confidence.
+    goal : list of float or None
+    """
+
+    steps: int
+    step: int = 0
+    probe: list[float] = field(default_factory=lambda: [0.0, 0.0])
+    best: list[float] = field(default_factory=lambda: [0.0, 0.0])
+    confidence: float = 0.0
+    goal: list[float] | None = None
+
+    def update(self, message: protocol.Message) -> None:
+        """Take in one message of the session."""
+        fields = message.fields
+        if message.kind == "move":
+            self.step, self.probe = fields["step"], fields["to_state"]
+        elif message.kind == "state" and fields["points"]:
+            assert message.payload is not None
+            self.best = fields["points"][fields["best_task"]]
+            self.confidence = float(message.payload[fields["best_task"]])
+        elif message.kind == "truth":
+            self.goal = fields["target"]
+
+    def render(self) -> Group:
+        """Step, probe, best particle and its distance to the goal."""
+        distance = "-" if self.goal is None else (
+            f"{float(np.linalg.norm(np.subtract(self.best, self.goal))):.4f}")
+        return Group(
+            Text(f"step {self.step}/{self.steps}   probe ({self.probe[0]:.3f}, "
+                 f"{self.probe[1]:.3f})"),
+            Text(f"best particle ({self.best[0]:.3f}, {self.best[1]:.3f}) confidence "
+                 f"{self.confidence:.3f}   distance to the goal {distance}"),
+        )
+
+
 def _display(
     session: zenoh.Session,
     settings: SourceSettings,
@@ -233,7 +282,10 @@ def _display(
     console: Console,
 ) -> SourceSummary:
     """Show the session until the source is done; return its summary."""
-    progress = Progress(settings.make_world(), settings.steps)
+    progress: Progress | PlaneProgress = (
+        PlaneProgress(settings.steps) if settings.world in PLANE_FRAMES
+        else Progress(settings.make_world(), settings.steps)
+    )
     inbox: queue.SimpleQueue[Received] = queue.SimpleQueue()
     # Not cfbci/<session>/* : a subscriber to the config would tell the source that the
     # service is listening before it is.

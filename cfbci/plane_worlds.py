@@ -24,12 +24,14 @@ from rich.console import Console
 from rich.table import Table
 
 from acquisition.sources import DataSpec
+from calibration_free.config import LearnerConfig
 from calibration_free.continuous_goals import PROBINGS, SAMPLINGS, ContinuousConfig
 from calibration_free.puddle import PuddleWorld
 from calibration_free.puddle_learner import EXPLORATIONS, PuddleConfig
 from cfbci.continuous import run_continuous_session
 from cfbci.parallel import Scheduler, run_parallel
 from cfbci.puddle import run_puddle_session
+from wire.plane import PLANE_FRAMES, plane_settings
 
 PLANE_WORLDS: tuple[str, ...] = ("continuous", "puddle")
 #: Steps at which the thesis reports the puddle world's curves.
@@ -84,6 +86,36 @@ def run_plane_job(job: PlaneJob) -> dict[str, Any]:
     return run_continuous_session(
         job.seed, job.continuous, data, job.steps, job.class_order
     ).to_dict()
+
+
+def add_live_plane_options(parser: argparse.ArgumentParser) -> None:
+    """The continuous world's options of ``cfbci source`` and ``cfbci session``."""
+    parser.add_argument(
+        "--class-order", default=None, metavar="K,K,K,K",
+        help="continuous world: dataset class of each direction up,down,right,left "
+        "(default 0,1,2,3; the learner never knows it)",
+    )
+
+
+def live_source_fields(
+    world: str, frame: str, learner: dict[str, Any], class_order: str | None
+) -> dict[str, Any]:
+    """The plane-world fields of a ``SourceSettings`` (``class_order``), after checking the
+    learner settings as the service will (``LearnerConfig`` in a discrete world,
+    :func:`wire.plane.plane_settings` in a plane world).
+
+    Raises
+    ------
+    ValueError
+        On a bad setting, or a ``--class-order`` outside the continuous world.
+    """
+    if world not in PLANE_FRAMES:
+        if class_order is not None:
+            raise ValueError("--class-order is an option of --world continuous only")
+        LearnerConfig.from_dict({"frame": frame, **learner})
+        return {}
+    plane_settings({"world": world, "frame": frame, "learner": learner})
+    return {"class_order": _class_order(class_order)}
 
 
 def _class_order(text: str | None) -> tuple[int, ...] | None:

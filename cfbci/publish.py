@@ -45,8 +45,15 @@ import zenoh
 from rich.console import Console
 
 from replay.recording import Recording, decode_array, read_recording
-from replay.rerun import Divergence, move_divergence, state_divergence
+from replay.rerun import (
+    STATE_FIELDS,
+    STATE_MESSAGE_FIELDS,
+    Divergence,
+    move_divergence,
+    state_divergence,
+)
 from wire import protocol
+from wire.plane import is_plane
 from wire.protocol import SequenceTracker
 from wire.transport import (
     Outbox,
@@ -384,6 +391,7 @@ def publish_recording(
         states_divergence=state_divergence(
             published.states, answers.states, published.target_events,
             answers.target_events, moves,
+            STATE_MESSAGE_FIELDS if is_plane(published.config) else STATE_FIELDS,
         ),
         latency_ns=[
             answers.move_ns[step + 1] - sent_ns[step] for step in range(1, n)

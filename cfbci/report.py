@@ -27,7 +27,9 @@ from cfbci.parallel import Scheduler, run_parallel
 from replay.figures import session_figures
 from replay.html_report import SessionReport, write_html
 from replay.metrics import aggregate, session_metrics
+from replay.plane_report import plane_figures, plane_metrics
 from replay.recording import read_recording
+from wire.plane import is_plane
 
 
 @dataclass(frozen=True)
@@ -63,8 +65,12 @@ def report_session(job: ReportJob) -> SessionReport:
         if not recording.config:
             detail = f" ({recording.warning})" if recording.warning else ""
             raise ValueError(f"{path}: the recording holds no session configuration{detail}")
-        metrics = session_metrics(recording, str(path))
-        figures = session_figures(recording, metrics, Path(job.out_dir), job.stem)
+        if is_plane(recording.config):  # the continuous world: particles and probe points
+            metrics = plane_metrics(recording, str(path))
+            figures = plane_figures(recording, metrics, Path(job.out_dir), job.stem)
+        else:
+            metrics = session_metrics(recording, str(path))
+            figures = session_figures(recording, metrics, Path(job.out_dir), job.stem)
     except Exception as error:  # one bad file must not stop the others: report it
         message = str(error)
         if str(path) not in message:

@@ -32,7 +32,10 @@ stream (:func:`calibration_free.session.session_streams` ``[1]``; the grid's: it
 draw), as :class:`acquisition.user.SimulatedUser` draws it, so that a live session replays
 ``cfbci simulate`` exactly; the learner's stream is ``session_streams(seed)[2]``, and a
 stochastic move (the line world's edges) takes the number of its step from the world
-stream (:func:`calibration_free.world.transition_draws`).
+stream (:func:`calibration_free.world.transition_draws`). A continuous-world session
+(``world`` "continuous") has no World: its learner is a :class:`wire.plane.ContinuousStepper`
+(probe points and particles, docs/protocol.md), recorded with its particles on
+``/particles``.
 """
 
 from __future__ import annotations
@@ -50,7 +53,6 @@ from typing import Any
 import numpy as np
 import zenoh
 
-from calibration_free.frames import Frame
 from calibration_free.learner import CalibrationFreeLearner
 from calibration_free.session import session_streams
 from calibration_free.world import TransitionDraws, World, transition_draws
@@ -58,7 +60,13 @@ from cfbci.limits import ServiceLimits, world_memory_bytes
 from cfbci.memory import keep_freed_memory
 from decoding.features import ErrPFeatures
 from replay.recording import Recording, SessionRecorder, decode_array, read_recording
-from replay.rerun import STATE_FIELDS, Rerun, move_divergence, recorded_signals, signal_extractor
+from replay.rerun import (
+    STATE_MESSAGE_FIELDS,
+    move_divergence,
+    recorded_signals,
+    rerun_of,
+    signal_extractor,
+)
 from wire import protocol
 from wire.intake import Intake, session_of
 from wire.messages import (
@@ -70,6 +78,7 @@ from wire.messages import (
     target_text,
     world_text,
 )
+from wire.plane import ContinuousStepper, continuous_memory_bytes, is_plane, plane_settings
 from wire.protocol import NO_SESSION, ProtocolError, SequenceTracker
 from wire.transport import Outbox, Pump, Received
 from wire.zenoh_config import peer_config
@@ -246,12 +255,14 @@ class _Session:
         The config message's fields.
     config_t_ns : int
         The config message's ``t_ns`` (which ``session_started`` and a rejection name).
-    world : World
-    draws : TransitionDraws
-        The session's world stream (stochastic moves).
-    learner : CalibrationFreeLearner
-    state : int
-        The agent's state before the last move.
+    world : World or None
+        None in a plane world.
+    draws : TransitionDraws or None
+        The session's world stream (stochastic moves); None in a plane world.
+    learner : CalibrationFreeLearner or ContinuousStepper
+        The stepper of the continuous world's learner there.
+    state : int or None
+        The agent's state before the last move (None in a plane world).
     recorder : SessionRecorder or None
     active_ns : int
         ``time.monotonic_ns()`` of the start, the last accepted epoch or the resumption.
@@ -277,10 +288,10 @@ class _Session:
     id: str
     config: dict[str, Any]
     config_t_ns: int
-    world: World
-    draws: TransitionDraws
-    learner: CalibrationFreeLearner
-    state: int
+    world: World | None
+    draws: TransitionDraws | None
+    learner: CalibrationFreeLearner | ContinuousStepper
+    state: int | None
     recorder: SessionRecorder | None
     active_ns: int
     action: int = 0
@@ -483,10 +494,16 @@ class PipelineService:
         if len(config.get("ch_names", ())) > limits.max_epoch_values:
             raise reject(f"more than {limits.max_epoch_values} ch_names")
         try:
-            learner_settings(config["learner"], config["frame"])
+            if is_plane(config):
+                plane_settings(config)
+            else:
+                learner_settings(config["learner"], config["frame"])
         except (ValueError, TypeError) as exc:
             raise reject(f"bad config: {exc}") from None
-        self._check_memory(sid, config, 0, lambda problem: reject(problem))
+        if is_plane(config):
+            self._check_plane_memory(config, 0, reject)
+        else:
+            self._check_memory(sid, config, 0, lambda problem: reject(problem))
         if len(self._sessions) >= limits.max_sessions:
             raise reject(f"the service runs its maximum of {limits.max_sessions} sessions")
         if len(self._pending) >= PENDING_PER_SESSION * limits.max_sessions:
@@ -507,13 +524,28 @@ class PipelineService:
     ) -> None:
         """Reject a session whose :func:`world_memory_bytes` is over the limit."""
         world = config_world(config)
-        n_classes = Frame(world, config["frame"]).n_classes
-        needed = world_memory_bytes(world, n_classes, config["steps"], n_features)
+        learner = learner_settings(config["learner"], config["frame"])
+        needed = world_memory_bytes(world, learner, config["steps"], n_features)
         if needed > self.limits.max_session_mb * 2**20:
             what = f"{n_features} features, " if n_features else ""
             raise reject(
                 f"the session would commit about {needed / 2**20:.0f} MiB ({what}"
-                f"{world_text(world)}, {config['steps']} steps), more than the limit of "
+                f"{world_text(world)}, {config['steps']} steps, {learner.decoder} decoder), "
+                "more than the limit of "
+                f"{self.limits.max_session_mb:g} MiB"
+            )
+
+    def _check_plane_memory(
+        self, config: dict[str, Any], n_features: int, reject: Callable[[str], Rejection]
+    ) -> None:
+        """Reject a continuous-world session whose :func:`continuous_memory_bytes` is over
+        the limit."""
+        needed = continuous_memory_bytes(plane_settings(config), config["steps"], n_features)
+        if needed > self.limits.max_session_mb * 2**20:
+            what = f"{n_features} features, " if n_features else ""
+            raise reject(
+                f"the session would commit about {needed / 2**20:.0f} MiB ({what}continuous "
+                f"world, {config['steps']} steps), more than the limit of "
                 f"{self.limits.max_session_mb:g} MiB"
             )
 
@@ -525,20 +557,28 @@ class PipelineService:
                 f"the service runs its maximum of {self.limits.max_sessions} sessions", sid,
                 message.seq, message.t_ns,
             )
-        world = config_world(config)
-        learner_config = learner_settings(config["learner"], config["frame"])
-        learner = CalibrationFreeLearner(world, learner_config, session_streams(config["seed"])[2])
         recorder = self.recordings.open(sid, {"seq": message.seq, "t_ns": message.t_ns, **config})
-        session = _Session(
-            sid, config, message.t_ns, world, transition_draws(config["seed"]), learner,
-            start_state(config["seed"], world), recorder, time.monotonic_ns(),
-        )
+        if is_plane(config):
+            session = _Session(
+                sid, config, message.t_ns, None, None, ContinuousStepper(config), None,
+                recorder, time.monotonic_ns(),
+            )
+        else:
+            world = config_world(config)
+            learner_config = learner_settings(config["learner"], config["frame"])
+            learner = CalibrationFreeLearner(
+                world, learner_config, session_streams(config["seed"])[2]
+            )
+            session = _Session(
+                sid, config, message.t_ns, world, transition_draws(config["seed"]), learner,
+                start_state(config["seed"], world), recorder, time.monotonic_ns(),
+            )
         self._sessions[sid] = session
         self.intake.open(sid)
         self._event(
             sid,
             "session_started",
-            f"session {sid!r}: {config['steps']} steps, {world_text(world)}, "
+            f"session {sid!r}: {config['steps']} steps, {_world_text(session)}, "
             f"{config['frame']} frame, {config['signal']}",
             message.t_ns,
         )
@@ -561,7 +601,7 @@ class PipelineService:
     def _resume(self, recording: Recording) -> None:
         """Rebuild a session's learner by re-running it over its recording, and go on."""
         config = {k: v for k, v in recording.config.items() if k not in ("seq", "t_ns")}
-        rerun = Rerun(config)
+        rerun = rerun_of(config)
         epochs = recording.accepted_epochs()
         for signal_ in recorded_signals(recording)[: rerun.steps]:
             rerun.observe(signal_)
@@ -573,7 +613,8 @@ class PipelineService:
         recorder = self.recordings.resume(recording)
         session = _Session(
             sid, config, recording.config["t_ns"], rerun.world, rerun.draws, rerun.learner,
-            rerun.moves[-1]["from_state"], recorder, time.monotonic_ns(),
+            None if rerun.world is None else rerun.moves[-1]["from_state"], recorder,
+            time.monotonic_ns(),
             action=rerun.action, step=len(rerun.moves),
         )
         if epochs:
@@ -591,12 +632,13 @@ class PipelineService:
         if rerun.finished:
             state = rerun.states[-1]
             self._send_state(session, record=recorded_states < len(rerun.states),
-                             beliefs=({k: state[k] for k in STATE_FIELDS}, state["confidence"]))
+                             beliefs=({k: state[k] for k in STATE_MESSAGE_FIELDS},
+                                      state["confidence"]))
             self._finish(session)
             return
         fields, state = rerun.moves[-1], rerun.states[len(rerun.moves) - 1]
         confidence = np.asarray(state["confidence"], dtype=np.float32)
-        session.answer = (fields, {k: state[k] for k in STATE_FIELDS}, confidence)
+        session.answer = (fields, {k: state[k] for k in STATE_MESSAGE_FIELDS}, confidence)
         self._send(session, "move", fields, record=len(recorded_moves) < len(rerun.moves))
         self._send_state(session, record=recorded_states < len(rerun.moves),
                          beliefs=session.answer[1:])
@@ -619,10 +661,13 @@ class PipelineService:
         if gap is not None:
             self._event(session.id, "info", gap)
         if session.shape is None:
-            self._check_memory(
-                session.id, session.config, signal_.shape[0],
-                lambda problem: Rejection(problem, session.id, message.seq, session.config_t_ns),
-            )
+            def reject(problem: str) -> Rejection:
+                return Rejection(problem, session.id, message.seq, session.config_t_ns)
+
+            if session.world is None:
+                self._check_plane_memory(session.config, signal_.shape[0], reject)
+            else:
+                self._check_memory(session.id, session.config, signal_.shape[0], reject)
         assert message.payload is not None  # decode guarantees an epoch's payload
         session.shape = message.payload.shape
         session.last_epoch = (message.fields["step"], message.seq, message.t_ns)
@@ -633,10 +678,14 @@ class PipelineService:
             header = {"seq": message.seq, "t_ns": message.t_ns, "step": session.step}
             session.recorder.record_array("/features", header, signal_, received.t_ns)
         started_ns = time.perf_counter_ns()
-        session.learner.observe(session.state, session.action, signal_)
-        session.state = session.world.step(
-            session.state, session.action, session.draws.uniform(session.step)
-        )
+        if isinstance(session.learner, ContinuousStepper):
+            session.learner.observe(signal_)
+        else:
+            assert session.world is not None and session.draws is not None
+            session.learner.observe(session.state, session.action, signal_)
+            session.state = session.world.step(
+                session.state, session.action, session.draws.uniform(session.step)
+            )
         if session.step < session.config["steps"]:
             self._next_move(session, started_ns, queued_ms)
             return
@@ -714,13 +763,11 @@ class PipelineService:
         :attr:`_Session.update_ns`. ``queued_ms``: how long that epoch waited in the
         intake. Both are recorded with the move (``update_ms``, ``queued_ms``).
         """
+        if isinstance(session.learner, ContinuousStepper):
+            self._next_probe(session, started_ns, queued_ms)
+            return
         proposal = session.learner.propose(session.state)
-        timing = {}
-        if started_ns is not None:
-            session.update_ns.append(time.perf_counter_ns() - started_ns)
-            timing["update_ms"] = session.update_ns[-1] / 1e6
-        if queued_ms is not None:
-            timing["queued_ms"] = queued_ms
+        timing = self._timing(session, started_ns, queued_ms)
         session.step += 1
         session.action = proposal.action
         fields = move_fields(session.world, session.step, session.state, proposal, session.draws)
@@ -734,6 +781,33 @@ class PipelineService:
                 target_text(session.world, session.step, session.state),
             )
 
+    @staticmethod
+    def _timing(
+        session: _Session, started_ns: int | None, queued_ms: float | None
+    ) -> dict[str, float]:
+        """The recorded-only timing fields of a move (see :meth:`_next_move`); appends the
+        learner's time to :attr:`_Session.update_ns`."""
+        timing = {}
+        if started_ns is not None:
+            session.update_ns.append(time.perf_counter_ns() - started_ns)
+            timing["update_ms"] = session.update_ns[-1] / 1e6
+        if queued_ms is not None:
+            timing["queued_ms"] = queued_ms
+        return timing
+
+    def _next_probe(
+        self, session: _Session, started_ns: int | None, queued_ms: float | None
+    ) -> None:
+        """:meth:`_next_move` in the continuous world: the next probe point, then the
+        state of the particles as the latest epoch scored them."""
+        assert isinstance(session.learner, ContinuousStepper)
+        fields = session.learner.move()
+        timing = self._timing(session, started_ns, queued_ms)
+        session.step = fields["step"]
+        self._send(session, "move", fields, recorded_only=timing)
+        state, confidence = self._send_state(session)
+        session.answer = (fields, state, confidence)
+
     def _send_state(
         self,
         session: _Session,
@@ -742,11 +816,18 @@ class PipelineService:
     ) -> tuple[dict[str, Any], np.ndarray]:
         """Publish (and record) the state: the learner's, or ``beliefs`` (fields,
         confidence) when given; return what was sent."""
-        fields, confidence = beliefs or state_fields(session.learner)
+        if beliefs is None:
+            learner = session.learner
+            beliefs = learner.state if isinstance(learner, ContinuousStepper) else (
+                state_fields(learner))
+        fields, confidence = beliefs
         confidence = np.asarray(confidence, dtype=np.float32)
         message = self._send(session, "state", fields, confidence, record=record)
         if session.recorder is not None and record:
-            session.recorder.record_belief(confidence, session.world, message.t_ns)
+            if session.world is None:
+                session.recorder.record_particles(fields["points"], confidence, message.t_ns)
+            else:
+                session.recorder.record_belief(confidence, session.world, message.t_ns)
         return fields, confidence
 
     def _send(
@@ -821,6 +902,12 @@ class PipelineService:
         if session not in self._sessions and session not in self._pending:
             never_ran = session != NO_SESSION and self.recordings.get(session) is None
             self._outbox.forget(session, numbering=never_ran)
+
+
+def _world_text(session: _Session) -> str:
+    if session.world is None:
+        return f"{session.config['world']} world"
+    return world_text(session.world)
 
 
 def unfinished(recording: Recording) -> bool:

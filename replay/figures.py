@@ -41,7 +41,8 @@ class SavedFigure:
     Attributes
     ----------
     kind : str
-        "confidence", "belief", "accuracy", "erp" or "latency".
+        "confidence", "belief", "accuracy", "erp" or "latency"; a continuous-world
+        session's: "distance", "particles", "probes" or "latency" (:mod:`replay.plane_report`).
     path : Path
         The PNG file.
     title : str
@@ -499,6 +500,13 @@ def session_figures(
          "(observe the epoch + propose the next move, ms), with its median, 90th and 99th "
          "percentiles."),
     ]
+    return save_figures(items, out_dir, stem)
+
+
+def save_figures(
+    items: list[tuple[str, Figure, str]], out_dir: Path, stem: str
+) -> list[SavedFigure]:
+    """Write each ``(kind, figure, caption)`` as ``out_dir/<stem>_<kind>.png``, in order."""
     saved = []
     for kind, figure, caption in items:
         path = out_dir / f"{stem}_{kind}.png"

@@ -64,6 +64,7 @@ SCALAR_METRICS: dict[str, str] = {
     "mean_steps_between_targets": "mean steps between successive declared targets",
     "final_accuracy_truth": "decoder balanced accuracy vs true labels, last step",
     "final_accuracy_self": "decoder balanced accuracy, self-estimate, last step",
+    "final_distance": "continuous world: the best particle's distance to the goal, last step",
     "latency_median_ms": "median learner update, ms",
     "latency_p90_ms": "90th percentile learner update, ms",
     "latency_p99_ms": "99th percentile learner update, ms",
@@ -173,6 +174,11 @@ class SessionMetrics:
     truncated : bool
     warning : str or None
         Where a truncated recording ends (byte offset, messages, last step).
+    distance : list of float or None
+        Continuous world: the best particle's distance to the goal after each epoch
+        (None elsewhere; see :mod:`replay.plane_report`).
+    final_distance : float or None
+        Its last value.
     """
 
     file: str
@@ -213,6 +219,8 @@ class SessionMetrics:
     replay_note: str | None
     truncated: bool
     warning: str | None
+    distance: list[float | None] | None = None
+    final_distance: float | None = None
 
     def scalars(self) -> dict[str, float | int | None]:
         """The :data:`SCALAR_METRICS` of this session."""

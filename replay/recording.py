@@ -29,7 +29,12 @@ Topics are the keys of :data:`SCHEMAS`. The belief over tasks goes, with every s
 state of :class:`calibration_free.world.GridWorld` (Foxglove draws row 0 at y = 0); a world
 without a grid layout (line, pick-and-place) has no ``/belief`` channel but ``/ranking``
 (JSON): the :data:`RANKED` most confident tasks with their state names, best first.
-``/log`` is a ``foxglove.Log``, so Foxglove Studio shows it and the grid.
+``/log`` is a ``foxglove.Log``, so Foxglove Studio shows it and the grid. The continuous
+world's particles go, with every state, to ``/particles``: a ``foxglove.PointCloud`` (frame
+``plane``, the unit square at z = 0) of one point per particle, float32 fields ``x``, ``y``
+and ``confidence`` (Foxglove's 3D panel colours the points by it); its probe points are the
+``/move`` messages' ``to_state``. The exact (float64) particles are the ``/state``
+messages' ``points``, which replay compares.
 """
 
 from __future__ import annotations
@@ -96,6 +101,33 @@ def _stamped(title: str, description: str, array: bool = False) -> dict[str, Any
 
 
 #: JSON Schema of every topic, in channel registration order.
+_POSE = {
+    "title": "foxglove.Pose",
+    "type": "object",
+    "properties": {
+        "position": _numbers("foxglove.Vector3", "xyz"),
+        "orientation": _numbers("foxglove.Quaternion", "xyzw"),
+    },
+}
+_PACKED_FIELDS = {
+    "type": "array",
+    "items": {
+        "title": "foxglove.PackedElementField",
+        "type": "object",
+        "properties": {
+            "name": {"type": "string"},
+            "offset": _COUNT,
+            "type": _enum("foxglove.NumericType", _NUMERIC_TYPES),
+        },
+    },
+}
+_IDENTITY_POSE = {
+    "position": {"x": 0.0, "y": 0.0, "z": 0.0},
+    "orientation": {"x": 0.0, "y": 0.0, "z": 0.0, "w": 1.0},
+}
+#: Where each kind of world puts the belief accompanying a state.
+BELIEF_TOPICS = ("/belief", "/ranking", "/particles")
+
 SCHEMAS: dict[str, dict[str, Any]] = {
     "/config": {
         "title": "cfbci.Config",
@@ -121,30 +153,25 @@ SCHEMAS: dict[str, dict[str, Any]] = {
         "properties": {
             "timestamp": _TIME,
             "frame_id": {"type": "string"},
-            "pose": {
-                "title": "foxglove.Pose",
-                "type": "object",
-                "properties": {
-                    "position": _numbers("foxglove.Vector3", "xyz"),
-                    "orientation": _numbers("foxglove.Quaternion", "xyzw"),
-                },
-            },
+            "pose": _POSE,
             "column_count": _COUNT,
             "cell_size": _numbers("foxglove.Vector2", "xy"),
             "row_stride": _COUNT,
             "cell_stride": _COUNT,
-            "fields": {
-                "type": "array",
-                "items": {
-                    "title": "foxglove.PackedElementField",
-                    "type": "object",
-                    "properties": {
-                        "name": {"type": "string"},
-                        "offset": _COUNT,
-                        "type": _enum("foxglove.NumericType", _NUMERIC_TYPES),
-                    },
-                },
-            },
+            "fields": _PACKED_FIELDS,
+            "data": {"type": "string", "contentEncoding": "base64"},
+        },
+    },
+    "/particles": {
+        "title": "foxglove.PointCloud",
+        "description": "A collection of N-dimensional points",
+        "type": "object",
+        "properties": {
+            "timestamp": _TIME,
+            "frame_id": {"type": "string"},
+            "pose": _POSE,
+            "point_stride": _COUNT,
+            "fields": _PACKED_FIELDS,
             "data": {"type": "string", "contentEncoding": "base64"},
         },
     },
@@ -192,7 +219,8 @@ RANKED = 10
 def belief_topic(config: dict[str, Any]) -> str:
     """Where a recording of this configuration puts the belief over tasks: ``/belief`` (a
     grid world, or a configuration of protocol version 2) or ``/ranking``."""
-    return "/belief" if config.get("world", "grid") == "grid" else "/ranking"
+    world = config.get("world", "grid")
+    return {"grid": "/belief", "continuous": "/particles"}.get(world, "/ranking")
 
 
 def _to_json(value: Any) -> bytes:
@@ -233,13 +261,13 @@ class SessionRecorder:
         # chunk_size=0: every message closes its chunk (schemas and channels go into the first)
         self._writer = Writer(self._file, chunk_size=0, compression=CompressionType.NONE)
         self._writer.start(profile="", library="cfbci")
-        unused = ({"/belief", "/ranking"} - {belief_topic(config)}).pop()
+        unused = set(BELIEF_TOPICS) - {belief_topic(config)}
         self._channels = {
             topic: self._writer.register_channel(
                 topic, "json", self._writer.register_schema(s["title"], "jsonschema", _to_json(s))
             )
             for topic, s in SCHEMAS.items()
-            if topic != unused
+            if topic not in unused
         }
         self._writer.add_metadata(CONFIG_METADATA, {"session": session, "config": config_json})
         self.record("/config", {"session": session, "config": config}, time.time_ns())
@@ -340,10 +368,7 @@ class SessionRecorder:
         grid = {
             "timestamp": _timestamp(log_time_ns),
             "frame_id": "grid",
-            "pose": {
-                "position": {"x": 0.0, "y": 0.0, "z": 0.0},
-                "orientation": {"x": 0.0, "y": 0.0, "z": 0.0, "w": 1.0},
-            },
+            "pose": _IDENTITY_POSE,
             "column_count": grid_size,
             "cell_size": {"x": 1.0, "y": 1.0},
             "row_stride": 4 * grid_size,
@@ -352,6 +377,40 @@ class SessionRecorder:
             "data": data,
         }
         self.record("/belief", grid, log_time_ns)
+
+    def record_particles(
+        self, points: list[list[float]], confidence: np.ndarray, log_time_ns: int
+    ) -> None:
+        """Record the continuous world's particles on ``/particles`` as a
+        ``foxglove.PointCloud``.
+
+        Parameters
+        ----------
+        points : list of [x, y]
+            The particles, in [0, 1]^2.
+        confidence : ndarray, shape (n_particles,)
+            Their confidences, in [0, 1].
+        log_time_ns : int
+            Log time and time stamp, ns.
+        """
+        if np.shape(confidence) != (len(points),):
+            raise ValueError(
+                f"confidence must have shape ({len(points)},); got {np.shape(confidence)}"
+            )
+        packed = np.column_stack([np.reshape(points, (-1, 2)), confidence])
+        data, _ = _base64_float32(packed)
+        cloud = {
+            "timestamp": _timestamp(log_time_ns),
+            "frame_id": "plane",
+            "pose": _IDENTITY_POSE,
+            "point_stride": 12,
+            "fields": [
+                {"name": name, "offset": 4 * k, "type": _FLOAT32}
+                for k, name in enumerate(("x", "y", "confidence"))
+            ],
+            "data": data,
+        }
+        self.record("/particles", cloud, log_time_ns)
 
     def record_ranking(self, confidence: np.ndarray, world: World, log_time_ns: int) -> None:
         """Record the :data:`RANKED` most confident tasks on ``/ranking``, best first (ties

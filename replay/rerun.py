@@ -31,9 +31,13 @@ from wire.messages import (
     state_fields,
     target_text,
 )
+from wire.plane import ContinuousStepper, is_plane
 
 MOVE_FIELDS = ("step", "from_state", "action", "to_state", "target_reached")
 STATE_FIELDS = ("best_task", "confident", "n_signals", "class_counts", "balanced_accuracy")
+#: A state message's fields (protocol version 4): the compared ones and the particles
+#: (compared too in a plane world's recording; empty, and absent before version 4, elsewhere).
+STATE_MESSAGE_FIELDS = (*STATE_FIELDS, "points")
 
 #: ``on_observe(step, learner)``: called after the learner has observed the epoch of
 #: ``step`` (1-based), before it proposes the next move.
@@ -166,6 +170,50 @@ class Rerun:
             self.action = self._move()
 
 
+class PlaneRerun:
+    """The learner of a recorded continuous-world configuration, stepped as the service
+    steps it: :class:`Rerun`'s interface (``world`` and ``draws`` None, ``learner`` the
+    :class:`wire.plane.ContinuousStepper`, ``action`` 0)."""
+
+    world = None
+    draws = None
+    action = 0
+
+    def __init__(self, config: dict[str, Any]) -> None:
+        self.learner = ContinuousStepper(config)
+        self.steps = config["steps"]
+        self.events: list[str] = []
+        self.states: list[dict] = []
+        self._record_state()
+        self.learner.move()
+
+    @property
+    def moves(self) -> list[dict]:
+        return self.learner.moves
+
+    @property
+    def finished(self) -> bool:
+        return self.learner.finished
+
+    def _record_state(self) -> None:
+        fields, confidence = self.learner.state
+        self.states.append({**fields, "confidence": [float(x) for x in confidence]})
+
+    def observe(self, signal: np.ndarray, on_observe: Observer | None = None) -> None:
+        """Observe the epoch of the last probe; choose the next one if one is due."""
+        self.learner.observe(signal)
+        if on_observe is not None:
+            on_observe(self.learner.n_signals, self.learner)  # type: ignore[arg-type]
+        self._record_state()
+        if not self.finished:
+            self.learner.move()
+
+
+def rerun_of(config: dict[str, Any]) -> Rerun | PlaneRerun:
+    """The re-run of a recorded configuration: :class:`PlaneRerun` in a plane world."""
+    return PlaneRerun(config) if is_plane(config) else Rerun(config)
+
+
 def recompute(
     recording: Recording, on_observe: Observer | None = None
 ) -> tuple[list[dict], list[dict], list[str]]:
@@ -181,7 +229,7 @@ def recompute(
         learner as the service had it then (if the re-run is identical). It must not
         change the learner.
     """
-    rerun = Rerun(recording.config)
+    rerun = rerun_of(recording.config)
     for signal in recorded_signals(recording)[: rerun.steps]:
         rerun.observe(signal, on_observe)
     return rerun.moves, rerun.states, rerun.events
@@ -211,8 +259,9 @@ def first_divergence(
         for _, m in recording.messages.get("/event", [])
         if m.get("event") == "target_reached"
     ]
+    fields = STATE_MESSAGE_FIELDS if is_plane(recording.config) else STATE_FIELDS
     return move_divergence(recorded_moves, moves) or state_divergence(
-        recorded_states, states, recorded_events, events, moves
+        recorded_states, states, recorded_events, events, moves, fields
     )
 
 
@@ -227,11 +276,12 @@ def state_divergence(
     recorded_events: list[str],
     events: list[str],
     moves: list[dict],
+    fields: tuple[str, ...] = STATE_FIELDS,
 ) -> Divergence | None:
-    """The first difference in the states (confidences included), then in the target
-    events' texts; ``moves`` (recomputed) give the steps."""
+    """The first difference in the states (``fields`` and the confidences), then in the
+    target events' texts; ``moves`` (recomputed) give the steps."""
     return _first_difference(
-        "/state", recorded_states, states, (*STATE_FIELDS, "confidence"), moves
+        "/state", recorded_states, states, (*fields, "confidence"), moves
     ) or _first_difference(
         "/event",
         [{"message": e} for e in recorded_events],

@@ -69,7 +69,7 @@ EXAMPLES: dict[str, Message] = {
         "state", "s-01", 2, 1000,
         {
             "best_task": 6, "confident": False, "n_signals": 12,
-            "class_counts": [9.5, 2.5], "balanced_accuracy": 0.71,
+            "class_counts": [9.5, 2.5], "balanced_accuracy": 0.71, "points": [],
         },
         np.linspace(0, 1, 25, dtype=np.float32),
     ),
@@ -77,10 +77,25 @@ EXAMPLES: dict[str, Message] = {
         "state", "s-01", 0, 5,
         {
             "best_task": 0, "confident": False, "n_signals": 0,
-            "class_counts": [], "balanced_accuracy": None,
+            "class_counts": [], "balanced_accuracy": None, "points": [],
         },
         np.full(25, 0.5, dtype=np.float32),
     ),
+    "move_probe": Message(  # the continuous world (version 4)
+        "move", "s-01", 5, 1001,
+        {"step": 6, "from_state": [0.25, 0.5], "action": "probe", "to_state": [0.25, 0.5],
+         "target_reached": False},
+    ),
+    "state_particles": Message(
+        "state", "s-01", 5, 1002,
+        {
+            "best_task": 1, "confident": False, "n_signals": 13, "class_counts": [],
+            "balanced_accuracy": None, "points": [[0.1, 0.2], [0.3, 0.4], [1.0, 0.0]],
+        },
+        np.array([0.2, 0.7, 0.4], dtype=np.float32),
+    ),
+    "truth_goal": Message("truth", "s-01", 12, 56, {"step": 13, "target": [0.3, 0.4],
+                                                    "label": 2}),
     "event": Message(
         "event", "s-01", 1, 3,
         {"event": "session_started", "message": "grid 5, 500 steps", "config_t_ns": 1},
@@ -168,6 +183,7 @@ BAD_VALUES = {
     "int": "1", "count": -1, "count/null": -2, "float": "250", "float/null": "x", "bool": 1,
     "str": 3,
     "str[]": ["Fz", 1], "float[]": [1.0, "2"], "object": [], "shape": [0], "session": "a b",
+    "state": [0.5, 0.5, 0.5], "point[]": [[0.1, 0.2], [0.3]],
 }  # fmt: skip
 
 
@@ -189,7 +205,7 @@ def framing_cases() -> list[tuple[bytes, str]]:
         (frame(b"[1, 2]"), "header must be a JSON object; got list"),
         (frame(b"[" * 100_000), "header is not valid JSON"),
         (frame({k: v for k, v in header.items() if k != "v"}), "missing field 'v'"),
-        (frame(header | {"v": 2}), "unknown protocol version 2; .* speaks version 3"),
+        (frame(header | {"v": 2}), "unknown protocol version 2; .* speaks version 4"),
         (frame(header | {"v": True}), "unknown protocol version true"),
         (frame(header | {"kind": "moves"}), 'unknown kind "moves"'),
         (frame(header | {"kind": ["move"]}), "unknown kind"),

@@ -15,7 +15,7 @@ import zenoh
 from live import SPAWN, TIMEOUT
 from test_pipeline import GRID, STEPS, simulated, source_process
 
-from acquisition.replay_source import SourceSettings
+from acquisition.replay_source import SourceSettings, SourceSummary
 from cfbci.cli import main
 from cfbci.service import serve, unfinished
 from replay.recording import read_recording
@@ -27,19 +27,15 @@ from wire.zenoh_config import free_tcp_endpoint, peer_config
 KILL_AT = 25  # the service is killed once the move of this step has been seen
 
 
-# The line world's seed pushes into its walls after the kill: the resumed service's
-# stochastic moves must continue the world stream.
-@pytest.mark.parametrize(("world", "seed"), [("grid", 4), ("line", 2)])
-def test_a_killed_service_resumes_the_session_and_decides_as_if_never_killed(
-    tmp_path: Path, world: str, seed: int
-) -> None:
-    sid = "resumed"
+def run_with_a_kill(settings: SourceSettings, tmp_path: Path, steps: int) -> SourceSummary:
+    """Run a session of ``steps`` steps whose service, recording to ``tmp_path``, is killed
+    with SIGKILL once the move of :data:`KILL_AT` has been seen and started again on the
+    same directory and endpoints; the source's summary."""
+    sid = settings.session
     endpoint, observer_endpoint = free_tcp_endpoint(), free_tcp_endpoint()
     # The source connects to the service's endpoint (as `cfbci source --connect` does) and
     # reconnects to the new service on it; the service connects to the observer.
     args = ([endpoint], [observer_endpoint], tmp_path)
-    settings = SourceSettings(sid, seed=seed, steps=STEPS, grid=GRID, timeout=TIMEOUT,
-                              resend_interval=0.2, world=world)
     inbox: queue.SimpleQueue[Received] = queue.SimpleQueue()
     with zenoh.open(peer_config([observer_endpoint], ())) as observer:
         moves = Pump(observer, protocol.key(sid, "move"), "move", inbox)
@@ -57,7 +53,7 @@ def test_a_killed_service_resumes_the_session_and_decides_as_if_never_killed(
             killed = read_recording(tmp_path / f"{sid}.mcap")
             assert killed.truncated and unfinished(killed)
             # The kill may come between publishing a move and recording it.
-            assert KILL_AT - 1 <= len(killed.messages["/move"]) < STEPS
+            assert KILL_AT - 1 <= len(killed.messages["/move"]) < steps
 
             second = SPAWN.Process(target=serve, args=args)  # same directory, same endpoints
             second.start()
@@ -68,7 +64,38 @@ def test_a_killed_service_resumes_the_session_and_decides_as_if_never_killed(
                 second.join(TIMEOUT)
             assert second.exitcode == 0
         moves.close()
+    return summary
 
+
+def check_resumed_recording(path: Path, steps: int) -> None:
+    """One file, every step once, a resumption event, and the offline re-run reproduces it
+    exactly."""
+    recording = read_recording(path)
+    assert not recording.truncated and not unfinished(recording)
+    assert sorted(p.name for p in path.parent.iterdir()) == [path.name]
+    for topic in ("/move", "/truth"):  # a truth re-sent after the restart may come late
+        recorded = [m["step"] for _, m in recording.messages[topic]]
+        assert sorted(recorded) == list(range(1, steps + 1)), topic
+    assert [m["step"] for _, m in recording.messages["/features"]] == list(range(1, steps + 1))
+    assert len(recording.messages["/epoch"]) == steps
+    assert [m["n_signals"] for _, m in recording.messages["/state"]] == list(range(steps + 1))
+    events = Counter(m["event"] for _, m in recording.messages["/event"])
+    assert events["session_started"] == events["session_ended"] == 1
+    assert any("resumed at step" in m["message"] for _, m in recording.messages["/event"])
+    check = replay_check(path)
+    assert check.divergence is None and check.moves == steps
+    assert main(["replay", str(path)]) == 0
+
+
+# The line world's seed pushes into its walls after the kill: the resumed service's
+# stochastic moves must continue the world stream.
+@pytest.mark.parametrize(("world", "seed"), [("grid", 4), ("line", 2)])
+def test_a_killed_service_resumes_the_session_and_decides_as_if_never_killed(
+    tmp_path: Path, world: str, seed: int
+) -> None:
+    settings = SourceSettings("resumed", seed=seed, steps=STEPS, grid=GRID, timeout=TIMEOUT,
+                              resend_interval=0.2, world=world)
+    summary = run_with_a_kill(settings, tmp_path, STEPS)
     trace, result = simulated(seed, world=world)
     if world == "line":  # both outcomes of a push into a wall, after the kill
         pushes = [(r.state, r.action) in ((0, "left"), (4, "right")) for r in trace]
@@ -79,20 +106,4 @@ def test_a_killed_service_resumes_the_session_and_decides_as_if_never_killed(
     assert (summary.correct_targets, summary.wrong_targets) == (
         result.correct_targets, result.wrong_targets,
     )
-    # One file, every step once, and the offline re-run reproduces it exactly.
-    path = tmp_path / f"{sid}.mcap"
-    recording = read_recording(path)
-    assert not recording.truncated and not unfinished(recording)
-    assert sorted(p.name for p in tmp_path.iterdir()) == [f"{sid}.mcap"]
-    for topic in ("/move", "/truth"):  # a truth re-sent after the restart may come late
-        steps = [m["step"] for _, m in recording.messages[topic]]
-        assert sorted(steps) == list(range(1, STEPS + 1)), topic
-    assert [m["step"] for _, m in recording.messages["/features"]] == list(range(1, STEPS + 1))
-    assert len(recording.messages["/epoch"]) == STEPS
-    assert [m["n_signals"] for _, m in recording.messages["/state"]] == list(range(STEPS + 1))
-    events = Counter(m["event"] for _, m in recording.messages["/event"])
-    assert events["session_started"] == events["session_ended"] == 1
-    assert any("resumed at step" in m["message"] for _, m in recording.messages["/event"])
-    check = replay_check(path)
-    assert check.divergence is None and check.moves == STEPS
-    assert main(["replay", str(path)]) == 0
+    check_resumed_recording(tmp_path / "resumed.mcap", STEPS)

@@ -512,7 +512,7 @@ def test_a_new_config_under_a_used_id_starts_the_session_again() -> None:
 def test_a_state_that_contradicts_itself_is_refused_and_changes_nothing() -> None:
     book = SessionBook()
     state = _message("state", payload=np.full(4, 0.5, np.float32), best_task=4, confident=False,
-                     n_signals=0, class_counts=[0.0, 0.0], balanced_accuracy=None)
+                     n_signals=0, class_counts=[0.0, 0.0], balanced_accuracy=None, points=[])
     with pytest.raises(ValueError, match="best_task 4 is not one of the 4 tasks"):
         book.update(state, 0)
     assert book.listing() == []

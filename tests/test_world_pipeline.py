@@ -121,15 +121,20 @@ def test_a_live_line_world_session_equals_its_simulation(tmp_path: Path) -> None
     metrics = check_replay_and_report(path, tmp_path, result)
     assert metrics["world"] == "line" and metrics["n_tasks"] == 2
 
-    # Re-published to a live service, the recording makes the same moves and states.
+    check_republished(path, tmp_path, "line-again")
+
+
+def check_republished(path: Path, tmp_path: Path, session: str) -> None:
+    """Re-published to a live service (``cfbci replay --publish``), the recording makes the
+    same moves and states, and the service's new recording replays identically."""
     endpoint = free_tcp_endpoint()
     with service_process(endpoint, tmp_path / "again"):
         code = main(["replay", str(path), "--publish", "--connect", endpoint, "--speed", "0",
-                     "--session", "line-again", "--json", str(tmp_path / "again.json")])
+                     "--session", session, "--json", str(tmp_path / "again.json")])
     assert code == 0
     published = json.loads((tmp_path / "again.json").read_text())
     assert published["moves_equal"] and published["states_equal"]
-    assert replay_check(tmp_path / "again" / "line-again.mcap").divergence is None
+    assert replay_check(tmp_path / "again" / f"{session}.mcap").divergence is None
 
 
 def test_a_live_pick_and_place_guidance_session_equals_its_simulation(tmp_path: Path) -> None:
@@ -161,6 +166,15 @@ def _raw_config(session: str, **fields: object) -> bytes:
     return len(text).to_bytes(4, "little") + text
 
 
+def next_event_of(inbox: queue.SimpleQueue[Received], session: str) -> dict:
+    """The fields of the next event of ``session`` in ``inbox`` (others are skipped)."""
+    while True:
+        received = inbox.get(timeout=TIMEOUT)
+        message = protocol.decode(received.data, key_expr=received.key_expr)
+        if message.session == session:
+            return message.fields
+
+
 def test_an_unknown_world_is_named_and_the_service_keeps_serving(tmp_path: Path) -> None:
     endpoint, client_endpoint = free_tcp_endpoint(), free_tcp_endpoint()
     inbox: queue.SimpleQueue[Received] = queue.SimpleQueue()
@@ -168,11 +182,7 @@ def test_an_unknown_world_is_named_and_the_service_keeps_serving(tmp_path: Path)
               "signal": "features"}
 
     def next_event(session: str) -> dict:
-        while True:
-            received = inbox.get(timeout=TIMEOUT)
-            message = protocol.decode(received.data, key_expr=received.key_expr)
-            if message.session == session:
-                return message.fields
+        return next_event_of(inbox, session)
 
     with (
         zenoh.open(peer_config([client_endpoint], ())) as client,
@@ -184,8 +194,8 @@ def test_an_unknown_world_is_named_and_the_service_keeps_serving(tmp_path: Path)
         publisher.put(_raw_config("maze", world="maze", **config))
         error = next_event("maze")
         assert error["event"] == "error"
-        assert 'field \'world\' must be one of "grid", "line", "pick-and-place"; got "maze"' in (
-            error["message"])
+        assert ('field \'world\' must be one of "grid", "line", "pick-and-place", '
+                '"continuous"; got "maze"') in error["message"]
         publisher.put(_raw_config("maze", world="line", grid=5, **config))
         error = next_event("maze")
         assert error["event"] == "error"

@@ -129,6 +129,7 @@ def state_fields(learner: CalibrationFreeLearner) -> tuple[dict[str, Any], np.nd
         "balanced_accuracy": (
             learner.balanced_accuracy(beliefs.best_task) if beliefs.n_signals else None
         ),
+        "points": [],  # the continuous world's particles; none here
     }
     return fields, beliefs.confidence.astype(np.float32)
 

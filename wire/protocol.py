@@ -25,8 +25,9 @@ import numpy as np
 
 from calibration_free.frames import FRAMES
 from calibration_free.worlds import WORLDS, make_world
+from wire.plane import PLANE_FRAMES, PROBE
 
-VERSION: int = 3
+VERSION: int = 4
 PREFIX: str = "cfbci"
 MAX_BYTES: int = 16 * 2**20
 NO_SESSION: str = "_"  # key segment of the service's events about unusable session ids
@@ -36,9 +37,12 @@ EVENTS: tuple[str, ...] = (
 )
 
 #: Every world's action names, in world order then action order (a move's ``action``).
-ACTION_NAMES: tuple[str, ...] = tuple(
-    dict.fromkeys(name for world in WORLDS for name in make_world(world).action_names)
+ACTION_NAMES: tuple[str, ...] = (
+    *dict.fromkeys(name for world in WORLDS for name in make_world(world).action_names),
+    PROBE,
 )
+#: The worlds of a config: the discrete ones, then those of the plane.
+CONFIG_WORLDS: tuple[str, ...] = (*WORLDS, *PLANE_FRAMES)
 
 _SESSION = re.compile(r"[A-Za-z0-9_-]{1,64}")
 _INT64 = 2**63
@@ -60,6 +64,10 @@ def _list_of(check: Callable[[Any], bool]) -> Callable[[Any], bool]:
     return lambda x: isinstance(x, list) and all(check(item) for item in x)
 
 
+def _is_point(x: Any) -> bool:
+    return isinstance(x, list) and len(x) == 2 and all(_is_float(v) for v in x)
+
+
 # Field types: name used in SPECS and in the documentation -> (description, check).
 TYPES: dict[str, tuple[str, Callable[[Any], bool]]] = {
     "int": ("an integer in the int64 range", _is_int),
@@ -73,6 +81,12 @@ TYPES: dict[str, tuple[str, Callable[[Any], bool]]] = {
     "str": ("a string", lambda x: isinstance(x, str)),
     "str[]": ("a list of strings", _list_of(lambda x: isinstance(x, str))),
     "float[]": ("a list of finite numbers", _list_of(_is_float)),
+    "state": (
+        "a state index (an integer >= 0), or a point [x, y] of two finite numbers (the "
+        "continuous world)",
+        lambda x: _is_count(x) or _is_point(x),
+    ),
+    "point[]": ("a list of points [x, y] of two finite numbers", _list_of(_is_point)),
     "shape": (
         "a non-empty list of integers >= 1",
         lambda x: _list_of(lambda n: _is_count(n) and n >= 1)(x) and len(x) > 0,
@@ -166,12 +180,17 @@ SPECS: dict[str, KindSpec] = {
         "First message of a session: everything the service needs to run it.",
         {
             "seed": Field("int", "session seed (method's random streams)"),
-            "world": Field("str", "the world the device acts in (see \"Worlds\")", WORLDS),
-            "frame": Field("str", "interaction frame", FRAMES),
+            "world": Field(
+                "str", "the world the device acts in (see \"Worlds\")", CONFIG_WORLDS
+            ),
+            "frame": Field(
+                "str", "interaction frame (the continuous world's: cardinal)",
+                (*FRAMES, *PLANE_FRAMES.values()),
+            ),
             "steps": Field("count", "device actions (epochs) in the session"),
             "learner": Field(
                 "object", "learner settings, as `LearnerConfig` field: value (the likelihood "
-                "is `learner.likelihood`)"
+                "is `learner.likelihood`); the continuous world's: `ContinuousConfig` fields"
             ),
             "dataset": Field("object", "description of the data the source answers from"),
             "signal": _SIGNAL,
@@ -203,10 +222,13 @@ SPECS: dict[str, KindSpec] = {
         "Ground truth of an epoch, for recording and evaluation; the service never reads it.",
         {
             "step": _STEP,
-            "target": Field("count", "the user's target task when the epoch was produced"),
+            "target": Field(
+                "state", "the user's target task when the epoch was produced (the continuous "
+                "world's: the goal point)"
+            ),
             "label": Field(
                 "count", "class of the epoch (feedback: 0 correct, 1 error; guidance: the "
-                "guidance action's class)"
+                "guidance action's class; cardinal: the direction)"
             ),
         },
     ),
@@ -215,9 +237,9 @@ SPECS: dict[str, KindSpec] = {
         "The device's next action.",
         {
             "step": _STEP,
-            "from_state": Field("count", "state before the action"),
+            "from_state": Field("state", "state before the action (continuous: the probe)"),
             "action": Field("str", "the action, one of its world's", ACTION_NAMES),
-            "to_state": Field("count", "state after the action"),
+            "to_state": Field("state", "state after the action (continuous: the probe)"),
             "target_reached": Field(
                 "bool", "the action is the world's declaration action performed while confident"
             ),
@@ -235,6 +257,10 @@ SPECS: dict[str, KindSpec] = {
             ),
             "balanced_accuracy": Field(
                 "float/null", "best task's cross-validated balanced accuracy; null if unknown"
+            ),
+            "points": Field(
+                "point[]", "the continuous world's particles, in payload order (tasks are "
+                "particles); empty in the other worlds"
             ),
         },
         Payload("1", {None: ("n_tasks",)}, "confidence of every task, in [0, 1]"),
