@@ -10,8 +10,7 @@ world as a text grid, another world as the agent's state and a ranked list of ta
 
 The service runs this one session of the user's own on a private loopback network, so its
 memory limit (``max_session_mb``, which guards a shared service against its clients) is the
-machine's physical memory: the estimate it checks is very pessimistic (a pick-and-place
-session of raw epochs is estimated at 825 MiB for its 45 MiB).
+machine's physical memory.
 """
 
 from __future__ import annotations
