@@ -19,6 +19,7 @@ from calibration_free.baseline import DEFAULT_CALIBRATION_TRIALS
 from calibration_free.config import LearnerConfig
 from calibration_free.frames import FRAMES
 from calibration_free.planning import PLANNERS
+from calibration_free.task_likelihoods import LIKELIHOODS
 from calibration_free.worlds import WORLDS
 from cfbci import router
 from cfbci.blas import single_threaded_blas
@@ -79,6 +80,21 @@ def _add_data_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--dims", type=int, default=2, help="dimensions of a Gaussian signal")
 
 
+def _add_likelihood_option(p: argparse.ArgumentParser) -> None:
+    p.add_argument(
+        "--likelihood", choices=LIKELIHOODS,
+        help="how tasks are scored (the learner setting 'likelihood'; default matching)",
+    )
+
+
+def _learner_settings(args: argparse.Namespace, **defaults: Any) -> dict[str, Any]:
+    """``defaults``, then the ``--set`` settings, then ``--likelihood`` if given."""
+    settings = {**defaults, **parse_settings(args.set)}
+    if args.likelihood is not None:
+        settings["likelihood"] = args.likelihood
+    return settings
+
+
 def data_spec(args: argparse.Namespace) -> DataSpec:
     """The :class:`DataSpec` of the options of :func:`_add_data_options`."""
     return DataSpec(args.dataset, args.synthetic_accuracy, args.synthetic, args.dims)
@@ -112,6 +128,7 @@ def _add_simulate(commands: argparse._SubParsersAction, chosen: Preset | None) -
         "shuffled-label control)",
     )
     p.add_argument("--planner", choices=PLANNERS, default="uncertainty")
+    _add_likelihood_option(p)
     p.add_argument("--baseline", choices=BASELINES, help="run the calibrated baseline instead")
     p.add_argument(
         "--calibration-trials", type=int, default=DEFAULT_CALIBRATION_TRIALS,
@@ -142,7 +159,7 @@ def _simulate_frame_hypotheses(args: argparse.Namespace, console: Console) -> in
     from calibration_free.frame_hypotheses import FRAME_DEFAULTS
     from cfbci.frame_sessions import FrameJob, frame_hypotheses_report, run_frame_job
 
-    config = LearnerConfig.from_dict({**FRAME_DEFAULTS, **parse_settings(args.set)})
+    config = LearnerConfig.from_dict(_learner_settings(args, **FRAME_DEFAULTS))
     data = data_spec(args)
     data.resolve("guidance")  # fail early on a bad dataset
     jobs = [
@@ -185,7 +202,7 @@ def _run_simulate(args: argparse.Namespace, console: Console) -> int:
         return 0
     if args.frame == "hypotheses":
         return _simulate_frame_hypotheses(args, console)
-    settings = {"frame": args.frame, "planner": args.planner, **parse_settings(args.set)}
+    settings = _learner_settings(args, frame=args.frame, planner=args.planner)
     config = SessionConfig(
         steps=args.steps,
         grid=args.grid,
@@ -294,6 +311,7 @@ def _add_source_options(p: argparse.ArgumentParser) -> None:
                    help="the world (default grid)")
     p.add_argument("--frame", choices=(*FRAMES, *LIVE_PLANE_WORLDS.values()), default="feedback")
     add_live_plane_options(p)
+    _add_likelihood_option(p)
     p.add_argument(
         "--set", action="append", default=[], metavar="KEY=VALUE",
         help="a learner setting sent in the config (see calibration_free.config.LearnerConfig)",
@@ -313,7 +331,7 @@ def _source_settings(args: argparse.Namespace, session: str) -> Any:
 
     if args.steps < 1 or args.interval < 0:
         raise ValueError("--steps must be at least 1 and --interval at least 0")
-    learner = parse_settings(args.set)
+    learner = _learner_settings(args)
     plane = live_source_fields(args.world, args.frame, learner, args.class_order)  # fail early
     return SourceSettings(
         session=session, data=data_spec(args), seed=args.seed,

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+
 import pytest
 
 from cfbci.cli import build_parser, main, parse_settings
@@ -45,3 +47,15 @@ def test_every_preset_is_listed_and_an_unknown_one_is_refused(capsys) -> None:
 def test_a_preset_that_needs_a_dataset_says_which(capsys) -> None:
     assert main(["simulate", "--preset", "pick-and-place-speech"]) == 2
     assert "needs --dataset FILE.npz from `cfbci datasets speech" in capsys.readouterr().err
+
+
+def test_the_likelihood_flag_overrides_the_preset_and_reaches_the_learner(tmp_path) -> None:
+    report = tmp_path / "r.json"
+    assert main([
+        "simulate", "--preset", "world-properties", "--likelihood", "matching", "--seeds", "1",
+        "--steps", "15", "--jobs", "1", "--json", str(report),
+    ]) == 0
+    learner = json.loads(report.read_text())["config"]["learner"]
+    assert learner["likelihood"] == "matching" and learner["decoder"] == "gaussian"
+    with pytest.raises(SystemExit):
+        build_parser().parse_args(["simulate", "--likelihood", "entropy"])
