@@ -258,9 +258,10 @@ class Followed:
 
 def _follow(
     browser: webdriver.Chrome, page: str, settings: SourceSettings, service: str,
-    view_endpoint: str, sources: ProcessPoolExecutor,
+    view_endpoint: str, sources: ProcessPoolExecutor, shows_beliefs: bool = True,
 ) -> Followed:
-    """Open ``page`` (which names the session), then run the session while reading it."""
+    """Open ``page`` (which names the session), then run the session while reading it; a
+    page that ``shows_beliefs`` is read until it shows the last state's best task."""
     sid = settings.session
     browser.get(page)
     _wait(browser, lambda shown: shown.get("session") == sid, "the session it was asked for")
@@ -271,6 +272,14 @@ def _follow(
         final = _wait(browser, _ended(sid, settings.steps), f"the end of {sid}", seen)
         summary = future.result()  # the source's own timeout guards it
         published.collect()
+        # The last state and the end event travel on different keys: the page may show the
+        # end before the last state; wait for the state too.
+        best = str(published.last_state[sid].fields["best_task"])
+        if shows_beliefs:
+            final = _wait(
+                browser, lambda shown: _ended(sid, settings.steps)(shown)
+                and shown.get("best") == best, f"the final state of {sid} (best {best})", seen,
+            )
     finally:
         published.close()
     return Followed(seen, final, summary, published.moves[sid], published.last_state[sid])
@@ -325,7 +334,8 @@ def test_subject_view_shows_the_grid_and_the_agent_only(
     url, view_endpoint = view
     settings = SourceSettings("subject", seed=1, steps=30, interval=0.03)
     followed = _follow(
-        browser, f"{url}/subject?session=subject", settings, service, view_endpoint, sources
+        browser, f"{url}/subject?session=subject", settings, service, view_endpoint, sources,
+        shows_beliefs=False,
     )
     assert len(_shown_steps(followed)) >= 30 // 4
     assert followed.final["agent"] == str(followed.moves[30]["to_state"])
