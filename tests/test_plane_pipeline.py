@@ -20,6 +20,7 @@ from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
+import pytest
 import zenoh
 from jsonschema import Draft202012Validator
 from live import SPAWN, TIMEOUT, service_process
@@ -27,6 +28,8 @@ from mcap.reader import make_reader
 from test_resume import KILL_AT, check_resumed_recording, run_with_a_kill
 from test_world_pipeline import check_republished, next_event_of
 
+from acquisition.gaussian import generate_gaussian_features
+from acquisition.loaders import save_features_npz
 from acquisition.replay_source import SourceSettings, run_source
 from acquisition.sources import DataSpec
 from calibration_free.continuous_goals import ContinuousConfig, ContinuousGoalLearner
@@ -37,15 +40,23 @@ from replay.rerun import replay_check
 from wire.transport import Outbox, Pump, Received, wait_for_subscribers
 from wire.zenoh_config import free_tcp_endpoint, peer_config
 
-FINGER = Path(__file__).resolve().parents[2] / "shared/datasets/finger-moves/move_finger.mat"
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """Four classes of 11-D Gaussian signals (like ``move_finger.mat``'s) in a features
+    ``.npz``: a real file both the live source and the simulation read."""
+    data = generate_gaussian_features(60, 4, 11, 0.98, 0)
+    path = tmp_path_factory.mktemp("data") / "four-classes.npz"
+    save_features_npz(path, data.features, data.labels)
+    return path
 #: Short sessions: a continuous step costs 100-250 ms on the loaded machine.
 STEPS = 30
 LEARNER = {"n_hypotheses": 20, "n_candidates": 200, "n_initial": 12}
 
 
-def test_a_live_continuous_session_equals_its_simulation(tmp_path: Path) -> None:
+def test_a_live_continuous_session_equals_its_simulation(tmp_path: Path, dataset: Path) -> None:
     seed, order = 3, (2, 0, 3, 1)
-    data = DataSpec(path=FINGER)
+    data = DataSpec(path=dataset)
     settings = SourceSettings(
         "plane-3", data=data, seed=seed, steps=STEPS, world="continuous", frame="cardinal",
         learner=LEARNER, class_order=order,
@@ -108,12 +119,12 @@ def test_a_live_continuous_session_equals_its_simulation(tmp_path: Path) -> None
     check_republished(path, tmp_path, "plane-again")
 
 
-def test_a_killed_service_resumes_a_continuous_session(tmp_path: Path) -> None:
+def test_a_killed_service_resumes_a_continuous_session(tmp_path: Path, dataset: Path) -> None:
     """SIGKILLed after the scoring began, the service resumes from its recording and the
     session makes the simulation's probes (resampled particles included)."""
     seed = 5
     settings = SourceSettings(
-        "resumed", data=DataSpec(path=FINGER), seed=seed, steps=STEPS, world="continuous",
+        "resumed", data=DataSpec(path=dataset), seed=seed, steps=STEPS, world="continuous",
         frame="cardinal", learner=LEARNER, timeout=TIMEOUT, resend_interval=0.2,
     )
     assert KILL_AT > LEARNER["n_initial"]
@@ -122,7 +133,7 @@ def test_a_killed_service_resumes_a_continuous_session(tmp_path: Path) -> None:
     path = tmp_path / "resumed.mcap"
     check_resumed_recording(path, STEPS)
     result = run_continuous_session(
-        seed, ContinuousConfig(**LEARNER), DataSpec(path=FINGER).resolve("guidance"), STEPS
+        seed, ContinuousConfig(**LEARNER), DataSpec(path=dataset).resolve("guidance"), STEPS
     )
     moves = sorted((m for _, m in read_recording(path).messages["/move"]),
                    key=lambda m: m["step"])
@@ -167,7 +178,7 @@ def test_a_bad_continuous_config_is_rejected_naming_the_field(tmp_path: Path) ->
 
 
 def test_cfbci_session_runs_a_continuous_session_that_replays_and_reports(
-    tmp_path: Path,
+    tmp_path: Path, dataset: Path,
 ) -> None:
     """The commands: ``cfbci session --world continuous`` records the simulation's probes;
     ``cfbci replay`` finds it identical; ``cfbci report`` draws the particles and probes."""
@@ -175,13 +186,13 @@ def test_cfbci_session_runs_a_continuous_session_that_replays_and_reports(
     record, summary = tmp_path / "plane.mcap", tmp_path / "plane.json"
     options = [f"--set={k}={v}" for k, v in LEARNER.items()]
     assert main(["session", "--world", "continuous", "--frame", "cardinal", "--dataset",
-                 str(FINGER), "--class-order", "1,0,3,2", "--steps", str(steps), "--seed",
+                 str(dataset), "--class-order", "1,0,3,2", "--steps", str(steps), "--seed",
                  str(seed), *options, "--record", str(record), "--json", str(summary)]) == 0
     assert json.loads(summary.read_text())["steps"] == steps
     recording = read_recording(record)
     assert recording.config["dataset"]["class_order"] == [1, 0, 3, 2]
     result = run_continuous_session(
-        seed, ContinuousConfig(**LEARNER), DataSpec(path=FINGER).resolve("guidance"), steps,
+        seed, ContinuousConfig(**LEARNER), DataSpec(path=dataset).resolve("guidance"), steps,
         (1, 0, 3, 2),
     )
     assert [tuple(m["to_state"]) for _, m in recording.messages["/move"]] == list(
