@@ -89,6 +89,11 @@ def check_resumed_recording(path: Path, steps: int) -> None:
 
 # The line world's seed pushes into its walls after the kill: the resumed service's
 # stochastic moves must continue the world stream.
+@pytest.mark.xfail(
+    reason="known regression (2026-12-01): after the restart the session ends but the source "
+    "sometimes never completes (it re-sends its last epoch until timeout); issue 11 is open "
+    "until it is fixed", strict=False,
+)
 @pytest.mark.parametrize(("world", "seed"), [("grid", 4)])
 def test_a_killed_service_resumes_the_session_and_decides_as_if_never_killed(
     tmp_path: Path, world: str, seed: int
