@@ -276,6 +276,10 @@ class _Session:
         ``(step, seq, t_ns)`` of the last accepted epoch: a re-send of it is answered again.
     answer : tuple or None
         The last move's fields and the state that accompanied it (fields, confidence).
+    answer_unheard : bool
+        The session was resumed and its answer re-sent before its source could have
+        reconnected: it is sent again before the next new epoch is taken (a source that
+        saw the move but not its state before the kill needs the state).
     extractor : ErrPFeatures or None
         Fitted on the first raw epoch (``signal`` "epochs").
     shape : tuple of int or None
@@ -299,6 +303,7 @@ class _Session:
     epochs: SequenceTracker = field(default_factory=SequenceTracker)
     last_epoch: tuple[int, int, int] | None = None
     answer: tuple[dict[str, Any], dict[str, Any], np.ndarray] | None = None
+    answer_unheard: bool = False
     extractor: ErrPFeatures | None = None
     shape: tuple[int, ...] | None = None
     update_ns: list[int] = field(default_factory=list)
@@ -367,6 +372,10 @@ class PipelineService:
         self._outbox = Outbox(session)
         self._sessions: dict[str, _Session] = {}
         self._pending: dict[str, _Pending] = {}
+        # Sessions whose last epoch was recorded before a kill and which ended at the
+        # resumption, before their source could hear the end: a re-send of that epoch is
+        # answered with the last state and session_ended again (at most max_sessions).
+        self._ended_at_resume: dict[str, tuple[_Session, tuple[dict[str, Any], Any]]] = {}
         self._errors = _ErrorBudget()
         self._stopped = False
         if record_dir is not None and resume:
@@ -574,6 +583,7 @@ class PipelineService:
                 start_state(config["seed"], world), recorder, time.monotonic_ns(),
             )
         self._sessions[sid] = session
+        self._ended_at_resume.pop(sid, None)  # the id is reused: its old end is over
         self.intake.open(sid)
         self._event(
             sid,
@@ -631,10 +641,11 @@ class PipelineService:
                     f"restart, from its recording")
         if rerun.finished:
             state = rerun.states[-1]
+            beliefs = ({k: state[k] for k in STATE_MESSAGE_FIELDS}, state["confidence"])
             self._send_state(session, record=recorded_states < len(rerun.states),
-                             beliefs=({k: state[k] for k in STATE_MESSAGE_FIELDS},
-                                      state["confidence"]))
+                             beliefs=beliefs)
             self._finish(session)
+            self._ended_at_resume[sid] = (session, beliefs)
             return
         fields, state = rerun.moves[-1], rerun.states[len(rerun.moves) - 1]
         confidence = np.asarray(state["confidence"], dtype=np.float32)
@@ -642,6 +653,7 @@ class PipelineService:
         self._send(session, "move", fields, record=len(recorded_moves) < len(rerun.moves))
         self._send_state(session, record=recorded_states < len(rerun.moves),
                          beliefs=session.answer[1:])
+        session.answer_unheard = True
 
     def _on_epoch(self, received: Received, queued_ms: float) -> None:
         message = protocol.decode(
@@ -649,13 +661,20 @@ class PipelineService:
         )
         where = {"session": message.session, "seq": message.seq}
         session = self._sessions.get(message.session)
+        identity = (message.fields["step"], message.seq, message.t_ns)
+        ended = self._ended_at_resume.get(message.session)
+        if session is None and ended is not None and ended[0].last_epoch == identity:
+            self._end_again(*ended)
+            return
         if session is None:
             problem = "before session_started" if message.session in self._pending else (
                 "for an unknown session (no running session has this id)")
             raise ProtocolError(f"epoch {problem}", **where)
-        if session.last_epoch == (message.fields["step"], message.seq, message.t_ns):
+        if session.last_epoch == identity:
             self._answer_again(session)
             return
+        if session.answer_unheard:
+            self._answer_again(session)
         signal_ = self._check_epoch(session, message, where)
         gap = self._check_seq(session.epochs, where)
         if gap is not None:
@@ -695,6 +714,7 @@ class PipelineService:
     def _answer_again(self, session: _Session) -> None:
         """A re-sent epoch already answered: publish its move and state again (unrecorded)."""
         assert session.answer is not None
+        session.answer_unheard = False
         fields, state, confidence = session.answer
         self._send(session, "move", fields, record=False)
         self._send(session, "state", state, confidence, record=False)
@@ -848,6 +868,17 @@ class PipelineService:
                 record_["confidence"] = [float(x) for x in payload]
             session.recorder.record(f"/{kind}", record_, message.t_ns)
         return message
+
+    def _end_again(self, session: _Session, beliefs: tuple[dict[str, Any], Any]) -> None:
+        """The re-sent last epoch of a session that ended at its resumption: publish its
+        last state (``beliefs``: fields, confidence) and ``session_ended`` again
+        (unrecorded: its recording is closed)."""
+        self._send_state(session, record=False, beliefs=beliefs)
+        self._event(
+            session.id, "session_ended", f"session {session.id!r} ended after {session.step} "
+            "steps (sent again: it ended when the service resumed it)"
+        )
+        self._outbox.forget(session.id)
 
     def _finish(self, session: _Session) -> None:
         """The session's last epoch is in: ``session_ended``, and forget it."""

@@ -25,6 +25,7 @@ import zenoh
 from jsonschema import Draft202012Validator
 from live import SPAWN, TIMEOUT, service_process
 from mcap.reader import make_reader
+from test_resume import KILL_AT, check_resumed_recording, run_with_a_kill
 from test_world_pipeline import check_republished, next_event_of
 
 from acquisition.gaussian import generate_gaussian_features
@@ -116,6 +117,27 @@ def test_a_live_continuous_session_equals_its_simulation(tmp_path: Path, dataset
 
     # Re-published to a live service, the same probes and states (particles included).
     check_republished(path, tmp_path, "plane-again")
+
+
+def test_a_killed_service_resumes_a_continuous_session(tmp_path: Path, dataset: Path) -> None:
+    """SIGKILLed after the scoring began, the service resumes from its recording and the
+    session makes the simulation's probes (resampled particles included)."""
+    seed = 5
+    settings = SourceSettings(
+        "resumed", data=DataSpec(path=dataset), seed=seed, steps=STEPS, world="continuous",
+        frame="cardinal", learner=LEARNER, timeout=TIMEOUT, resend_interval=0.2,
+    )
+    assert KILL_AT > LEARNER["n_initial"]
+    summary = run_with_a_kill(settings, tmp_path, STEPS)
+    assert summary.steps == STEPS
+    path = tmp_path / "resumed.mcap"
+    check_resumed_recording(path, STEPS)
+    result = run_continuous_session(
+        seed, ContinuousConfig(**LEARNER), DataSpec(path=dataset).resolve("guidance"), STEPS
+    )
+    moves = sorted((m for _, m in read_recording(path).messages["/move"]),
+                   key=lambda m: m["step"])
+    assert [tuple(m["to_state"]) for m in moves] == list(result.probes)
 
 
 def test_a_bad_continuous_config_is_rejected_naming_the_field(tmp_path: Path) -> None:

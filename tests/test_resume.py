@@ -12,16 +12,16 @@ from pathlib import Path
 
 import pytest
 import zenoh
-from live import SPAWN, TIMEOUT
+from live import SPAWN, TIMEOUT, rewrite, service_process
 from test_pipeline import GRID, STEPS, simulated, source_process
 
 from acquisition.replay_source import SourceSettings, SourceSummary
 from cfbci.cli import main
 from cfbci.service import serve, unfinished
-from replay.recording import read_recording
+from replay.recording import decode_array, read_recording
 from replay.rerun import replay_check
 from wire import protocol
-from wire.transport import Pump, Received
+from wire.transport import Pump, Received, reliable_publisher, wait_for_subscribers
 from wire.zenoh_config import free_tcp_endpoint, peer_config
 
 KILL_AT = 25  # the service is killed once the move of this step has been seen
@@ -89,12 +89,7 @@ def check_resumed_recording(path: Path, steps: int) -> None:
 
 # The line world's seed pushes into its walls after the kill: the resumed service's
 # stochastic moves must continue the world stream.
-@pytest.mark.xfail(
-    reason="known regression (2026-12-01): after the restart the session ends but the source "
-    "sometimes never completes (it re-sends its last epoch until timeout); issue 11 is open "
-    "until it is fixed", strict=False,
-)
-@pytest.mark.parametrize(("world", "seed"), [("grid", 4)])
+@pytest.mark.parametrize(("world", "seed"), [("grid", 4), ("line", 2)])
 def test_a_killed_service_resumes_the_session_and_decides_as_if_never_killed(
     tmp_path: Path, world: str, seed: int
 ) -> None:
@@ -112,3 +107,56 @@ def test_a_killed_service_resumes_the_session_and_decides_as_if_never_killed(
         result.correct_targets, result.wrong_targets,
     )
     check_resumed_recording(tmp_path / "resumed.mcap", STEPS)
+
+
+def test_a_session_ended_at_its_resumption_answers_a_resent_last_epoch_with_its_end(
+    tmp_path: Path,
+) -> None:
+    """Killed after recording the last epoch but before ``session_ended``: the resumed
+    service ends the session at once, before its source can have reconnected, so a re-send
+    of that last epoch is answered with the last state and ``session_ended`` again (the
+    source would otherwise wait for an end it never hears), and the recording is left as
+    it was."""
+    sid, done = "ending", tmp_path / "done"
+    endpoint, client_endpoint = free_tcp_endpoint(), free_tcp_endpoint()
+    settings = SourceSettings(sid, seed=1, steps=STEPS, grid=GRID, timeout=TIMEOUT)
+    with service_process(endpoint, done), source_process(settings, endpoint) as future:
+        future.result(TIMEOUT)
+    recording = read_recording(done / f"{sid}.mcap")
+    recording.messages["/event"] = [
+        (t, m) for t, m in recording.messages["/event"] if m["event"] != "session_ended"
+    ]
+    cut = tmp_path / "cut"
+    cut.mkdir()
+    rewrite(recording, cut / f"{sid}.mcap")  # as if killed just before session_ended
+    assert unfinished(read_recording(cut / f"{sid}.mcap"))
+    last = recording.accepted_epochs()[-1]
+    fields = {k: last[k] for k in ("step", "signal", "ch_names") if k in last}
+    epoch = protocol.Message("epoch", sid, last["seq"], last["t_ns"], fields, decode_array(last))
+
+    inbox: queue.SimpleQueue[Received] = queue.SimpleQueue()
+    with (
+        zenoh.open(peer_config([client_endpoint], ())) as client,
+        service_process(endpoint, cut, (client_endpoint,)),
+    ):
+        pumps = [Pump(client, protocol.key(sid, kind), kind, inbox) for kind in ("event",
+                                                                                "state")]
+        publisher = reliable_publisher(client, protocol.key(sid, "epoch"))
+        assert wait_for_subscribers(publisher, TIMEOUT)
+        ended = read_recording(cut / f"{sid}.mcap")  # ended at the resumption
+        assert not unfinished(ended)
+        publisher.put(protocol.encode(epoch))
+        states, again = [], None
+        while again is None:
+            message = protocol.decode(inbox.get(timeout=TIMEOUT).data)
+            if message.kind == "state":
+                states.append(message.fields["n_signals"])
+            elif message.fields["event"] == "error":
+                pytest.fail(message.fields["message"])  # e.g. "epoch for an unknown session"
+            elif "sent again" in message.fields["message"]:
+                again = message.fields["event"]
+        for pump in pumps:
+            pump.close()
+    assert again == "session_ended" and states[-1] == STEPS
+    after = read_recording(cut / f"{sid}.mcap")
+    assert after.n_messages == ended.n_messages  # the answer again is not recorded
