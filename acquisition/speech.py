@@ -56,7 +56,8 @@ VOICES: tuple[str, ...] = (
     "en-gb", "en-us", "en-gb-scotland", "en-029", "en-gb-x-rp", "en-gb-x-gbcwmd",
     "en-gb-x-gbclan", "en-us-nyc",
 )
-_VARIANTS = tuple(f"m{i}" for i in range(1, 8)) + tuple(f"f{i}" for i in range(1, 6))
+#: espeak-ng's voice variants (male m1..m7, female f1..f5).
+VARIANTS = tuple(f"m{i}" for i in range(1, 8)) + tuple(f"f{i}" for i in range(1, 6))
 _REFERENCE_VOICE = "en-gb"
 SAMPLE_RATE = 22050  # Hz, espeak-ng's output rate
 
@@ -79,6 +80,9 @@ class SpeechParameters:
         MFCC window and hop, seconds.
     n_mels : int
         Mel bands.
+    voices, variants : tuple of str
+        espeak-ng voices and variants the speakers are drawn from (one of each: a single
+        speaker, like the thesis's one teacher).
     """
 
     speed_wpm: tuple[float, float] = (120.0, 200.0)
@@ -88,6 +92,8 @@ class SpeechParameters:
     window_s: float = 0.025
     hop_s: float = 0.010
     n_mels: int = 40
+    voices: tuple[str, ...] = VOICES
+    variants: tuple[str, ...] = VARIANTS
 
 
 @dataclass(frozen=True)
@@ -211,7 +217,9 @@ class SpeechFeatures:
         ndarray, shape (n_references,)
         """
         p = self.parameters
-        voice = f"{VOICES[rng.integers(len(VOICES))]}+{_VARIANTS[rng.integers(len(_VARIANTS))]}"
+        voice, variant = p.voices[rng.integers(len(p.voices))], p.variants[
+            rng.integers(len(p.variants))]
+        voice = f"{voice}+{variant}"
         speed, pitch, snr = rng.uniform(*p.speed_wpm), rng.uniform(*p.pitch), rng.uniform(*p.snr_db)
         frames = mfcc_frames(_noisy(synthesise(word, voice, speed, pitch), snr, rng), p)
         return np.array([dtw_distance(frames, ref) for ref in self._reference_frames])
