@@ -233,10 +233,19 @@ def _add_bench(commands: argparse._SubParsersAction) -> None:
     latency = which.add_parser(
         "latency",
         help="end-to-end latency over Zenoh (source to service and back) and the learner's share",
-        description="One live session at T = 25 (5 x 5 grid, synthetic data, feedback frame, "
-        "default learner), the service in its own process, as fast as possible: epoch "
-        "published to next move received, the learner's update inside the service, and "
-        "the difference (transport and the rest).",
+        description="Live sessions at T = 25 (5 x 5 grid, synthetic data, feedback frame, "
+        "default learner) on one service in its own process: epoch published to next move "
+        "received, the learner's update inside the service, each epoch's queueing delay "
+        "there, and the difference (transport and the rest).",
+    )
+    latency.add_argument(
+        "--sessions", type=int, default=1,
+        help="concurrent sessions on the one service (default 1)",
+    )
+    latency.add_argument(
+        "--interval", type=float, default=0.0,
+        help="seconds each source waits before answering a move, its user's reaction; the "
+        "sources start interval/sessions apart (default 0: as fast as possible)",
     )
     latency.add_argument(
         "--steps", type=int, default=1000, help="measured epochs (default 1000)"
@@ -251,7 +260,7 @@ def _add_bench(commands: argparse._SubParsersAction) -> None:
 def _run_bench_latency(args: argparse.Namespace, console: Console) -> int:
     from cfbci.latency import bench_latency, print_latency
 
-    report = bench_latency(args.steps, args.seed)
+    report = bench_latency(args.steps, args.seed, args.sessions, args.interval)
     print_latency(report, console)
     if args.json:
         args.json.write_text(json.dumps(report, indent=2) + "\n")

@@ -1,9 +1,13 @@
-"""``cfbci bench latency``: end-to-end latency of the live pipeline, and the learner's share.
+"""``cfbci bench latency``: end-to-end latency of the live pipeline, the learner's share,
+and the queueing delay when one service runs many sessions.
 
-The service runs in its own spawned process, the replay source in this one; they talk over
-Zenoh on a loopback TCP endpoint (multicast off). One session of ``steps + 1`` epochs at
-T = 25 tasks (5 x 5 grid, synthetic raw epochs, feedback frame, default learner) runs as
-fast as it can (no reaction time). Per epoch k (all but the last):
+The service runs in its own spawned process, the replay sources in this one (one thread
+each, sharing one Zenoh session); they talk over Zenoh on a loopback TCP endpoint
+(multicast off). Each of ``sessions`` sessions has ``steps + 1`` epochs at T = 25 tasks
+(5 x 5 grid, synthetic raw epochs, feedback frame, default learner, its own seed). Each
+source answers a move after ``interval`` seconds (its user's reaction; 0: as fast as it
+can), and the sources start ``interval / sessions`` apart, so that the sessions are paced
+independently rather than in lock step. Per epoch k of a session (all but the last):
 
 * **end to end**: from the epoch of step k published by the source to the move of step
   k + 1 taken off the source's subscriber (:attr:`SourceSummary.latency_ns`, the source's
@@ -11,15 +15,23 @@ fast as it can (no reaction time). Per epoch k (all but the last):
 * **update**: the learner's own time inside the service, ``observe`` of epoch k plus
   ``propose`` of move k + 1 (:attr:`cfbci.service._Session.update_ns`), sent back to this
   process through a pipe when the session ends (the wire protocol has no field for it);
+* **queueing**: from the epoch's arrival at the service (its pump) to the start of its
+  computation (:attr:`cfbci.service._Session.queued_ms`): the time it waited behind other
+  sessions' messages in the service's single worker;
 * **transport + rest**: end to end minus update: encoding, Zenoh both ways, decoding,
   checks, feature extraction, the ``state`` and its balanced accuracy, recording (none
   here), queueing.
+
+The figures pool every session's epochs.
 """
 
 from __future__ import annotations
 
 import multiprocessing
+import time
 from collections.abc import Sequence
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import replace
 from multiprocessing.connection import Connection
 from typing import Any
 
@@ -28,7 +40,8 @@ import zenoh
 from rich.console import Console
 from rich.table import Table
 
-from acquisition.replay_source import SourceSettings, replay_session
+from acquisition.replay_source import SourceSettings, SourceSummary, replay_session
+from cfbci.limits import ServiceLimits
 from cfbci.service import serve
 from wire.zenoh_config import free_tcp_endpoint, peer_config
 
@@ -39,9 +52,12 @@ TIMEOUT = 60.0
 _SESSION = "latency"
 
 
-def _service(listen: Sequence[str], results: Connection) -> None:
-    """The service process: sends ``(session, update_ns)`` on ``results`` per ended session."""
-    serve(listen, (), None, on_end=lambda session, update_ns: results.send((session, update_ns)))
+def _service(listen: Sequence[str], results: Connection, sessions: int) -> None:
+    """The service process, allowed at least ``sessions`` sessions at once: sends
+    ``(session, update_ns, queued_ms)`` on ``results`` per ended session."""
+    defaults = ServiceLimits()
+    limits = replace(defaults, max_sessions=max(defaults.max_sessions, sessions))
+    serve(listen, (), None, on_end=lambda *timings: results.send(timings), limits=limits)
 
 
 def _stats_ms(values_ns: np.ndarray) -> dict[str, float]:
@@ -53,22 +69,30 @@ def _stats_ms(values_ns: np.ndarray) -> dict[str, float]:
     }
 
 
-def bench_latency(steps: int, seed: int = 0) -> dict[str, Any]:
-    """Run the benchmark session and summarise its ``steps`` measured epochs.
+def bench_latency(
+    steps: int, seed: int = 0, sessions: int = 1, interval: float = 0.0
+) -> dict[str, Any]:
+    """Run the benchmark sessions and summarise their measured epochs.
 
     Parameters
     ----------
     steps : int
-        Measured epochs (>= 1); the session has ``steps + 1`` (the last epoch has no move).
+        Measured epochs per session (>= 1); a session has ``steps + 1`` (the last epoch
+        has no move).
     seed : int
-        Session seed.
+        Seed of the first session; session i has seed ``seed + i``.
+    sessions : int
+        Concurrent sessions on the one service (>= 1).
+    interval : float
+        Seconds each source waits before answering a move (>= 0).
 
     Returns
     -------
     dict
-        ``{"steps", "end_to_end_ms", "update_ms", "transport_ms", "non_learner_share"}``;
-        each ``*_ms`` is ``{"median", "p99", "max"}`` in ms; ``non_learner_share`` is the
-        total transport + rest time over the total end-to-end time, in [0, 1].
+        ``{"steps", "sessions", "interval_s", "end_to_end_ms", "update_ms", "queued_ms",
+        "transport_ms", "non_learner_share"}``; each ``*_ms`` is ``{"median", "p99",
+        "max"}`` in ms over all sessions' epochs; ``non_learner_share`` is the total
+        transport + rest time over the total end-to-end time, in [0, 1].
 
     Raises
     ------
@@ -77,54 +101,78 @@ def bench_latency(steps: int, seed: int = 0) -> dict[str, Any]:
     """
     if steps < 1:
         raise ValueError(f"--steps must be at least 1; got {steps}")
+    if sessions < 1:
+        raise ValueError(f"--sessions must be at least 1; got {sessions}")
+    if interval < 0:
+        raise ValueError(f"--interval must be >= 0 s; got {interval}")
     context = multiprocessing.get_context("spawn")
     endpoint = free_tcp_endpoint()
     receiver, sender = context.Pipe(duplex=False)
     service = context.Process(
-        target=_service, args=([endpoint], sender), name="cfbci-latency-service"
+        target=_service, args=([endpoint], sender, sessions), name="cfbci-latency-service"
     )
     service.start()
+    ids = [_SESSION if sessions == 1 else f"{_SESSION}-{i}" for i in range(sessions)]
     try:
-        settings = SourceSettings(_SESSION, seed=seed, steps=steps + 1, grid=GRID, timeout=TIMEOUT)
-        with zenoh.open(peer_config((), [endpoint])) as session:
-            summary = replay_session(session, settings)
-        # The service reports right after session_ended, which the source has seen.
-        if not receiver.poll(TIMEOUT):
-            raise TimeoutError(f"the service did not report its timings within {TIMEOUT} s")
-        reported, update_ns = receiver.recv()
+        with zenoh.open(peer_config((), [endpoint])) as session, ThreadPoolExecutor(
+            sessions
+        ) as pool:
+            def run(i: int) -> SourceSummary:
+                time.sleep(interval * i / sessions)  # independent phases
+                return replay_session(session, SourceSettings(
+                    ids[i], seed=seed + i, steps=steps + 1, grid=GRID, timeout=TIMEOUT,
+                    interval=interval,
+                ))
+
+            summaries = list(pool.map(run, range(sessions)))
+        reports = {}
+        for _ in ids:  # the service reports right after each session_ended
+            if not receiver.poll(TIMEOUT):
+                raise TimeoutError(f"the service did not report its timings within {TIMEOUT} s")
+            reported, update_ns, queued_ms = receiver.recv()
+            reports[reported] = (update_ns, queued_ms)
     finally:
         service.terminate()
         service.join(TIMEOUT)
         if service.is_alive():
             service.kill()
             service.join()
-    end_to_end = np.asarray(summary.latency_ns, dtype=np.float64)
-    update = np.asarray(update_ns, dtype=np.float64)
-    if reported != _SESSION or len(end_to_end) != steps or len(update) != steps:
-        raise RuntimeError(
-            f"expected {steps} timings of session {_SESSION!r}; got {len(end_to_end)} "
-            f"end-to-end and {len(update)} update timings of session {reported!r}"
-        )
-    transport = end_to_end - update
+    end_to_end, update, queued = [], [], []
+    for sid, summary in zip(ids, summaries, strict=True):
+        update_ns, queued_ms = reports.get(sid, ([], []))
+        if not len(summary.latency_ns) == len(update_ns) == len(queued_ms) == steps:
+            raise RuntimeError(
+                f"expected {steps} timings of session {sid!r}; got {len(summary.latency_ns)} "
+                f"end-to-end, {len(update_ns)} update and {len(queued_ms)} queueing timings"
+            )
+        end_to_end += summary.latency_ns
+        update += update_ns
+        queued += queued_ms
+    end_to_end_ns = np.asarray(end_to_end, dtype=np.float64)
+    transport = end_to_end_ns - np.asarray(update, dtype=np.float64)
     return {
         "steps": steps,
-        "end_to_end_ms": _stats_ms(end_to_end),
-        "update_ms": _stats_ms(update),
+        "sessions": sessions,
+        "interval_s": interval,
+        "end_to_end_ms": _stats_ms(end_to_end_ns),
+        "update_ms": _stats_ms(np.asarray(update, dtype=np.float64)),
+        "queued_ms": _stats_ms(np.asarray(queued, dtype=np.float64) * 1e6),
         "transport_ms": _stats_ms(transport),
-        "non_learner_share": float(transport.sum() / end_to_end.sum()),
+        "non_learner_share": float(transport.sum() / end_to_end_ns.sum()),
     }
 
 
 def print_latency(report: dict[str, Any], console: Console) -> None:
     """The report as a table (ms), and the non-learner share of the end-to-end time."""
     table = Table(
-        title=f"bench latency: {report['steps']} epochs, T = {GRID * GRID}"
+        title=f"bench latency: {report['sessions']} session(s) x {report['steps']} epochs, "
+        f"T = {GRID * GRID}, answers after {report['interval_s']:g} s"
     )
     for column in ("ms", "median", "p99", "max"):
         table.add_column(column, justify="right")
     for name, key in (
         ("end to end", "end_to_end_ms"), ("learner update", "update_ms"),
-        ("transport + rest", "transport_ms"),
+        ("queueing", "queued_ms"), ("transport + rest", "transport_ms"),
     ):
         table.add_row(name, *(f"{report[key][stat]:.3f}" for stat in ("median", "p99", "max")))
     console.print(table)

@@ -287,6 +287,9 @@ class _Session:
     update_ns : list of int
         The learner's time per epoch, ns: ``observe`` of the epoch plus ``propose`` of the
         next move (:data:`time.perf_counter_ns` differences; none for the last epoch).
+    queued_ms : list of float
+        Per epoch with a next move, as ``update_ns``: its queueing delay in ms, from its
+        arrival (the intake's pump) to the start of its computation.
     """
 
     id: str
@@ -307,10 +310,12 @@ class _Session:
     extractor: ErrPFeatures | None = None
     shape: tuple[int, ...] | None = None
     update_ns: list[int] = field(default_factory=list)
+    queued_ms: list[float] = field(default_factory=list)
 
 
-#: Called with a session's id and its :attr:`_Session.update_ns` when the session ends.
-SessionEndHook = Callable[[str, list[int]], None]
+#: Called with a session's id, its :attr:`_Session.update_ns` and its
+#: :attr:`_Session.queued_ms` when the session ends.
+SessionEndHook = Callable[[str, list[int], list[float]], None]
 
 
 class _ErrorBudget:
@@ -349,8 +354,9 @@ class PipelineService:
         unfinished sessions recorded there are resumed (:meth:`resume`).
     limits : ServiceLimits
     on_end : callable or None
-        Called with ``(session id, update_ns)`` when a session ends normally: the learner's
-        time per epoch in ns, as :attr:`_Session.update_ns` (``cfbci bench latency``).
+        Called with ``(session id, update_ns, queued_ms)`` when a session ends normally:
+        the learner's time per epoch in ns and each epoch's queueing delay in ms, as
+        :attr:`_Session.update_ns` and :attr:`_Session.queued_ms` (``cfbci bench latency``).
     resume : bool
         Resume the unfinished sessions of ``record_dir`` (:meth:`resume`).
 
@@ -812,6 +818,7 @@ class PipelineService:
             session.update_ns.append(time.perf_counter_ns() - started_ns)
             timing["update_ms"] = session.update_ns[-1] / 1e6
         if queued_ms is not None:
+            session.queued_ms.append(queued_ms)
             timing["queued_ms"] = queued_ms
         return timing
 
@@ -886,7 +893,7 @@ class PipelineService:
             session.id, "session_ended", f"session {session.id!r} ended after {session.step} steps"
         )
         if self.on_end is not None:
-            self.on_end(session.id, session.update_ns)
+            self.on_end(session.id, session.update_ns, session.queued_ms)
         self._end(session, session.step)
 
     def _abort(self, session: _Session, problem: str) -> None:
