@@ -24,12 +24,16 @@ from rich.markup import escape
 from rich.table import Table
 
 from cfbci.parallel import Scheduler, run_parallel
-from replay.figures import session_figures
+from replay.calibration import CalibrationBin, calibration_curve, pool_counts
+from replay.figures import calibration_figure, save_figures, session_figures
 from replay.html_report import SessionReport, write_html
 from replay.metrics import aggregate, session_metrics
 from replay.plane_report import plane_figures, plane_metrics
 from replay.recording import read_recording
 from wire.plane import is_plane
+
+#: File stem of the pooled figures of a report (``<stem>_confidence_calibration.png``).
+CALIBRATION_STEM = "all-sessions"
 
 
 @dataclass(frozen=True)
@@ -94,8 +98,11 @@ def metrics_document(reports: list[SessionReport], out_dir: Path) -> dict[str, A
             ],
             **report.metrics.to_dict(),
         })
+    counts = [m.calibration_counts for m in done if m.calibration_counts is not None]
     return {
         "aggregate": aggregate(done),
+        "confidence_calibration": [asdict(b) for b in calibration_curve(pool_counts(counts))]
+        if counts else None,
         "sessions": sessions,
         "errors": [{"file": r.file, "error": r.error} for r in reports if r.error],
     }
@@ -176,5 +183,17 @@ def run_report(
     )
     document = metrics_document(reports, out_dir)
     (out_dir / "metrics.json").write_text(json.dumps(document, indent=1) + "\n")
-    write_html(out_dir, reports, document["aggregate"])
+    calibration = None
+    if document["confidence_calibration"] is not None:
+        curve = [CalibrationBin(**b) for b in document["confidence_calibration"]]
+        betas = {r.metrics.beta for r in reports
+                 if r.metrics is not None and r.metrics.calibration_counts is not None}
+        figure = calibration_figure(curve, betas.pop() if len(betas) == 1 else 0.9)
+        caption = ("Pooled over the sessions: bars, the fraction of steps in each confidence "
+                   "bin whose best task was the user's target (labels: steps); dashed, a "
+                   "calibrated confidence.")
+        [saved] = save_figures([("confidence_calibration", figure, caption)], out_dir,
+                               CALIBRATION_STEM)
+        calibration = (saved, curve)
+    write_html(out_dir, reports, document["aggregate"], calibration)
     return reports

@@ -116,3 +116,8 @@ def print_report(report: dict[str, Any], console: Console) -> None:
     shown = [f"{likelihood[s]:.2f} @{s}" for s in list(likelihood)[4::5]]  # every 50 steps
     if shown:
         console.print(f"mean normalised likelihood of the user's task: {', '.join(shown)}")
+    bins = [b for b in summary["confidence_calibration"] if b["steps"]]
+    console.print("confidence calibration (best task's confidence: fraction of steps it was "
+                  "the user's target, steps): " + "; ".join(
+                      f"{b['low']:.1f}-{b['high']:.1f}: {b['fraction_right']:.2f} ({b['steps']})"
+                      for b in bins))

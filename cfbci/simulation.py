@@ -27,6 +27,7 @@ from calibration_free.session import StepRecord, session_streams
 from calibration_free.world import World, transition_draws
 from calibration_free.worlds import WORLDS, make_world
 from decoding.validation import check_option
+from replay.calibration import calibration_counts, calibration_curve, pool_counts
 
 BASELINES: tuple[str, ...] = ("calibrated",)
 
@@ -89,6 +90,10 @@ class SessionResult:
         Normalised likelihood ``L_t / sum_u L_u`` of the user's current target (the
         matching log-likelihood without the power prior, within the current task segment)
         after steps 10, 20, 30, ... (:data:`LIKELIHOOD_EVERY`).
+    calibration_counts : list of [int, int]
+        Per confidence bin (:mod:`replay.calibration`), the steps whose best task had a
+        confidence in it (before the step's action) and those where it was the user's
+        target then.
     """
 
     seed: int
@@ -100,6 +105,7 @@ class SessionResult:
     first_confident_step: int | None = None
     first_confident_correct: bool | None = None
     user_task_likelihood: list[float] = field(default_factory=list)
+    calibration_counts: list[list[int]] = field(default_factory=list)
 
 
 def make_learner(
@@ -144,8 +150,12 @@ def run_session(
     first_target = first_correct = first_confident = confident_correct = None
     correct = wrong = 0
     user_likelihood: list[float] = []
+    best_confidence: list[float] = []
+    best_is_target: list[bool] = []
     for step in range(1, config.steps + 1):
         beliefs = learner.beliefs()
+        best_confidence.append(float(beliefs.confidence[beliefs.best_task]))
+        best_is_target.append(beliefs.best_task == user.target)
         if beliefs.confident and first_confident is None:
             first_confident, confident_correct = step, beliefs.best_task == user.target
         proposal = learner.propose(state)
@@ -178,7 +188,7 @@ def run_session(
         state = next_state
     return SessionResult(
         seed, config.steps, first_target, first_correct, correct, wrong, first_confident,
-        confident_correct, user_likelihood,
+        confident_correct, user_likelihood, calibration_counts(best_confidence, best_is_target),
     )
 
 
@@ -211,4 +221,7 @@ def summarise(results: list[SessionResult]) -> dict[str, Any]:
         "mean_user_task_likelihood": {
             str(LIKELIHOOD_EVERY * (i + 1)): float(v) for i, v in enumerate(likelihood)
         },
+        "confidence_calibration": [
+            asdict(b) for b in calibration_curve(pool_counts(r.calibration_counts for r in results))
+        ],
     }

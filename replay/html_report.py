@@ -15,6 +15,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from replay.calibration import CalibrationBin
 from replay.figures import SavedFigure
 from replay.metrics import SCALAR_METRICS, SessionMetrics
 
@@ -185,10 +186,31 @@ def session_section(report: SessionReport, first_figure: int) -> str:
     return "\n".join(parts)
 
 
+def calibration_section(figure: SavedFigure, curve: Sequence[CalibrationBin]) -> str:
+    """The pooled confidence calibration: its figure and table."""
+    rows = "".join(
+        f"<tr><td>{b.low:.1f}-{b.high:.1f}</td><td>{b.steps}</td><td>"
+        f"{'-' if b.fraction_right is None else f'{b.fraction_right:.3f}'}</td></tr>"
+        for b in curve
+    )
+    return (
+        "<h2>Confidence calibration (all sessions)</h2>"
+        "<p>Per step, the best task's confidence before the step's action, binned, against "
+        "whether that task was the user's target then: a calibrated confidence of 0.9 is right "
+        "90 % of the time.</p>"
+        f'<figure id="confidence-calibration">{_image(figure)}</figure>'
+        "<table><tr><th>confidence</th><th>steps</th><th>fraction right</th></tr>"
+        f"{rows}</table>"
+    )
+
+
 def render_html(
-    reports: Sequence[SessionReport], aggregate: dict[str, dict[str, float | int | None]]
+    reports: Sequence[SessionReport],
+    aggregate: dict[str, dict[str, float | int | None]],
+    calibration: tuple[SavedFigure, Sequence[CalibrationBin]] | None = None,
 ) -> str:
-    """The whole report as one HTML document."""
+    """The whole report as one HTML document (``calibration``: the pooled calibration
+    figure and curve)."""
     done = [r for r in reports if r.metrics is not None]
     failed = [r for r in reports if r.metrics is None]
     truncated = [r for r in done if r.metrics is not None and r.metrics.truncated]
@@ -212,6 +234,8 @@ def render_html(
                      f"{html.escape(report.metrics.warning or '')}</div>")
     parts.append("<h2>Aggregate over sessions</h2>")
     parts.append(aggregate_table(aggregate))
+    if calibration is not None:
+        parts.append(calibration_section(*calibration))
     parts.append("<h3>Definitions</h3><dl>")
     for term, text in DEFINITIONS.items():
         parts.append(f"<dt>{html.escape(term)}</dt><dd>{html.escape(text)}</dd>")
@@ -233,9 +257,10 @@ def write_html(
     out_dir: Path,
     reports: Sequence[SessionReport],
     aggregate: dict[str, dict[str, float | int | None]],
+    calibration: tuple[SavedFigure, Sequence[CalibrationBin]] | None = None,
 ) -> Path:
     """Write ``out_dir/index.html`` (see the module docstring); return its path."""
     out_dir.mkdir(parents=True, exist_ok=True)
     path = out_dir / "index.html"
-    path.write_text(render_html(reports, aggregate), encoding="utf-8")
+    path.write_text(render_html(reports, aggregate, calibration), encoding="utf-8")
     return path

@@ -50,6 +50,7 @@ import numpy as np
 from calibration_free.frames import FRAMES, Frame
 from calibration_free.learner import CalibrationFreeLearner
 from calibration_free.world import GridWorld, World
+from replay.calibration import calibration_counts
 from replay.recording import Recording
 from replay.rerun import first_divergence, recompute
 from wire.messages import config_world, learner_settings, world_text
@@ -221,6 +222,7 @@ class SessionMetrics:
     warning: str | None
     distance: list[float | None] | None = None
     final_distance: float | None = None
+    calibration_counts: list[list[int]] | None = None
 
     def scalars(self) -> dict[str, float | int | None]:
         """The :data:`SCALAR_METRICS` of this session."""
@@ -395,6 +397,9 @@ def session_metrics(recording: Recording, file: str = "", rerun: bool = True) ->
     steps = [int(m["step"]) for m in moves]
     targets = [truth.get(step, {}).get("target") for step in steps]
     true_conf, other_conf, other_task = _confidences(states, targets, n_steps)
+    best = [(float(s["confidence"][s["best_task"]]), s["best_task"] == t)
+            for s, t in zip(states, targets, strict=False) if t is not None and "confidence" in s]
+    calibration = calibration_counts([c for c, _ in best], [r for _, r in best])
 
     declared = declared_targets(moves, truth, world)
     correct = sum(t.correct is True for t in declared)
@@ -456,6 +461,7 @@ def session_metrics(recording: Recording, file: str = "", rerun: bool = True) ->
         replay_note=replay.note,
         truncated=recording.truncated,
         warning=warning,
+        calibration_counts=calibration,
     )
 
 

@@ -342,9 +342,16 @@ def test_cfbci_report_writes_metrics_figures_and_html(
             assert png.is_file() and png.read_bytes().startswith(b"\x89PNG")
             assert f'data-file="{png.name}"' in page
             assert base64.b64encode(png.read_bytes()).decode() in page  # embedded
-    assert page.count("<figure") == 2 * len(KINDS)
+    # The pooled confidence calibration: every step of both sessions with a known target.
+    curve = document["confidence_calibration"]
+    assert sum(b["steps"] for b in curve) == sum(
+        sum(t is not None for t in s["true_target"]) for s in document["sessions"])
+    assert all(b["fraction_right"] is None or 0 <= b["fraction_right"] <= 1 for b in curve)
+    assert (out / "all-sessions_confidence_calibration.png").read_bytes().startswith(b"\x89PNG")
+    assert "Confidence calibration (all sessions)" in page
+    assert page.count("<figure") == 2 * len(KINDS) + 1
     sources = re.findall(r'src="([^"]*)"', page)
-    assert len(sources) == 2 * len(KINDS)
+    assert len(sources) == 2 * len(KINDS) + 1
     assert all(src.startswith("data:image/png;base64,") for src in sources)  # self-contained
 
 
