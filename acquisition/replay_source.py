@@ -44,6 +44,7 @@ from decoding.validation import check_option
 from wire import protocol
 from wire.plane import PLANE_FRAMES
 from wire.protocol import SequenceTracker
+from wire.services import QUERY_TIMEOUT, SERVICES, ask_for_offers, pick_service
 from wire.transport import (
     Outbox,
     Pump,
@@ -96,6 +97,9 @@ class SourceSettings:
     class_order : tuple of int or None
         Continuous world: the dataset class of each direction (default: class k for
         direction k); sent in the config's ``dataset``.
+    pick_service : bool
+        Ask the services for their load (:func:`wire.services.ask_for_offers`) and name the
+        least loaded in the config's ``service``, so that only it runs the session.
     """
 
     session: str
@@ -111,6 +115,7 @@ class SourceSettings:
     resend_interval: float = RESEND_INTERVAL
     world: str = "grid"
     class_order: tuple[int, ...] | None = None
+    pick_service: bool = False
 
     def __post_init__(self) -> None:
         check_option("world", self.world, (*WORLDS, *PLANE_FRAMES))
@@ -248,7 +253,8 @@ def replay_session(
             raise TimeoutError(f"no service subscribed to {protocol.key(sid, 'config')} "
                                f"within {settings.timeout} s")
         resender = Resender(outbox, settings.resend_interval)
-        config = resender.send("config", sid, {
+        chosen = {"service": _chosen_service(session, sid)} if settings.pick_service else {}
+        config = resender.send("config", sid, {**chosen,
             "seed": settings.seed, **settings.world_fields(), "frame": settings.frame,
             "steps": settings.steps, "learner": settings.learner,
             "dataset": signals.dataset, **signals.config,
@@ -271,6 +277,18 @@ def replay_session(
         for pump in pumps:
             pump.close()
         outbox.close()
+
+
+def _chosen_service(session: zenoh.Session, sid: str) -> str:
+    """The least loaded service's id (:mod:`wire.services`)."""
+    offers = ask_for_offers(session)
+    if not offers:
+        raise TimeoutError(f"session {sid!r}: no service answered the offers query on "
+                           f"{SERVICES}/* within {QUERY_TIMEOUT} s")
+    chosen = pick_service(offers)
+    log.info("session %r: service %s chosen among %s", sid, chosen.service,
+             ", ".join(f"{o.service} ({o.sessions}/{o.max_sessions})" for o in offers))
+    return chosen.service
 
 
 def _replay(

@@ -293,6 +293,10 @@ def _add_serve(commands: argparse._SubParsersAction) -> None:
     )
     _add_zenoh_config(p)
     p.add_argument("--record-dir", type=Path, help="write one <session>.mcap per session here")
+    p.add_argument(
+        "--service-id", help="this service's id among several on one network ([A-Za-z0-9_-], "
+        "1-64; default <host>-<pid>): sources that --pick-service name it in their config",
+    )
     add_limit_options(p)
     p.set_defaults(run=_run_serve)
 
@@ -303,10 +307,12 @@ def _run_serve(args: argparse.Namespace, console: Console) -> int:
     if not args.listen and not args.connect and args.zenoh_config is None:
         raise ValueError("give at least one --listen or --connect endpoint (or --zenoh-config)")
     from cfbci.limits import from_args
+    from wire.services import check_service_id
 
     serve(
         args.listen, args.connect, args.record_dir, limits=from_args(args),
         zenoh_config=args.zenoh_config,
+        service_id=None if args.service_id is None else check_service_id(args.service_id),
     )
     return 0
 
@@ -346,7 +352,7 @@ def _source_settings(args: argparse.Namespace, session: str) -> Any:
         session=session, data=data_spec(args), seed=args.seed,
         steps=args.steps, grid=args.grid, frame=args.frame, learner=learner,
         interval=args.interval, user_error_rate=args.user_error_rate, world=args.world,
-        **plane,
+        pick_service=getattr(args, "pick_service", False), **plane,
     )
 
 
@@ -358,6 +364,11 @@ def _add_source(commands: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--session", required=True, help="session id ([A-Za-z0-9_-], 1-64)")
     _add_source_options(p)
+    p.add_argument(
+        "--pick-service", action="store_true",
+        help="ask the services on the network for their load and name the least loaded one "
+        "in the config, so that exactly one serves the session (wire/services.py)",
+    )
     _add_endpoints(
         p, "Zenoh endpoint to listen on (repeatable)",
         "Zenoh endpoint of the service, e.g. tcp/127.0.0.1:7447 (repeatable)",

@@ -80,6 +80,7 @@ from wire.messages import (
 )
 from wire.plane import ContinuousStepper, continuous_memory_bytes, is_plane, plane_settings
 from wire.protocol import NO_SESSION, ProtocolError, SequenceTracker
+from wire.services import ServiceRegistration, default_service_id
 from wire.transport import Outbox, Pump, Received
 from wire.zenoh_config import peer_config
 
@@ -359,6 +360,9 @@ class PipelineService:
         :attr:`_Session.update_ns` and :attr:`_Session.queued_ms` (``cfbci bench latency``).
     resume : bool
         Resume the unfinished sessions of ``record_dir`` (:meth:`resume`).
+    service_id : str or None
+        This service's id among several (:mod:`wire.services`; default ``<host>-<pid>``):
+        it answers the offers query and runs the configs that name it or no service.
 
     Use :meth:`run` to serve until :meth:`stop`; :meth:`handle` processes one message.
     """
@@ -370,6 +374,7 @@ class PipelineService:
         limits: ServiceLimits | None = None,
         on_end: SessionEndHook | None = None,
         resume: bool = True,
+        service_id: str | None = None,
     ) -> None:
         self.limits = limits or ServiceLimits()
         self.intake = Intake(self.limits.rate, self.limits.max_message_bytes)
@@ -384,6 +389,10 @@ class PipelineService:
         self._ended_at_resume: dict[str, tuple[_Session, tuple[dict[str, Any], Any]]] = {}
         self._errors = _ErrorBudget()
         self._stopped = False
+        self.registration = ServiceRegistration(
+            session, service_id or default_service_id(),
+            lambda: (len(self._sessions) + len(self._pending), self.limits.max_sessions),
+        )
         if record_dir is not None and resume:
             self.resume(record_dir)
         prefix = protocol.PREFIX
@@ -425,6 +434,7 @@ class PipelineService:
             if received.tag == "truth":
                 self.handle(received)
         self.recordings.close()
+        self.registration.close()
         self._outbox.close()
 
     def handle(self, received: Received) -> None:
@@ -455,6 +465,7 @@ class PipelineService:
                 self._guarded(sid, lambda p=pending: self._start(p.message, p.publisher))
             elif now >= pending.deadline_ns:
                 del self._pending[sid]
+                self.registration.release(sid)
                 self._outbox.forget(sid)
                 self._reject(Rejection(
                     f"no subscriber to the session's events within "
@@ -486,6 +497,9 @@ class PipelineService:
             received.data, key_expr=received.key_expr, max_bytes=self.limits.max_message_bytes
         )
         sid, config = message.session, message.fields
+        chosen = config.get("service")
+        if chosen is not None and chosen != self.registration.service:
+            return  # the source chose another service
 
         def reject(problem: str) -> Rejection:
             return Rejection(problem, sid, message.seq, message.t_ns)
@@ -523,6 +537,9 @@ class PipelineService:
             raise reject(f"the service runs its maximum of {limits.max_sessions} sessions")
         if len(self._pending) >= PENDING_PER_SESSION * limits.max_sessions:
             raise reject(f"{len(self._pending)} sessions already wait for their source")
+        holder = self.registration.claim(sid) if chosen is not None else None
+        if holder is not None:
+            raise reject(f"session {sid!r} is already served by service {holder!r}")
         publisher = self._outbox.publisher(protocol.key(sid, "event"))
         if publisher.matching_status.matching:
             self._start(message, publisher)
@@ -626,6 +643,8 @@ class PipelineService:
         if divergence is not None or len(recorded_moves) < len(rerun.moves) - 1:
             raise ValueError(f"the re-run does not reproduce the recording: {divergence}")
         sid = recording.session
+        if config.get("service") is not None and (holder := self.registration.claim(sid)):
+            raise ValueError(f"session {sid!r} is already served by service {holder!r}")
         recorder = self.recordings.resume(recording)
         session = _Session(
             sid, config, recording.config["t_ns"], rerun.world, rerun.draws, rerun.learner,
@@ -902,6 +921,7 @@ class PipelineService:
 
     def _end(self, session: _Session, last_epoch_step: int) -> None:
         del self._sessions[session.id]
+        self.registration.release(session.id)
         self.intake.close(session.id)
         self.recordings.end(session.id, last_epoch_step)
         self._outbox.forget(session.id)
@@ -970,6 +990,7 @@ def serve(
     limits: ServiceLimits | None = None,
     zenoh_config: Path | None = None,
     resume: bool = True,
+    service_id: str | None = None,
 ) -> None:
     """Run a :class:`PipelineService` until SIGINT or SIGTERM, then shut down cleanly.
 
@@ -991,13 +1012,18 @@ def serve(
         Zenoh JSON5 configuration merged over the defaults (``--zenoh-config``).
     resume : bool
         Resume the unfinished sessions recorded in ``record_dir``.
+    service_id : str or None
+        See :class:`PipelineService`.
     """
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
     keep_freed_memory()
     with zenoh.open(peer_config(listen, connect, zenoh_config)) as session:
-        service = PipelineService(session, record_dir, limits, on_end=on_end, resume=resume)
+        service = PipelineService(
+            session, record_dir, limits, on_end=on_end, resume=resume, service_id=service_id
+        )
         for signum in (signal.SIGINT, signal.SIGTERM):
             signal.signal(signum, lambda *_: service.stop())
-        log.info("serving on listen=%s connect=%s", list(listen), list(connect))
+        log.info("service %s serving on listen=%s connect=%s", service.registration.service,
+                 list(listen), list(connect))
         service.run()
     log.info("stopped")

@@ -27,7 +27,7 @@ from calibration_free.frames import FRAMES
 from calibration_free.worlds import WORLDS, make_world
 from wire.plane import PLANE_FRAMES, PROBE
 
-VERSION: int = 4
+VERSION: int = 5
 PREFIX: str = "cfbci"
 MAX_BYTES: int = 16 * 2**20
 NO_SESSION: str = "_"  # key segment of the service's events about unusable session ids
@@ -133,7 +133,8 @@ class KindSpec:
 
     ``conditional`` maps ``(field, value)`` to fields required when the header's ``field``
     has that value and forbidden otherwise (``("signal", "epochs")``: the raw epochs'
-    description; ``("world", "grid")``: the grid's side).
+    description; ``("world", "grid")``: the grid's side). ``optional`` fields may be
+    absent.
     """
 
     sender: str
@@ -141,11 +142,12 @@ class KindSpec:
     fields: Mapping[str, Field]
     payload: Payload | None = None
     conditional: Mapping[tuple[str, str], Mapping[str, Field]] = field(default_factory=dict)
+    optional: Mapping[str, Field] = field(default_factory=dict)
 
     def fields_for(self, header: Mapping[str, Any]) -> dict[str, Field]:
         """The kind's fields a header with these values must hold (conditional ones
-        included where their condition holds)."""
-        fields = dict(self.fields)
+        included where their condition holds), and the optional ones it holds."""
+        fields = dict(self.fields) | {k: v for k, v in self.optional.items() if k in header}
         for (name, value), extra in self.conditional.items():
             if header.get(name) == value:
                 fields |= extra
@@ -194,6 +196,12 @@ SPECS: dict[str, KindSpec] = {
             ),
             "dataset": Field("object", "description of the data the source answers from"),
             "signal": _SIGNAL,
+        },
+        optional={
+            "service": Field(
+                "session", "id of the service chosen to run the session (see \"Several "
+                "services\"); absent: every service that hears the config runs it"
+            ),
         },
         conditional={
             ("world", "grid"): {
@@ -305,6 +313,7 @@ def markdown_table() -> str:
         lines += table(spec.fields)
         for (name, value), extra in spec.conditional.items():
             lines += table(extra, f" (only when `{name}` is {_show(value)})")[2:]
+        lines += table(spec.optional, " (optional)")[2:]
         if spec.payload is None:
             lines += ["", "Payload: none."]
             continue

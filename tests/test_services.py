@@ -1,0 +1,133 @@
+"""Several services on one Zenoh network (real processes through a real `cfbci router` on
+loopback): a source picks the least loaded service, exactly that one runs the session, and
+a service refuses a session another one claims."""
+
+from __future__ import annotations
+
+import queue
+import time
+from collections.abc import Iterator
+from concurrent.futures import Future, ProcessPoolExecutor
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+import zenoh
+from live import SPAWN, TIMEOUT
+from test_pipeline import GRID, STEPS, simulated
+
+from acquisition.replay_source import SourceSettings, SourceSummary, run_source
+from cfbci.router import run_router
+from cfbci.service import serve
+from replay.recording import read_recording
+from wire import protocol
+from wire.services import ask_for_offers, pick_service
+from wire.transport import Pump, Received, reliable_publisher, wait_for_subscribers
+from wire.zenoh_config import free_tcp_endpoint, peer_config
+
+
+@contextmanager
+def processes(*targets: tuple) -> Iterator[None]:
+    """Spawned processes ``(function, args, kwargs)``, stopped with SIGTERM (exit 0)."""
+    started = [SPAWN.Process(target=f, args=a, kwargs=k) for f, a, k in targets]
+    for process in started:
+        process.start()
+    try:
+        yield
+    finally:
+        for process in reversed(started):
+            process.terminate()
+            process.join(TIMEOUT)
+    assert [p.exitcode for p in started] == [0] * len(started)
+
+
+@contextmanager
+def client_source(
+    settings: SourceSettings, router: str, client: Path
+) -> Iterator[Future[SourceSummary]]:
+    """``cfbci source`` in a spawned process, a Zenoh client of the router."""
+    with ProcessPoolExecutor(1, mp_context=SPAWN) as pool:
+        yield pool.submit(run_source, settings, [], [router], client)
+
+
+def router_process(endpoint: str, ready: Any) -> None:
+    """``cfbci router`` on ``endpoint``; sets ``ready`` (an Event) once it listens."""
+    run_router([endpoint], on_ready=lambda _: ready.set())
+
+
+def wait_for_offers(client: zenoh.Session, services: set[str]) -> None:
+    """Query until every one of ``services`` answers the offers query."""
+    deadline = time.monotonic() + TIMEOUT
+    while {o.service for o in ask_for_offers(client)} != services:
+        assert time.monotonic() < deadline, f"not every service of {services} answered"
+
+
+def next_message(inbox: queue.SimpleQueue[Received]) -> protocol.Message:
+    return protocol.decode(inbox.get(timeout=TIMEOUT).data)
+
+
+def test_each_session_is_served_by_exactly_the_service_its_source_picked(
+    tmp_path: Path,
+) -> None:
+    # Services and sources are Zenoh clients of the router, as in docs/deployment.md (peers
+    # behind a router do not route queries and liveliness tokens to each other).
+    router, client_file = free_tcp_endpoint(), tmp_path / "client.json5"
+    client_file.write_text('{mode: "client"}')
+    dirs = {name: tmp_path / name for name in ("svc-a", "svc-b")}
+    services = [(serve, ([], [router], d), {"service_id": name, "zenoh_config": client_file})
+                for name, d in dirs.items()]
+    ready = SPAWN.Event()
+    with processes((router_process, (router, ready), {})):
+        assert ready.wait(TIMEOUT)  # clients cannot open before their router listens
+        with processes(*services), zenoh.open(peer_config((), [router], client_file)) as client:
+            wait_for_offers(client, set(dirs))
+            summaries = run_two_sessions(client, router, client_file)
+    for name, seed, home in (("first", 3, "svc-a"), ("second", 5, "svc-b")):
+        assert summaries[name].records == simulated(seed)[0]
+        where = [d.name for d in dirs.values() if (d / f"{name}.mcap").exists()]
+        assert where == [home], name  # recorded by the chosen service only
+        recording = read_recording(dirs[home] / f"{name}.mcap")
+        assert not recording.truncated and len(recording.messages["/move"]) == STEPS
+        assert recording.config["service"] == home
+
+
+def run_two_sessions(
+    client: zenoh.Session, router: str, client_file: Path
+) -> dict[str, SourceSummary]:
+    """"first" on the idle services (svc-a: the smaller id), a claim refused while it runs,
+    then "second" (svc-b: the less loaded); the two sources' summaries."""
+    inbox: queue.SimpleQueue[Received] = queue.SimpleQueue()
+    pumps = [Pump(client, protocol.key("first", kind), kind, inbox) for kind in ("move", "event")]
+    first = SourceSettings("first", seed=3, steps=STEPS, grid=GRID, timeout=TIMEOUT,
+                           interval=0.1, pick_service=True)
+    second = SourceSettings("second", seed=5, steps=STEPS, grid=GRID, timeout=TIMEOUT,
+                            pick_service=True)
+    try:
+        with client_source(first, router, client_file) as first_done:
+            while next_message(inbox).kind != "move":
+                pass
+            offers = ask_for_offers(client)
+            assert {o.service: o.sessions for o in offers} == {"svc-a": 1, "svc-b": 0}
+            assert pick_service(offers).service == "svc-b"
+
+            # Another source reusing the running id and naming svc-b is refused by svc-b,
+            # which sees svc-a's claim; the running session is not disturbed.
+            publisher = reliable_publisher(client, protocol.key("first", "config"))
+            assert wait_for_subscribers(publisher, TIMEOUT)
+            fields = {"seed": 0, "world": "grid", "grid": GRID, "frame": "feedback",
+                      "steps": STEPS, "learner": {}, "dataset": {}, "signal": "features",
+                      "service": "svc-b"}
+            publisher.put(protocol.encode(protocol.Message("config", "first", 0, 7, fields)))
+            while (message := next_message(inbox)).kind != "event" or (
+                    message.fields["config_t_ns"] != 7):
+                pass
+            assert message.fields["event"] == "session_rejected"
+            assert "already served by service 'svc-a'" in message.fields["message"]
+
+            with client_source(second, router, client_file) as second_done:
+                summaries = {"second": second_done.result(TIMEOUT)}
+            summaries["first"] = first_done.result(TIMEOUT)
+    finally:
+        for pump in pumps:
+            pump.close()
+    return summaries
