@@ -50,6 +50,9 @@ GRID = 5
 #: Seconds any one wait may take before the benchmark gives up (a failure guard).
 TIMEOUT = 60.0
 _SESSION = "latency"
+#: Epochs at the start of every session left out of the steady-state figures (the first
+#: epoch fits the feature extractor, the first moves fill the learner's tables).
+WARMUP = 5
 
 
 def _service(listen: Sequence[str], results: Connection, sessions: int) -> None:
@@ -90,9 +93,11 @@ def bench_latency(
     -------
     dict
         ``{"steps", "sessions", "interval_s", "end_to_end_ms", "update_ms", "queued_ms",
-        "transport_ms", "non_learner_share"}``; each ``*_ms`` is ``{"median", "p99",
-        "max"}`` in ms over all sessions' epochs; ``non_learner_share`` is the total
-        transport + rest time over the total end-to-end time, in [0, 1].
+        "transport_ms", "steady_end_to_end_ms", "non_learner_share"}``; each ``*_ms`` is
+        ``{"median", "p99", "max"}`` in ms over all sessions' epochs (``steady_*``: without
+        each session's first :data:`WARMUP` epochs; None when ``steps <= WARMUP``);
+        ``non_learner_share`` is the total transport + rest time over the total end-to-end
+        time, in [0, 1].
 
     Raises
     ------
@@ -137,7 +142,7 @@ def bench_latency(
         if service.is_alive():
             service.kill()
             service.join()
-    end_to_end, update, queued = [], [], []
+    end_to_end, update, queued, steady = [], [], [], []
     for sid, summary in zip(ids, summaries, strict=True):
         update_ns, queued_ms = reports.get(sid, ([], []))
         if not len(summary.latency_ns) == len(update_ns) == len(queued_ms) == steps:
@@ -146,6 +151,7 @@ def bench_latency(
                 f"end-to-end, {len(update_ns)} update and {len(queued_ms)} queueing timings"
             )
         end_to_end += summary.latency_ns
+        steady += summary.latency_ns[WARMUP:]
         update += update_ns
         queued += queued_ms
     end_to_end_ns = np.asarray(end_to_end, dtype=np.float64)
@@ -158,6 +164,8 @@ def bench_latency(
         "update_ms": _stats_ms(np.asarray(update, dtype=np.float64)),
         "queued_ms": _stats_ms(np.asarray(queued, dtype=np.float64) * 1e6),
         "transport_ms": _stats_ms(transport),
+        "steady_end_to_end_ms": _stats_ms(np.asarray(steady, dtype=np.float64)) if steady
+        else None,
         "non_learner_share": float(transport.sum() / end_to_end_ns.sum()),
     }
 
@@ -170,10 +178,12 @@ def print_latency(report: dict[str, Any], console: Console) -> None:
     )
     for column in ("ms", "median", "p99", "max"):
         table.add_column(column, justify="right")
-    for name, key in (
+    rows = [(name, key) for name, key in (
         ("end to end", "end_to_end_ms"), ("learner update", "update_ms"),
         ("queueing", "queued_ms"), ("transport + rest", "transport_ms"),
-    ):
+        (f"end to end after {WARMUP} epochs", "steady_end_to_end_ms"),
+    ) if report[key] is not None]
+    for name, key in rows:
         table.add_row(name, *(f"{report[key][stat]:.3f}" for stat in ("median", "p99", "max")))
     console.print(table)
     console.print(

@@ -16,9 +16,10 @@ def test_bench_latency_reports_end_to_end_update_and_transport(
     report = json.loads(out.read_text())
     assert set(report) == {
         "steps", "sessions", "interval_s", "end_to_end_ms", "update_ms", "queued_ms",
-        "transport_ms", "non_learner_share",
+        "transport_ms", "steady_end_to_end_ms", "non_learner_share",
     }
     assert (report["steps"], report["sessions"]) == (20, 1)
+    assert report["steady_end_to_end_ms"]["max"] <= report["end_to_end_ms"]["max"]
     for key in ("end_to_end_ms", "update_ms", "queued_ms", "transport_ms"):
         assert set(report[key]) == {"median", "p99", "max"}
         assert all(isinstance(value, float) for value in report[key].values())
