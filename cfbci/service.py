@@ -398,8 +398,11 @@ class PipelineService:
         prefix = protocol.PREFIX
         self._pumps = [
             Pump(session, f"{prefix}/*/{kind}", kind, self.intake, self.intake.accepts_size)
-            # Recorder-only: truth goes to self.recordings, never to a _Session.
-            for kind in ("config", "epoch", "truth")
+            # Recorder-only: truth goes to self.recordings, never to a _Session. Truth is
+            # declared before epoch, so that a source (re)discovering this service knows the
+            # truth subscriber before its epochs are delivered: the truth re-sent with an
+            # epoch after a restart is then not lost while the epoch gets through.
+            for kind in ("config", "truth", "epoch")
         ]
 
     @property

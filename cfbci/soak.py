@@ -78,8 +78,8 @@ _LONG = "soak-long"
 
 def _service(listen: Sequence[str], record_dir: Path, results: Connection) -> None:
     """The service process: sends ``(session, update_ns)`` on ``results`` per ended session."""
-    serve(listen, (), record_dir, on_end=lambda session, update_ns: results.send((session,
-                                                                                  update_ns)))
+    serve(listen, (), record_dir,
+          on_end=lambda session, update_ns, _queued_ms: results.send((session, update_ns)))
 
 
 def rss_bytes(pid: int) -> int:

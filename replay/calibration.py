@@ -54,7 +54,8 @@ def pool_counts(per_session: Iterable[Sequence[Sequence[int]]]) -> list[list[int
     """The bin counts of several sessions summed."""
     total = np.zeros((N_BINS, 2), dtype=int)
     for counts in per_session:
-        total += np.asarray(counts, dtype=int).reshape(N_BINS, 2)
+        if len(counts):  # a session without counts (none recorded) adds nothing
+            total += np.asarray(counts, dtype=int).reshape(N_BINS, 2)
     return total.tolist()
 
 

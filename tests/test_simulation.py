@@ -117,11 +117,11 @@ def test_simulate_command_writes_report_and_trace(tmp_path, capsys):
     assert set(out["summary"]) == {
         "median_first_target_step", "mean_correct_targets", "mean_wrong_targets",
         "wrong_target_rate", "sessions_with_a_target", "median_first_confident_step",
-        "wrong_first_target_fraction", "mean_user_task_likelihood",
+        "wrong_first_target_fraction", "mean_user_task_likelihood", "confidence_calibration",
     }
-    assert {"first_confident_step", "first_confident_correct", "user_task_likelihood"} <= set(
-        out["sessions"][0]
-    )
+    assert {"first_confident_step", "first_confident_correct", "user_task_likelihood",
+            "calibration_counts"} <= set(out["sessions"][0])
+    assert sum(b["steps"] for b in out["summary"]["confidence_calibration"]) == 2 * 60
     lines = [json.loads(line) for line in trace.read_text().splitlines()]
     assert len(lines) == 120
     assert set(lines[0]) == {
