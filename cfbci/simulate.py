@@ -16,6 +16,7 @@ from acquisition.sources import DataFactory, DataSpec
 from calibration_free.session import StepRecord
 from cfbci.parallel import Scheduler, run_parallel
 from cfbci.simulation import SessionConfig, SessionResult, run_session, summarise
+from replay.calibration import bin_of
 
 
 @dataclass(frozen=True)
@@ -116,7 +117,12 @@ def print_report(report: dict[str, Any], console: Console) -> None:
     shown = [f"{likelihood[s]:.2f} @{s}" for s in list(likelihood)[4::5]]  # every 50 steps
     if shown:
         console.print(f"mean normalised likelihood of the user's task: {', '.join(shown)}")
-    bins = [b for b in summary["confidence_calibration"] if b["steps"]]
+    curve = summary["confidence_calibration"]
+    bins = [b for b in curve if b["steps"]]
+    beta = report["config"]["learner"].get("beta")
+    if beta is not None and curve[bin_of(beta)]["steps"]:
+        console.print(f"in the bin of the confidence threshold {beta:g}, the best task was the "
+                      f"user's target at {curve[bin_of(beta)]['fraction_right']:.1%} of steps")
     console.print("confidence calibration (best task's confidence: fraction of steps it was "
                   "the user's target, steps): " + "; ".join(
                       f"{b['low']:.1f}-{b['high']:.1f}: {b['fraction_right']:.2f} ({b['steps']})"

@@ -77,7 +77,3 @@ def calibration_curve(counts: Sequence[Sequence[int]]) -> list[CalibrationBin]:
         for k, (n, right) in enumerate(counts)
     ]
 
-
-def threshold_bin(curve: Sequence[CalibrationBin], threshold: float) -> CalibrationBin:
-    """The bin that contains ``threshold``."""
-    return curve[bin_of(threshold)]

@@ -10,10 +10,10 @@ import pytest
 from cfbci.cli import main
 from replay.calibration import (
     N_BINS,
+    bin_of,
     calibration_counts,
     calibration_curve,
     pool_counts,
-    threshold_bin,
 )
 
 
@@ -23,7 +23,7 @@ def test_counts_bin_each_step_and_the_last_bin_is_closed() -> None:
     assert counts[0] == [2, 1] and counts[5] == [1, 1] and counts[N_BINS - 1] == [3, 2]
     assert sum(n for n, _ in counts) == 6
     curve = calibration_curve(pool_counts([counts, counts]))
-    top = threshold_bin(curve, 0.9)
+    top = curve[bin_of(0.9)]
     assert (top.low, top.high, top.steps, top.fraction_right) == (0.9, 1.0, 6, pytest.approx(2 / 3))
     assert curve[3].fraction_right is None and curve[3].steps == 0
 
