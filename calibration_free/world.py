@@ -360,6 +360,10 @@ class GridWorld(World):
         return divmod(int(state), self.size)
 
 
+#: Value-iteration sweeps between two stopping tests (see :func:`value_iteration`).
+_SWEEPS_PER_BLOCK = 32
+
+
 def value_iteration(
     reward: np.ndarray,
     next_state: np.ndarray | Transitions,
@@ -397,12 +401,51 @@ def value_iteration(
         raise ValueError("discount must be < 1 for value iteration to converge")
     if not isinstance(next_state, Transitions):
         next_state = Transitions.deterministic(np.asarray(next_state))
-    values = np.zeros(reward.shape[:-1]) if initial_values is None else initial_values
-    q = reward.astype(float, copy=True)
-    for _ in range(max_iterations):
-        q = reward + discount * next_state.expected(values)
-        new_values = q.max(axis=-1)
-        if np.max(np.abs(new_values - values)) < tolerance:
-            break
-        values = new_values
-    return q
+    # Sweeps work on (..., n_actions, n_states) arrays, so that the best action of every
+    # state is an elementwise maximum over a short leading axis (numpy reduces a short
+    # last axis one row at a time, five times slower here).
+    reward_by_action = np.ascontiguousarray(np.swapaxes(np.asarray(reward, dtype=float), -1, -2))
+    outcomes = np.ascontiguousarray(np.swapaxes(next_state.next_states, 0, 1))  # (A, S, O)
+    probabilities = np.ascontiguousarray(np.swapaxes(next_state.probabilities, 0, 1))
+
+    def sweep(values: np.ndarray) -> np.ndarray:
+        """``reward + discount * E[values(next state)]``, (..., n_actions, n_states)."""
+        if next_state.is_deterministic:
+            q = values[..., outcomes[..., 0]]
+        else:
+            q = (values[..., outcomes] * probabilities).sum(axis=-1)
+        q *= discount
+        q += reward_by_action
+        return q
+
+    def action_values(values: np.ndarray) -> np.ndarray:
+        return np.ascontiguousarray(np.swapaxes(sweep(values), -1, -2))
+
+    # Sweeps run in blocks whose state values are kept, so that the stopping test (the
+    # first sweep whose largest change is below the tolerance) is one array operation per
+    # block: the same sweeps and the same q as testing after every sweep, bit for bit.
+    block = _SWEEPS_PER_BLOCK
+    history = np.empty((block + 1, *reward.shape[:-1]))
+    history[0] = 0.0 if initial_values is None else initial_values
+    done = 0
+    while True:
+        sweeps = min(block, max_iterations - done)
+        if next_state.is_deterministic:  # sweep() inlined: a third of the time here
+            gather = outcomes[..., 0]
+            for j in range(sweeps):
+                q = history[j][..., gather]
+                q *= discount
+                q += reward_by_action
+                np.maximum.reduce(q, axis=-2, out=history[j + 1])
+        else:
+            for j in range(sweeps):
+                np.maximum.reduce(sweep(history[j]), axis=-2, out=history[j + 1])
+        changes = np.abs(history[1 : sweeps + 1] - history[:sweeps])
+        changes = changes.reshape(sweeps, -1).max(axis=1)
+        converged = np.flatnonzero(changes < tolerance)
+        if len(converged):
+            return action_values(history[converged[0]])
+        done += sweeps
+        if done >= max_iterations:
+            return action_values(history[sweeps - 1])
+        history[0] = history[sweeps]

@@ -10,6 +10,7 @@ from calibration_free.world import (
     ACTIONS,
     GOAL,
     GridWorld,
+    Transitions,
     optimal_actions,
     transition_draws,
     value_iteration,
@@ -64,6 +65,41 @@ def test_value_iteration_recovers_shortest_paths():
     greedy = q.argmax(axis=1)
     for state in range(world.n_states):
         assert world.optimal[task, state, greedy[state]]
+
+
+def _value_iteration_testing_every_sweep(reward, transitions, discount, tolerance,
+                                         max_iterations, initial_values=None):
+    """The textbook loop: stop at the first sweep whose largest change is below tolerance."""
+    values = np.zeros(reward.shape[:-1]) if initial_values is None else initial_values
+    for _ in range(max_iterations):
+        q = reward + discount * transitions.expected(values)
+        new_values = q.max(axis=-1)
+        if np.max(np.abs(new_values - values)) < tolerance:
+            break
+        values = new_values
+    return q
+
+
+@pytest.mark.parametrize("case", ["grid", "several MDPs", "stochastic", "capped", "warm"])
+def test_value_iteration_in_blocks_equals_testing_after_every_sweep_bit_for_bit(case):
+    rng = np.random.default_rng(3)
+    transitions = GridWorld(5).transitions
+    reward = rng.random((25, 5)) ** 3
+    options = {"discount": 0.9, "tolerance": 1e-8, "max_iterations": 1000}
+    if case == "several MDPs":
+        reward = rng.random((3, 25, 5))
+    elif case == "stochastic":
+        probabilities = rng.random((25, 5, 3))
+        transitions = Transitions(
+            rng.integers(0, 25, (25, 5, 3)), probabilities / probabilities.sum(-1, keepdims=True)
+        )
+    elif case == "capped":  # stops on max_iterations, inside a block
+        options["max_iterations"] = 45
+    elif case == "warm":
+        options.update(tolerance=1e-13, max_iterations=100_000,
+                       initial_values=reward.max(axis=-1) / 0.1)
+    expected = _value_iteration_testing_every_sweep(reward, transitions, **options)
+    assert np.array_equal(value_iteration(reward, transitions, **options), expected)
 
 
 def test_value_iteration_rejects_a_discount_of_one():
