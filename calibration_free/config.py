@@ -10,7 +10,7 @@ from calibration_free.likelihood import CONFIDENCES, DEFAULT_CONFUSION_SMOOTHING
 from calibration_free.planning import DEFAULT_DISCOUNT, DEFAULT_EPSILON, PLANNERS
 from calibration_free.task_decoders import DECODERS, DEFAULT_FOLDS
 from calibration_free.task_likelihoods import LIKELIHOODS
-from decoding.lda import DEFAULT_SHRINKAGE
+from decoding.lda import DEFAULT_SHRINKAGE, SHRINKAGE_RULES
 from decoding.student_t import STUDENT_T_COUNTS
 from decoding.validation import check_option, check_range
 
@@ -46,8 +46,10 @@ class LearnerConfig:
         ``shrinkage``, equal priors, :mod:`decoding.gaussian`); or, for symbolic signals
         (a one-hot vector of the button pressed), per-class button frequencies
         (:mod:`decoding.categorical`).
-    shrinkage : float, default 0.5
-        Covariance shrinkage towards the scaled identity, in [0, 1].
+    shrinkage : float or "oas", default 0.5
+        Covariance shrinkage towards the scaled identity, in [0, 1]; or, with the "lda"
+        decoder, "oas": each task and training set's Oracle Approximating Shrinkage
+        intensity, from its pooled covariance (:func:`decoding.lda.oas_shrinkage`).
     student_t_counts : {"class", "total"}, default "class"
         With ``decoder="student_t"``: the count in each class's predictive, the class's own
         weight or the training set's total (the thesis code's, which lets a rarely labelled
@@ -64,10 +66,13 @@ class LearnerConfig:
         Add the ErrP power prior to the scores (feedback frame only).
     beta : float, default 0.9
         Confidence threshold on the ``confidence`` rule.
-    planner : {"uncertainty", "greedy", "random", "signal", "epsilon-greedy"}, default "uncertainty"
+    planner : str, default "uncertainty"
+        One of "uncertainty", "information", "greedy", "random", "signal", "epsilon-greedy".
         How actions are chosen while not confident (:mod:`calibration_free.planning`):
-        meaning-space uncertainty or signal-space uncertainty (class means) with value
-        iteration, greedy on the most likely task, epsilon-greedy, or uniform.
+        meaning-space uncertainty (the weighted variance of expected matches), the expected
+        information of the answer about the task (mutual information on the same sampled
+        signals), or signal-space uncertainty (class means), each with value iteration;
+        greedy on the most likely task, epsilon-greedy, or uniform.
     epsilon : float, default 0.1
         The "epsilon-greedy" planner's probability of a uniform action, in [0, 1].
     planning_weights : {"posterior", "confidence"}, default "posterior"
@@ -76,7 +81,7 @@ class LearnerConfig:
         confidence W of method.md §6, which is flatter.
     novelty_bonus : float, default 4.0
         Exploration bonus ``c * 2 (1 - W_best) / sqrt(1 + visits(s))`` added to the
-        uncertainty reward of the "uncertainty" and "signal" planners (scaled to a
+        reward of the "uncertainty", "information" and "signal" planners (scaled to a
         maximum of 1) until the first target is reached: while no decoder is calibrated
         by use, it draws the agent to cells it has seen little, where the hypotheses'
         labels can be told apart (guidance needs cells in the target's row or column),
@@ -99,7 +104,7 @@ class LearnerConfig:
     likelihood: str = "matching"
     confidence: str = "pairwise"
     decoder: str = "lda"
-    shrinkage: float = DEFAULT_SHRINKAGE
+    shrinkage: float | str = DEFAULT_SHRINKAGE
     student_t_counts: str = "class"
     n_folds: int = DEFAULT_FOLDS
     confusion_smoothing: float = DEFAULT_CONFUSION_SMOOTHING
@@ -129,7 +134,16 @@ class LearnerConfig:
         check_option("planning_weights", self.planning_weights, PLANNING_WEIGHTS)
         check_range("eps", self.eps, 0.0, 0.5)
         check_range("epsilon", self.epsilon, 0.0, 1.0)
-        check_range("shrinkage", self.shrinkage, 0.0, 1.0)
+        if isinstance(self.shrinkage, str):
+            check_option("shrinkage", self.shrinkage, SHRINKAGE_RULES)
+            if self.decoder != "lda" or self.likelihood == "bhattacharyya":
+                raise ValueError(
+                    f"shrinkage {self.shrinkage!r} is chosen from the pooled covariance: it "
+                    f"needs decoder 'lda' and a likelihood other than 'bhattacharyya'; got "
+                    f"decoder {self.decoder!r}, likelihood {self.likelihood!r}"
+                )
+        else:
+            check_range("shrinkage", self.shrinkage, 0.0, 1.0)
         check_option("student_t_counts", self.student_t_counts, STUDENT_T_COUNTS)
         check_range("beta", self.beta, 0.5, 1.0, inclusive=False)
         check_range("discount", self.discount, 0.0, 1.0, inclusive=False)

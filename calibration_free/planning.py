@@ -2,6 +2,8 @@
 method-extensions §1(a)7 and §6.3), behind one interface, :class:`Planner`.
 
 :data:`PLANNERS`: ``"uncertainty"`` (meaning-space uncertainty, value iteration),
+``"information"`` (the expected information of the next answer about the task, value
+iteration),
 ``"signal"`` (signal-space uncertainty from the class means, value iteration),
 ``"greedy"`` (an optimal action towards the most likely task), ``"epsilon-greedy"``
 (with probability ``epsilon`` a uniform action, else greedy) and ``"random"``. The learner
@@ -16,13 +18,16 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.special import xlogy
 
 from calibration_free.frames import Frame
 from calibration_free.signal_space import signal_space_uncertainty
 from calibration_free.world import World, value_iteration
 from decoding.validation import check_option, check_range
 
-PLANNERS: tuple[str, ...] = ("uncertainty", "greedy", "random", "signal", "epsilon-greedy")
+PLANNERS: tuple[str, ...] = (
+    "uncertainty", "information", "greedy", "random", "signal", "epsilon-greedy"
+)
 DEFAULT_DISCOUNT = 0.9
 DEFAULT_EPSILON = 0.1
 #: Indicator elements the uncertainty planner builds at a time (bounds its temporaries).
@@ -202,26 +207,64 @@ class UncertaintyPlanner(RewardPlanner):
         n_tasks, n_states, n_kinds = index.shape
         columns = index.reshape(n_tasks, n_states * n_kinds)
         matches = corrected @ self.frame.distribution_rows.T  # (T, n, R)
-        weighted = matches * task_weights[:, None, None]
-        # Per task and row: [w m(e) for every signal e, sum_e w m(e)^2], (T, n + 1, R).
-        moments = np.concatenate(
-            [weighted, np.einsum("tnr,tnr->tr", weighted, matches)[:, None]], axis=1
-        )
+        per_signal, summed = self._task_terms(matches, task_weights)
+        # Per task and row: [a term per signal e, a term summed over them], (T, n + 1, R).
+        moments = np.concatenate([per_signal, summed[:, None]], axis=1)
         # Row 0 everywhere, plus what each other row changes where it applies.
         base = moments[:, :, 0].sum(axis=0)
         offsets = np.ascontiguousarray(  # (R - 1, n + 1, T), contiguous for BLAS
             (moments[:, :, 1:] - moments[:, :, :1]).transpose(2, 1, 0)
         )
-        variance = np.empty(columns.shape[1])
+        reward = np.empty(columns.shape[1])
         chunk = max(1, _CHUNK_ELEMENTS // n_tasks)
         for start in range(0, columns.shape[1], chunk):
             block = columns[:, start : start + chunk]
             totals = np.repeat(base[:, None], block.shape[1], axis=1)
             for row, offset in enumerate(offsets, start=1):
                 totals += offset @ (block == row).astype(float)
-            variance[start : start + chunk] = totals[-1] - np.sum(totals[:-1] ** 2, axis=0)
-        variance = np.maximum(variance, 0.0).reshape(n_states, n_kinds)
-        return np.broadcast_to(variance, (n_states, self.world.n_actions)).copy()
+            reward[start : start + chunk] = self._combine(totals[:-1], totals[-1])
+        reward = np.maximum(reward, 0.0).reshape(n_states, n_kinds)
+        return np.broadcast_to(reward, (n_states, self.world.n_actions)).copy()
+
+    @staticmethod
+    def _task_terms(matches: np.ndarray, task_weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Per task, signal and label row: ``w m`` (T, n, R); and ``sum_e w m^2`` (T, R)."""
+        weighted = matches * task_weights[:, None, None]
+        return weighted, np.einsum("tnr,tnr->tr", weighted, matches)
+
+    @staticmethod
+    def _combine(per_signal: np.ndarray, summed: np.ndarray) -> np.ndarray:
+        """The reward of every column from the task sums of :meth:`_task_terms`, (n, C) and
+        (C,): the weighted variance ``sum_e (sum_t w m^2 - (sum_t w m)^2)``."""
+        return summed - np.sum(per_signal**2, axis=0)
+
+
+class InformationPlanner(UncertaintyPlanner):
+    """Rewards state-actions by the expected information their answer gives about the task.
+
+    The mutual information between the task and the next signal, ``I(s, a) = sum_t w_t
+    KL(p(e | t, s, a) || sum_u w_u p(e | u, s, a))``, estimated on the sampled past
+    signals ``e`` (drawn from the signals' marginal): under equal class priors ``p(e | t,
+    s, a)`` is proportional to the expected match ``m_t(s, a, e)``, so the self-normalised
+    ``m~_t(e) = m_t(e) / sum_e' m_t(e')`` gives ``I = sum_e (sum_t w m~ log m~ - M log M)``
+    with ``M(e) = sum_t w_t m~_t(e)``. The decoder's uncertainty is in it through the
+    confusion-corrected ``q``: a decoder that cannot tell classes apart gives every
+    signal the same match, and no information. Same row-indicator sums and value
+    iteration as :class:`UncertaintyPlanner` (whose weighted variance is this quantity's
+    second-order approximation, without the division by ``M``).
+    """
+
+    @staticmethod
+    def _task_terms(matches: np.ndarray, task_weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``w m~`` (T, n, R) and ``sum_e w m~ log m~`` (T, R)."""
+        totals = matches.sum(axis=1, keepdims=True)
+        normalised = matches / np.where(totals > 0, totals, 1.0)
+        weighted = normalised * task_weights[:, None, None]
+        return weighted, np.sum(xlogy(weighted, normalised), axis=1)
+
+    @staticmethod
+    def _combine(per_signal: np.ndarray, summed: np.ndarray) -> np.ndarray:
+        return summed - np.sum(xlogy(per_signal, per_signal), axis=0)
 
 
 class SignalPlanner(RewardPlanner):
@@ -264,6 +307,8 @@ def make_planner(
     check_option("planner", kind, PLANNERS)
     if kind == "uncertainty":
         return UncertaintyPlanner(frame, discount)
+    if kind == "information":
+        return InformationPlanner(frame, discount)
     if kind == "signal":
         return SignalPlanner(frame, discount)
     if kind == "epsilon-greedy":

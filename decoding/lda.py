@@ -26,8 +26,11 @@ import numpy as np
 
 from decoding.estimator import StatisticsClassifier
 from decoding.statistics import BatchedDecoders, ClassStatistics, PooledStatistics, log_softmax
+from decoding.validation import check_option
 
 DEFAULT_SHRINKAGE = 0.5
+#: Shrinkage intensities chosen from the data (besides a fixed number).
+SHRINKAGE_RULES: tuple[str, ...] = ("oas",)
 #: A class needs this much (weighted) data before a decoder that uses it is informative.
 MIN_CLASS_COUNT = 2.0
 #: Weight below which a class (or the unlabelled rest of the signals) counts as empty.
@@ -108,13 +111,15 @@ class PooledLinearDecoders(BatchedDecoders):
 
 
 def fit_pooled_lda(
-    statistics: PooledStatistics, shrinkage: float = DEFAULT_SHRINKAGE
+    statistics: PooledStatistics, shrinkage: float | str = DEFAULT_SHRINKAGE
 ) -> PooledLinearDecoders:
     """Pooled-covariance shrinkage LDA for every training set and labelling at once.
 
     Only the classes with at least ``MIN_CLASS_COUNT`` weight take part in the decisions
     (equal priors among them); every class's within-class spread, and that of the
     unlabelled signals around their own mean, make up the pooled covariance.
+    ``shrinkage``: a fixed intensity in [0, 1], or ``"oas"`` for each training set and
+    labelling's own (:func:`oas_shrinkage`).
     """
     n_sets = statistics.n_signals.ndim
     n_features = statistics.scatter.shape[-1]
@@ -135,6 +140,11 @@ def fit_pooled_lda(
     within_trace = statistics.per_task(np.trace(statistics.scatter, axis1=-2, axis2=-1), 0)
     within_trace = within_trace - np.sum(projected**2, axis=(-2, -1))
     size = np.maximum(n_signals, 1.0)
+    if isinstance(shrinkage, str):
+        check_option("shrinkage", shrinkage, SHRINKAGE_RULES)
+        shrinkage = oas_shrinkage(
+            statistics.per_task(eigenvalues, 1), projected, within_trace, size
+        )
     c = (1.0 - shrinkage) / size
     nu = shrinkage * within_trace / (size * n_features)
     # Sigma in the basis: diag(a) - c U U^T, a = c e + nu.
@@ -165,6 +175,50 @@ def fit_pooled_lda(
         intercept=-0.5 * np.where(present, quadratic, 0.0) + log_priors,
         present=present,
     )
+
+
+def oas_shrinkage(
+    eigenvalues: np.ndarray, projected: np.ndarray, within_trace: np.ndarray, size: np.ndarray
+) -> np.ndarray:
+    """The Oracle Approximating Shrinkage intensity of each pooled covariance ``W / N``.
+
+    scikit-learn's ``OAS(assume_centered=True)`` on the class-centred signals (Chen et al.
+    2010, Eq. 23 without the 2 / p factor, as scikit-learn computes it): with ``C = W /
+    N``, ``mu = tr C / p`` and ``alpha = tr C^2 / p^2``, ``min(1, (alpha + mu^2) / ((N + 1)
+    (alpha - mu^2 / p)))``. It needs only ``tr W`` and ``tr W^2``, which the shared
+    statistics give: in the eigenbasis of the scatter ``W = diag(e) - U U^T`` (rows
+    ``u_k`` of ``projected``), so ``tr W^2 = sum e^2 - 2 sum_k u_k diag(e) u_k +
+    ||U U^T||_F^2``.
+
+    Parameters
+    ----------
+    eigenvalues : ndarray, shape (*J, 1.., d)
+        Of each training set's scatter, with unit axes for the labellings.
+    projected : ndarray, shape (*J, *T, K', d)
+        ``u_k = V^T s_k / sqrt(n_k)`` of every class (and of the unlabelled rest).
+    within_trace : ndarray, shape (*J, *T)
+        ``tr W``.
+    size : ndarray, broadcasting to (*J, *T)
+        ``N``, the training set's number of signals.
+
+    Returns
+    -------
+    ndarray, shape (*J, *T), in [0, 1]
+    """
+    n_features = projected.shape[-1]
+    gram = projected @ np.swapaxes(projected, -1, -2)
+    square_trace = (
+        np.sum(eigenvalues**2, axis=-1)
+        - 2.0 * np.einsum("...kd,...d->...", projected**2, eigenvalues)
+        + np.sum(gram**2, axis=(-2, -1))
+    )
+    mu = within_trace / size / n_features
+    alpha = square_trace / size**2 / n_features**2
+    numerator = alpha + mu**2
+    denominator = (size + 1.0) * (alpha - mu**2 / n_features)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ratio = np.where(denominator > 0, numerator / denominator, 1.0)
+    return np.minimum(ratio, 1.0)
 
 
 def _solve_small(system: np.ndarray, rhs: np.ndarray) -> np.ndarray:

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from calibration_free.frames import Frame
-from calibration_free.planning import UncertaintyPlanner, greedy_action
+from calibration_free.planning import InformationPlanner, UncertaintyPlanner, greedy_action
 from calibration_free.world import GOAL, GridWorld
 from calibration_free.worlds import PickAndPlaceWorld, make_world
 
@@ -46,6 +46,41 @@ def test_rewards_equal_the_old_formula(world, kind, seed):
     assert np.ptp(expected) > 1e-9  # the rewards differ between state-actions
     # Absolute: each reward is a sum over 20 signals of variances of numbers in [0, 1].
     np.testing.assert_allclose(rewards, expected, rtol=1e-9, atol=1e-13)
+
+
+def reference_information(
+    label_distribution: np.ndarray, corrected: np.ndarray, task_weights: np.ndarray
+) -> np.ndarray:
+    """Mutual information between the task and the next signal, plainly: for every (s, a),
+    ``p(e | t)`` = ``m_t(s, a, e)`` normalised over the sampled signals, and ``sum_t w_t
+    KL(p(. | t) || sum_u w_u p(. | u))``."""
+    m = np.einsum("tsak,tek->saet", label_distribution, corrected)
+    p = m / m.sum(axis=2, keepdims=True)
+    mixture = np.einsum("saet,t->sae", p, task_weights)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        terms = np.where(p > 0, p * np.log(p / mixture[..., None]), 0.0)
+    return np.einsum("saet,t->sa", terms, task_weights)
+
+
+@pytest.mark.parametrize("world", WORLDS[:4], ids=lambda w: f"{w.name}{w.n_states}")
+@pytest.mark.parametrize("kind", ["feedback", "guidance"])
+def test_information_rewards_equal_the_mutual_information(world, kind):
+    rng = np.random.default_rng(5)
+    frame = Frame(world, kind, eps=0.05)
+    corrected = rng.dirichlet(np.ones(frame.n_classes), size=(world.n_tasks, 20))
+    weights = rng.dirichlet(np.full(world.n_tasks, 0.3))
+    expected = reference_information(frame.label_distribution, corrected, weights)
+    rewards = InformationPlanner(frame).rewards(corrected, weights)
+    assert np.ptp(expected) > 1e-6
+    np.testing.assert_allclose(rewards, expected, rtol=1e-9, atol=1e-12)
+
+
+def test_an_uninformative_decoder_gives_no_information():
+    world = GridWorld(3)
+    frame = Frame(world, "feedback", eps=0.1)
+    corrected = np.full((world.n_tasks, 20, 2), 0.5)  # every signal looks the same
+    rewards = InformationPlanner(frame).rewards(corrected, np.full(world.n_tasks, 1 / 9))
+    np.testing.assert_allclose(rewards, 0.0, atol=1e-12)
 
 
 def test_the_planner_walks_where_the_hypotheses_disagree():

@@ -291,3 +291,45 @@ def test_balanced_accuracy_equals_sklearn_cross_validation():
             expected, abs=1e-12
         )
     assert models.balanced_accuracy(0, np.c_[np.ones(90), np.zeros(90)]) is None
+
+
+def _oas_intensity(signals, labels, n_classes):
+    """scikit-learn's OAS intensity of the pooled within-class covariance."""
+    from sklearn.covariance import OAS
+
+    means = np.stack([signals[labels == k].mean(axis=0) for k in range(n_classes)])
+    return OAS(assume_centered=True).fit(signals - means[labels]).shrinkage_
+
+
+@pytest.mark.parametrize(("seed", "n_classes"), [(11, 2), (12, 3)])
+def test_oas_lda_equals_sklearn_lda_at_each_training_sets_oas_intensity(seed, n_classes):
+    rng = np.random.default_rng(seed)
+    signals, labels, _, _ = random_problem(rng, 70, 6, 3, n_classes)
+    models = TaskModels.fit(history_of(signals, one_hot(labels, n_classes)),
+                            decoder_fit("lda", "oas"), 1.0)
+    probe = rng.normal(size=(9, 6))
+    fold = np.arange(len(signals)) % 10
+    intensities = []
+    for task, y in enumerate(labels):
+        intensity = _oas_intensity(signals, y, n_classes)
+        intensities.append(intensity)
+        expected = lda(intensity).fit(signals, y).predict_proba(probe)
+        np.testing.assert_allclose(models.decoders.proba(probe)[task], expected, atol=1e-10)
+        for f in (0, 3, 9):
+            train = fold != f
+            held_out = lda(_oas_intensity(signals[train], y[train], n_classes)).fit(
+                signals[train], y[train]
+            )
+            np.testing.assert_allclose(
+                models.cv_proba[task][~train], held_out.predict_proba(signals[~train]),
+                atol=1e-10,
+            )
+    # The intensity is each labelling's own: they differ between tasks.
+    assert 0.0 < min(intensities) < max(intensities)
+
+
+def test_oas_shrinkage_is_rejected_where_it_is_not_computed():
+    with pytest.raises(ValueError, match="needs decoder 'lda'"):
+        LearnerConfig(decoder="gaussian", shrinkage="oas")
+    with pytest.raises(ValueError, match="shrinkage"):
+        LearnerConfig(shrinkage="ledoit-wolf")
