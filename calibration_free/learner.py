@@ -337,7 +337,7 @@ class CalibrationFreeLearner(TaskLearner):
         models = self._current_models()
         if models is None or self._history is None:
             return None
-        if models.cv_proba is None:
+        if models.cv_by_fold is None:
             models = self._models = self._fit_models(cross_validate=True)
         if label_weights is None:
             label_weights = self._history.task_label_weights(task)

@@ -233,25 +233,41 @@ class TaskHistory:
         overall = self.signals.mean(axis=0) if self.n_signals else np.zeros(self.n_features)
         return np.where(filled[..., None], means, overall)
 
-    def label_confusion_counts(self, proba: np.ndarray) -> np.ndarray:
+    def label_confusion_counts(self, by_fold: np.ndarray) -> np.ndarray:
         """``sum_i w_i(t) p_i(t)^T`` for every task: (n_tasks, K, K).
 
-        ``proba`` (n_tasks, n_signals, K), e.g. out-of-fold predictions; row ``k`` of the
-        result is the predictions summed over the signals with task ``t``'s label
-        weight ``w_ik(t)``.
+        ``by_fold`` (n_folds, per_fold, n_tasks, K): class probabilities of every signal in
+        the layout of :meth:`cross_validated_proba` (signal ``i`` at ``[i % n_folds, i //
+        n_folds]``; the padding beyond the last signal is ignored). Row ``k`` of the result
+        is the predictions summed over the signals with task ``t``'s label weight
+        ``w_ik(t)``. The labels shared by every task (those adopted at target switches) take
+        one matrix product per fold, whatever the number of tasks; only the signals since
+        the last switch are gathered per task.
         """
+        n_folds, per_fold, n_tasks, n_classes = by_fold.shape
         n_shared = self._n_shared
-        shared = self._shared_weights[:n_shared].T @ proba[:, :n_shared]
-        own = np.swapaxes(self._own_weights[:, : self._n_own], -1, -2) @ proba[:, n_shared:]
-        return shared + own
+        shared = np.zeros((per_fold * n_folds, n_classes))
+        shared[:n_shared] = self._shared_weights[:n_shared]
+        shared = shared.reshape(per_fold, n_folds, n_classes).transpose(1, 2, 0)  # (F, K, j)
+        flat = by_fold.reshape(n_folds, per_fold, n_tasks * n_classes)
+        counts = np.matmul(shared, flat).sum(axis=0)  # (K, T * K)
+        counts = counts.reshape(n_classes, n_tasks, n_classes).transpose(1, 0, 2)
+        if self._n_own:
+            own = np.arange(n_shared, self.n_signals)
+            predicted = by_fold[own % n_folds, own // n_folds]  # (n_own, T, K)
+            counts = counts + np.einsum(
+                "tik,itl->tkl", self._own_weights[:, : self._n_own], predicted
+            )
+        return counts
 
     def cross_validated_proba(self, fold_decoders: BatchedDecoders) -> np.ndarray:
-        """Out-of-fold class probabilities, shape (n_tasks, n_signals, n_classes).
+        """Out-of-fold class probabilities by fold: (n_folds, per_fold, n_tasks, K).
 
         ``fold_decoders`` has batch shape (n_folds, n_tasks). Signal ``i`` is in fold
         ``i % n_folds`` at position ``i // n_folds``, so the signals, zero-padded to a
         multiple of ``n_folds``, reshape to (n_folds, per_fold, n_features) and every
-        fold's decoders score their own fold in one batched call.
+        fold's decoders score their own fold in one batched call; the padding's rows are
+        not predictions. :func:`in_signal_order` gives the (n_tasks, n_signals, K) view.
         """
         n_signals, n_folds = self.n_signals, self.n_folds
         per_fold = -(-n_signals // n_folds)
@@ -261,8 +277,17 @@ class TaskHistory:
             padded.reshape(per_fold, n_folds, self.n_features).swapaxes(0, 1)
         )
         proba = fold_decoders.proba(by_fold[:, None])  # (n_folds, T, per_fold, K)
-        in_order = proba.transpose(1, 2, 0, 3).reshape(self.n_tasks, -1, self.n_classes)
-        return in_order[:, :n_signals]
+        return proba.swapaxes(1, 2)  # a view of the decoders' (n_folds, per_fold, T, K)
+
+
+def in_signal_order(by_fold: np.ndarray, n_signals: int, task: int | None = None) -> np.ndarray:
+    """Probabilities by fold (:meth:`TaskHistory.cross_validated_proba`) in signal order:
+    (n_tasks, n_signals, K), or (n_signals, K) for one ``task`` (a copy)."""
+    n_tasks, n_classes = by_fold.shape[2:]
+    if task is not None:
+        return by_fold[:, :, task].swapaxes(0, 1).reshape(-1, n_classes)[:n_signals]
+    in_order = by_fold.transpose(2, 1, 0, 3).reshape(n_tasks, -1, n_classes)
+    return in_order[:, :n_signals]
 
 
 DECODERS: tuple[str, ...] = ("lda", "student_t", "gaussian", "categorical")
@@ -339,13 +364,26 @@ class TaskModels:
     confusion : ndarray, shape (n_tasks, n_classes, n_classes), or None
         ``p(true label i | predicted j)`` from k-fold cross-validation; None when fitted
         without cross-validation.
-    cv_proba : ndarray, shape (n_tasks, n_signals, n_classes), or None
-        The out-of-fold class probabilities the confusion matrices were built from.
+    cv_by_fold : ndarray, shape (n_folds, per_fold, n_tasks, n_classes), or None
+        The out-of-fold class probabilities the confusion matrices were built from, in
+        the layout of :meth:`TaskHistory.cross_validated_proba` (:attr:`cv_proba` in
+        signal order).
+    n_signals : int
+        Signals the models were fitted on.
     """
 
     decoders: BatchedDecoders
     confusion: np.ndarray | None = None
-    cv_proba: np.ndarray | None = None
+    cv_by_fold: np.ndarray | None = None
+    n_signals: int = 0
+
+    @property
+    def cv_proba(self) -> np.ndarray | None:
+        """Out-of-fold class probabilities, (n_tasks, n_signals, n_classes) (a copy), or
+        None without cross-validation."""
+        if self.cv_by_fold is None:
+            return None
+        return in_signal_order(self.cv_by_fold, self.n_signals)
 
     @classmethod
     def fit(
@@ -377,11 +415,11 @@ class TaskModels:
     ) -> TaskModels:
         """The models of fitted ``decoders`` (batch (n_tasks,)) with the confusion of
         their ``fold_decoders`` (batch (n_folds, n_tasks)) on ``history``."""
-        cv_proba = history.cross_validated_proba(fold_decoders)
+        by_fold = history.cross_validated_proba(fold_decoders)
         confusion = confusion_matrices(
-            history.label_confusion_counts(cv_proba), decoders.present, smoothing, balanced
+            history.label_confusion_counts(by_fold), decoders.present, smoothing, balanced
         )
-        return cls(decoders=decoders, confusion=confusion, cv_proba=cv_proba)
+        return cls(decoders, confusion, by_fold, history.n_signals)
 
     def balanced_accuracy(self, task: int, label_weights: np.ndarray) -> float | None:
         """Cross-validated balanced accuracy of ``task``'s decoder.
@@ -392,13 +430,13 @@ class TaskModels:
         soft); the result is the mean recall over the classes that have signals, or None
         while fewer than two have.
         """
-        if self.cv_proba is None:
+        if self.cv_by_fold is None:
             raise RuntimeError("these models were fitted without cross-validation")
         totals = label_weights.sum(axis=0)
         present = totals > 0
         if present.sum() < 2:
             return None
-        predicted = self.cv_proba[task].argmax(axis=1)
+        predicted = in_signal_order(self.cv_by_fold, self.n_signals, task).argmax(axis=1)
         hits = label_weights[np.arange(len(predicted)), predicted]
         correct = np.bincount(predicted, weights=hits, minlength=len(totals))
         return float(np.mean(correct[present] / totals[present]))

@@ -52,7 +52,7 @@ class PooledLinearDecoders(BatchedDecoders):
     ----------
     basis : ndarray, shape (*J, n_features, n_features)
         Orthonormal eigenvectors ``V`` of each training set's scatter (columns).
-    coef : ndarray, shape (*J, n_features, *T, n_classes)
+    coef : ndarray, shape (*J, *T, n_classes, n_features)
         ``V^T Sigma^-1 mu_k`` per task and class (0 for absent classes).
     intercept : ndarray, shape (*J, *T, n_classes)
         ``-mu_k Sigma^-1 mu_k / 2 + log(1 / K_present)``; -inf for absent classes.
@@ -69,16 +69,19 @@ class PooledLinearDecoders(BatchedDecoders):
     def _scores(self, X: np.ndarray, coef: np.ndarray, intercept: np.ndarray) -> np.ndarray:
         """``(X V) coef + intercept`` with tasks last: (*J, n, *T, C).
 
-        ``X`` (n, d), or (*J, 1.., n, d) with unit axes for the tasks; ``coef`` (*J, d,
-        *T, C), ``intercept`` (*J, *T, C). One matrix product per training set.
+        ``X`` (n, d), or (*J, 1.., n, d) with unit axes for the tasks; ``coef`` (*J, *T,
+        C, d), ``intercept`` (*J, *T, C). One matrix product per training set (BLAS reads
+        ``coef`` transposed in place).
         """
         n_sets = self.basis.ndim - 2
         X = np.asarray(X, dtype=float)
         if X.ndim > 2:  # the task axes broadcast: drop them
             X = X.reshape(*X.shape[: min(n_sets, X.ndim - 2)], *X.shape[-2:])
         projected = X @ self.basis  # (*J, n, d)
-        flat = coef.reshape(*coef.shape[: n_sets + 1], -1)  # (*J, d, T*C)
-        scores = (projected @ flat).reshape(*projected.shape[:-1], *coef.shape[n_sets + 1 :])
+        flat = coef.reshape(*coef.shape[:n_sets], -1, coef.shape[-1])  # (*J, T*C, d)
+        scores = (projected @ np.swapaxes(flat, -1, -2)).reshape(
+            *projected.shape[:-1], *coef.shape[n_sets:-1]
+        )
         scores += intercept[(*(slice(None),) * n_sets, None)]
         return scores
 
@@ -95,7 +98,7 @@ class PooledLinearDecoders(BatchedDecoders):
         n_sets = self.basis.ndim - 2
         # An informative two-class decoder knows both classes: every score is finite.
         informative = self.informative
-        coef = self.coef[..., 1:] - self.coef[..., :1]
+        coef = self.coef[..., 1:, :] - self.coef[..., :1, :]
         with np.errstate(invalid="ignore"):  # -inf - -inf where uninformative
             difference = self.intercept[..., 1:] - self.intercept[..., :1]
         intercept = np.where(informative[..., None], difference, 0.0)
@@ -136,9 +139,10 @@ def fit_pooled_lda(
     eigenvalues, basis = np.linalg.eigh(statistics.scatter)  # (*J, d), (*J, d, d)
     # u_k = V^T s_k / sqrt(n_k): W = S - sum_k (V u_k)(V u_k)^T.
     flat_sums = sums.reshape(*sums.shape[:n_sets], -1, n_features)
-    projected = (flat_sums @ basis).reshape(sums.shape) * scale[..., None]
+    projected = (flat_sums @ basis).reshape(sums.shape)
+    projected *= scale[..., None]
     within_trace = statistics.per_task(np.trace(statistics.scatter, axis1=-2, axis2=-1), 0)
-    within_trace = within_trace - np.sum(projected**2, axis=(-2, -1))
+    within_trace = within_trace - np.einsum("...kd,...kd->...", projected, projected)
     size = np.maximum(n_signals, 1.0)
     if isinstance(shrinkage, str):
         check_option("shrinkage", shrinkage, SHRINKAGE_RULES)
@@ -152,26 +156,30 @@ def fit_pooled_lda(
     singular = diagonal.min(axis=-1) <= _SINGULAR * np.abs(diagonal).max(axis=-1)
     safe_diagonal = np.where(singular[..., None], 1.0, diagonal)
     scaled = projected / safe_diagonal[..., None, :]  # U^T A^-1
-    gram = scaled @ np.swapaxes(projected, -1, -2)  # H = U^T A^-1 U
+    gram = _pairwise_dots(scaled, projected)  # H = U^T A^-1 U
     identity = np.eye(counts.shape[-1])
     system = np.where(singular[..., None, None], identity, identity - c[..., None, None] * gram)
-    # Sigma^-1 U = A^-1 U (I - c H)^-1, rows: (I - c H)^-1 U^T A^-1 (H is symmetric).
-    solved = _solve_small(system, scaled)
     present = statistics.counts >= MIN_CLASS_COUNT
     n_present = present.sum(axis=-1, keepdims=True)
+    # Sigma^-1 U = A^-1 U (I - c H)^-1, so V^T Sigma^-1 mu_k = sum_l M_kl (A^-1 u_l) with
+    # M = diag(scale) (I - c H)^-1 (H is symmetric), rows of absent classes zeroed: only
+    # K x K matrices per decoder, then one combination of the rows of U^T A^-1.
+    mixing = _inverse_small(system)[..., :n_classes, :]
+    mixing *= (scale[..., :n_classes] * present)[..., None]
+    coef = mixing @ scaled  # (*J, *T, C, d)
+    # mu_k Sigma^-1 mu_k = scale_k (M H)_kk.
+    quadratic = np.einsum("...kl,...lk->...k", mixing, gram[..., :, :n_classes])
+    quadratic *= scale[..., :n_classes]
     singular &= n_present[..., 0] >= 2  # an uninformative decoder is never used
     if np.any(singular):
-        solved[singular] = _least_squares(
-            diagonal[singular], projected[singular], np.broadcast_to(c, singular.shape)[singular]
+        _least_squares_decoders(
+            singular, diagonal, projected, c, scale[..., :n_classes] * present, coef, quadratic
         )
-    coef = solved[..., :n_classes, :] * scale[..., :n_classes, None]  # V^T Sigma^-1 mu_k
-    quadratic = np.sum(coef * projected[..., :n_classes, :], axis=-1) * scale[..., :n_classes]
     with np.errstate(divide="ignore"):
         log_priors = np.where(present, -np.log(np.maximum(n_present, 1)), -np.inf)
-    coef = np.where(present[..., None], coef, 0.0)
     return PooledLinearDecoders(
         basis=basis,
-        coef=np.ascontiguousarray(np.moveaxis(coef, -1, n_sets)),
+        coef=coef,
         intercept=-0.5 * np.where(present, quadratic, 0.0) + log_priors,
         present=present,
     )
@@ -221,22 +229,60 @@ def oas_shrinkage(
     return np.minimum(ratio, 1.0)
 
 
-def _solve_small(system: np.ndarray, rhs: np.ndarray) -> np.ndarray:
-    """``system^-1 rhs`` for a batch of small systems (*B, m, m), (*B, m, d).
+def _inverse_small(system: np.ndarray) -> np.ndarray:
+    """Inverses of a batch of small matrices (*B, m, m).
 
     Two classes (the feedback frame): the closed-form 2 x 2 inverse, elementwise over the
     batch (LAPACK's per-matrix call would dominate the step); otherwise LAPACK.
     """
     if system.shape[-1] != 2:
-        return np.linalg.solve(system, rhs)
-    a, b = system[..., 0, 0, None], system[..., 0, 1, None]
-    c, d = system[..., 1, 0, None], system[..., 1, 1, None]
-    determinant = a * d - b * c
+        return np.linalg.inv(system)
+    a, b = system[..., 0, 0], system[..., 0, 1]
+    c, d = system[..., 1, 0], system[..., 1, 1]
     # Only an uninformative decoder (never used) can have a singular system.
     with np.errstate(divide="ignore", invalid="ignore"):
-        first = (d * rhs[..., 0, :] - b * rhs[..., 1, :]) / determinant
-        second = (a * rhs[..., 1, :] - c * rhs[..., 0, :]) / determinant
-    return np.stack([first, second], axis=-2)
+        inverse_determinant = 1.0 / (a * d - b * c)
+    inverse = np.stack([d, -b, -c, a], axis=-1) * inverse_determinant[..., None]
+    return inverse.reshape(system.shape)
+
+
+def _pairwise_dots(rows: np.ndarray, other: np.ndarray) -> np.ndarray:
+    """``rows @ other^T`` for a batch of few rows (*B, m, d) each: (*B, m, m).
+
+    One elementwise dot per pair over the batch (a matrix product per 2 x d batch item
+    would cost more than the arithmetic).
+    """
+    m = rows.shape[-2]
+    out = np.empty((*rows.shape[:-2], m, m))
+    for k in range(m):
+        for j in range(m):
+            out[..., k, j] = np.einsum("...d,...d->...", rows[..., k, :], other[..., j, :])
+    return out
+
+
+def _least_squares_decoders(
+    singular: np.ndarray,
+    diagonal: np.ndarray,
+    projected: np.ndarray,
+    c: np.ndarray,
+    row_scale: np.ndarray,
+    coef: np.ndarray,
+    quadratic: np.ndarray,
+) -> None:
+    """Overwrite, in ``coef`` (*J, *T, C, d) and ``quadratic`` (*J, *T, C), the decoders
+    whose covariance is singular (``singular`` (*J, *T)) by their least-squares solution.
+
+    ``row_scale`` (*J, *T, C): each class's ``1 / sqrt(n_k)``, 0 for absent classes.
+    """
+    n_classes = quadratic.shape[-1]
+    solved = _least_squares(
+        diagonal[singular], projected[singular], np.broadcast_to(c, singular.shape)[singular]
+    )  # (m, K', d) rows of Sigma^+ U
+    rows = solved[:, :n_classes] * row_scale[singular][..., None]  # (m, C, d)
+    quadratic[singular] = np.sum(rows * projected[singular][:, :n_classes], axis=-1) * (
+        row_scale[singular]
+    )
+    coef[singular] = rows
 
 
 def _least_squares(diagonal: np.ndarray, projected: np.ndarray, c: np.ndarray) -> np.ndarray:

@@ -333,3 +333,25 @@ def test_oas_shrinkage_is_rejected_where_it_is_not_computed():
         LearnerConfig(decoder="gaussian", shrinkage="oas")
     with pytest.raises(ValueError, match="shrinkage"):
         LearnerConfig(shrinkage="ledoit-wolf")
+
+
+@pytest.mark.parametrize("n_classes", [2, 3])
+def test_without_shrinkage_and_fewer_signals_than_features_lda_is_sklearns_least_squares(
+    n_classes,
+):
+    rng = np.random.default_rng(20 + n_classes)
+    signals, labels, _, _ = random_problem(rng, 12, 15, 3, n_classes)
+    models = TaskModels.fit(history_of(signals, one_hot(labels, n_classes)),
+                            decoder_fit("lda", 0.0), 1.0)
+    probe = rng.normal(size=(5, 15))
+    fold = np.arange(len(signals)) % 10
+    for task, y in enumerate(labels):
+        expected = lda(0.0).fit(signals, y).predict_proba(probe)
+        np.testing.assert_allclose(models.decoders.proba(probe)[task], expected, atol=1e-8)
+        train = fold != 0
+        if np.all(np.bincount(y[train], minlength=n_classes) >= 2):
+            held_out = lda(0.0).fit(signals[train], y[train])
+            np.testing.assert_allclose(
+                models.cv_proba[task][~train], held_out.predict_proba(signals[~train]),
+                atol=1e-8,
+            )
