@@ -15,6 +15,9 @@ from decoding.student_t import STUDENT_T_COUNTS
 from decoding.validation import check_option, check_range
 
 PLANNING_WEIGHTS: tuple[str, ...] = ("posterior", "confidence")
+#: The novelty bonus of each frame when none is given (tuned on synthetic data, seeds
+#: 100-119: the README's tuning table).
+DEFAULT_NOVELTY_BONUS: dict[str, float] = {"feedback": 1.0, "guidance": 4.0}
 
 
 @dataclass(frozen=True)
@@ -66,7 +69,7 @@ class LearnerConfig:
         Add the ErrP power prior to the scores (feedback frame only).
     beta : float, default 0.9
         Confidence threshold on the ``confidence`` rule.
-    planner : str, default "uncertainty"
+    planner : str, default "information"
         One of "uncertainty", "information", "greedy", "random", "signal", "epsilon-greedy".
         How actions are chosen while not confident (:mod:`calibration_free.planning`):
         meaning-space uncertainty (the weighted variance of expected matches), the expected
@@ -79,14 +82,17 @@ class LearnerConfig:
         How the uncertainty planner weighs the tasks: their posterior (softmax of the
         scores), which focuses on the leading hypotheses, or their normalised pairwise
         confidence W of method.md §6, which is flatter.
-    novelty_bonus : float, default 4.0
+    novelty_bonus : float, default the frame's (:data:`DEFAULT_NOVELTY_BONUS`: 1 for
+        feedback, 4 for guidance)
         Exploration bonus ``c * 2 (1 - W_best) / sqrt(1 + visits(s))`` added to the
         reward of the "uncertainty", "information" and "signal" planners (scaled to a
         maximum of 1) until the first target is reached: while no decoder is calibrated
         by use, it draws the agent to cells it has seen little, where the hypotheses'
         labels can be told apart (guidance needs cells in the target's row or column),
         and fades as the best task's confidence W_best grows. The thesis's planners have
-        no such bonus (0 reproduces them).
+        no such bonus (0 reproduces them). Feedback is faster with a light bonus (the
+        information planner finds the telling cells itself); guidance needs the strong
+        one (see the README's tuning table).
     n_planning_signals : int, default 20
         Past signals sampled per step by the uncertainty planner.
     discount : float, default 0.9
@@ -111,10 +117,10 @@ class LearnerConfig:
     balanced_confusion: bool = True
     power_prior: bool = True
     beta: float = 0.9
-    planner: str = "uncertainty"
+    planner: str = "information"
     epsilon: float = DEFAULT_EPSILON
     planning_weights: str = "posterior"
-    novelty_bonus: float = 4.0
+    novelty_bonus: float | None = None
     n_planning_signals: int = 20
     discount: float = DEFAULT_DISCOUNT
     warmup_steps: int = 10
@@ -149,6 +155,8 @@ class LearnerConfig:
         check_range("discount", self.discount, 0.0, 1.0, inclusive=False)
         check_range("confusion_smoothing", self.confusion_smoothing, 0.0, 1e6)
         check_range("n_folds", self.n_folds, 2, 100)
+        if self.novelty_bonus is None:  # the frame's default, stored so that it is recorded
+            object.__setattr__(self, "novelty_bonus", DEFAULT_NOVELTY_BONUS[self.frame])
         check_range("novelty_bonus", self.novelty_bonus, 0.0, 1e6)
         check_range("n_planning_signals", self.n_planning_signals, 1, 10_000)
         check_range("warmup_steps", self.warmup_steps, 0, 1_000_000)

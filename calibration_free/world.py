@@ -360,8 +360,10 @@ class GridWorld(World):
         return divmod(int(state), self.size)
 
 
-#: Value-iteration sweeps between two stopping tests (see :func:`value_iteration`).
+#: Value-iteration sweeps between two stopping tests (see :func:`value_iteration`), and
+#: the state values kept for them at most (many MDPs at once test after every sweep).
 _SWEEPS_PER_BLOCK = 32
+_BLOCK_ELEMENTS = 1 << 16
 
 
 def value_iteration(
@@ -424,7 +426,8 @@ def value_iteration(
     # Sweeps run in blocks whose state values are kept, so that the stopping test (the
     # first sweep whose largest change is below the tolerance) is one array operation per
     # block: the same sweeps and the same q as testing after every sweep, bit for bit.
-    block = _SWEEPS_PER_BLOCK
+    n_values = int(np.prod(reward.shape[:-1]))
+    block = int(np.clip(_BLOCK_ELEMENTS // max(n_values, 1), 1, _SWEEPS_PER_BLOCK))
     history = np.empty((block + 1, *reward.shape[:-1]))
     history[0] = 0.0 if initial_values is None else initial_values
     done = 0

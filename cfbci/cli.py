@@ -127,7 +127,11 @@ def _add_simulate(commands: argparse._SubParsersAction, chosen: Preset | None) -
         help="--frame hypotheses: answer with signals drawn regardless of the label (the "
         "shuffled-label control)",
     )
-    p.add_argument("--planner", choices=PLANNERS, default="uncertainty")
+    p.add_argument(
+        "--planner", choices=PLANNERS,
+        help="how actions are chosen while not confident (default: the learner's, "
+        "'information'; the plane worlds' probing: 'uncertainty')",
+    )
     _add_likelihood_option(p)
     p.add_argument("--baseline", choices=BASELINES, help="run the calibrated baseline instead")
     p.add_argument(
@@ -202,7 +206,8 @@ def _run_simulate(args: argparse.Namespace, console: Console) -> int:
         return 0
     if args.frame == "hypotheses":
         return _simulate_frame_hypotheses(args, console)
-    settings = _learner_settings(args, frame=args.frame, planner=args.planner)
+    planner = {} if args.planner is None else {"planner": args.planner}
+    settings = _learner_settings(args, frame=args.frame, **planner)
     config = SessionConfig(
         steps=args.steps,
         grid=args.grid,

@@ -183,7 +183,7 @@ def estimate(world: World, learner: LearnerConfig, steps: int, n_features: int) 
 
     columns = states * (1 if guidance else actions)
     chunk = min(columns, max(1, _CHUNK_ELEMENTS // tasks))
-    if learner.planner in ("uncertainty", "signal"):
+    if learner.planner in ("uncertainty", "information", "signal"):
         signals = learner.n_planning_signals
         planner = (
             9 * tasks * chunk  # the row indicator, bool then float
@@ -191,6 +191,9 @@ def estimate(world: World, learner: LearnerConfig, steps: int, n_features: int) 
             + _FLOAT * 3 * tasks * (signals + 1) * labelled  # predictions, matches, moments
             + _FLOAT * 8 * states * actions  # reward and value iteration
             + (tasks * columns if learner.planner == "signal" else 0)  # most probable labels
+            # the matches normalised over the signals, and their x log x
+            + (_FLOAT * 2 * tasks * (signals + 1) * labelled
+               if learner.planner == "information" else 0)
         )
     else:
         planner = 0

@@ -141,12 +141,13 @@ def simulate_plane_world(
             "the puddle world's signals are its own six-class 20-D Gaussian data; leave "
             "--dataset and --synthetic out"
         )
+    probing = args.planner or "uncertainty"
     continuous = ContinuousConfig(
         n_hypotheses=args.hypotheses, sampling=args.sampling,
-        probing="uncertainty" if args.planner == "uncertainty" else "random",
+        probing="uncertainty" if probing == "uncertainty" else "random",
     )
     if args.world == "continuous":
-        if args.planner not in PROBINGS:
+        if probing not in PROBINGS:
             raise ValueError(f"the continuous world's --planner is one of {PROBINGS}")
         data.resolve("guidance")  # fail early on a bad dataset
     puddle = PuddleConfig(exploration=args.exploration)
@@ -168,7 +169,7 @@ def _config(args: argparse.Namespace, data: DataSpec) -> dict[str, Any]:
     if args.world == "continuous":
         config.update(
             dataset=data.describe(), hypotheses=args.hypotheses, sampling=args.sampling,
-            planner=args.planner, class_order=args.class_order,
+            planner=args.planner or "uncertainty", class_order=args.class_order,
         )
     else:
         config.update(exploration=args.exploration)

@@ -108,8 +108,11 @@ class PooledLinearDecoders(BatchedDecoders):
             error = np.exp(-difference, out=difference)
         error += 1.0
         np.reciprocal(error, out=error)  # p(class 1) = logistic(difference)
-        error[np.broadcast_to(uniform, error.shape)] = 0.5
-        proba = np.concatenate([1.0 - error, error], axis=-1)
+        if np.any(uniform):
+            np.copyto(error, 0.5, where=uniform)
+        proba = np.empty((*error.shape[:-1], 2))
+        np.subtract(1.0, error, out=proba[..., :1])
+        proba[..., 1:] = error
         return np.moveaxis(proba, n_sets, -2)  # (*J, *T, n, 2)
 
 
