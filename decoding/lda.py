@@ -160,10 +160,13 @@ def fit_pooled_lda(
     safe_diagonal = np.where(singular[..., None], 1.0, diagonal)
     scaled = projected / safe_diagonal[..., None, :]  # U^T A^-1
     gram = _pairwise_dots(scaled, projected)  # H = U^T A^-1 U
-    identity = np.eye(counts.shape[-1])
-    system = np.where(singular[..., None, None], identity, identity - c[..., None, None] * gram)
     present = statistics.counts >= MIN_CLASS_COUNT
     n_present = present.sum(axis=-1, keepdims=True)
+    # An uninformative decoder is never used: its system, which may be exactly singular
+    # (every class one signal: no within-class spread), is not solved.
+    unsolved = singular | (n_present[..., 0] < 2)
+    identity = np.eye(counts.shape[-1])
+    system = np.where(unsolved[..., None, None], identity, identity - c[..., None, None] * gram)
     # Sigma^-1 U = A^-1 U (I - c H)^-1, so V^T Sigma^-1 mu_k = sum_l M_kl (A^-1 u_l) with
     # M = diag(scale) (I - c H)^-1 (H is symmetric), rows of absent classes zeroed: only
     # K x K matrices per decoder, then one combination of the rows of U^T A^-1.

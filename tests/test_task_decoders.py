@@ -355,3 +355,24 @@ def test_without_shrinkage_and_fewer_signals_than_features_lda_is_sklearns_least
                 models.cv_proba[task][~train], held_out.predict_proba(signals[~train]),
                 atol=1e-8,
             )
+
+
+def test_a_labelling_without_within_class_spread_does_not_stop_the_others():
+    """Every class of task 0 holds one signal (no within-class spread: an exactly singular
+    covariance for some draws); it is uninformative, and task 1 is still scikit-learn's."""
+    from decoding.lda import fit_pooled_lda
+    from decoding.statistics import PooledStatistics
+
+    rng = np.random.default_rng(0)
+    weights = np.stack([one_hot(np.array([0, 1, 2, 3, 0]), 4),
+                        one_hot(np.array([0, 0, 1, 1, 1]), 4)], axis=1)  # (n, T, K)
+    weights[4, 0] = 0.0  # task 0 gives the last signal no label
+    for _ in range(200):  # some of these draws made the old solve raise "Singular matrix"
+        signals = rng.normal(size=(5, 2))
+        statistics = PooledStatistics.from_class_statistics(
+            ClassStatistics.from_signals(signals, weights)
+        )
+        decoders = fit_pooled_lda(statistics, 0.5)
+        assert list(decoders.informative) == [False, True]
+        expected = lda(0.5).fit(signals, np.array([0, 0, 1, 1, 1])).predict_proba(signals)
+        np.testing.assert_allclose(decoders.proba(signals)[1][:, :2], expected, atol=1e-10)
