@@ -31,6 +31,7 @@ it again (the stream vanishes and comes back with a new uid).
 from __future__ import annotations
 
 import logging
+import threading
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -344,7 +345,11 @@ class _Simulator:
         self.next = due
         if any(w.step == self.restart_after for w in finished):
             log.info("closing the EEG outlet for %.1f s", self.settings.outage)
-            self.eeg = None  # pylsl destroys the outlet with its last reference
+            # pylsl destroys the outlet with its last reference; liblsl's teardown can block
+            # while an inlet is connected, so it happens on a thread of its own.
+            closing, self.eeg = self.eeg, None
+            threading.Thread(target=_drop, args=(closing,), daemon=True).start()
+            del closing
             self.outage_until = due + round(self.settings.outage * self.sfreq)
             self.restart_after = None  # once
 
@@ -354,6 +359,11 @@ class _Simulator:
             log.info("EEG outlet open again")
         if self.eeg is not None and len(indices):
             self.eeg.push_chunk(block, list(self.t0 + indices / self.sfreq))
+
+
+def _drop(outlet: object) -> None:
+    """Hold the last reference to ``outlet`` until this thread ends (where it is destroyed)."""
+    del outlet
 
 
 def save_written(path: Path, simulation: Simulation) -> None:

@@ -262,8 +262,9 @@ def test_dropped_samples_and_a_vanished_stream_are_reported_and_never_cut_across
     assert "spans the gap" in bridge["refused"][0]["reason"]
     assert "LSL stream" in session.logs["bridge"] and "lost" in session.logs["bridge"]
     # A late marker is reported, and its epoch cut all the same (its samples are buffered).
-    (late,) = bridge["late_markers"]
-    assert late["step"] == 3 and late["delay"] >= 0.8
+    # (On a loaded machine another marker may be reported late too: only step 3's is made.)
+    (late,) = [m for m in bridge["late_markers"] if m["step"] == 3]
+    assert late["delay"] >= 0.8
     assert (bridge["epochs"][2]["step"], bridge["epochs"][2]["repeat"]) == (3, 0)
     # No published epoch holds a dropped sample or the outage.
     sample = np.round((np.array([e["onset"] for e in bridge["epochs"]]) - written["t0"]) * SFREQ)
