@@ -17,7 +17,7 @@ from decoding.validation import check_option, check_range
 PLANNING_WEIGHTS: tuple[str, ...] = ("posterior", "confidence")
 #: The novelty bonus of each frame when none is given (tuned on synthetic data, seeds
 #: 100-119: the README's tuning table).
-DEFAULT_NOVELTY_BONUS: dict[str, float] = {"feedback": 1.0, "guidance": 4.0}
+DEFAULT_NOVELTY_BONUS: dict[str, float] = {"feedback": 1.0, "guidance": 3.0}
 
 
 @dataclass(frozen=True)
@@ -83,7 +83,7 @@ class LearnerConfig:
         scores), which focuses on the leading hypotheses, or their normalised pairwise
         confidence W of method.md §6, which is flatter.
     novelty_bonus : float, default the frame's (:data:`DEFAULT_NOVELTY_BONUS`: 1 for
-        feedback, 4 for guidance)
+        feedback, 3 for guidance)
         Exploration bonus ``c * 2 (1 - W_best) / sqrt(1 + visits(s))`` added to the
         reward of the "uncertainty", "information" and "signal" planners (scaled to a
         maximum of 1) until the first target is reached: while no decoder is calibrated
