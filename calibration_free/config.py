@@ -155,15 +155,23 @@ class LearnerConfig:
         check_range("discount", self.discount, 0.0, 1.0, inclusive=False)
         check_range("confusion_smoothing", self.confusion_smoothing, 0.0, 1e6)
         check_range("n_folds", self.n_folds, 2, 100)
-        if self.novelty_bonus is None:  # the frame's default, stored so that it is recorded
-            object.__setattr__(self, "novelty_bonus", DEFAULT_NOVELTY_BONUS[self.frame])
-        check_range("novelty_bonus", self.novelty_bonus, 0.0, 1e6)
+        if self.novelty_bonus is not None:
+            check_range("novelty_bonus", self.novelty_bonus, 0.0, 1e6)
         check_range("n_planning_signals", self.n_planning_signals, 1, 10_000)
         check_range("warmup_steps", self.warmup_steps, 0, 1_000_000)
 
+    @property
+    def frame_novelty_bonus(self) -> float:
+        """The novelty bonus in force: the given one, or the frame's default (unresolved in
+        the field, so that ``dataclasses.replace(config, frame=...)`` takes the new frame's)."""
+        if self.novelty_bonus is None:
+            return DEFAULT_NOVELTY_BONUS[self.frame]
+        return self.novelty_bonus
+
     def to_dict(self) -> dict[str, Any]:
-        """Plain JSON-able dictionary of every setting."""
-        return asdict(self)
+        """Plain JSON-able dictionary of every setting, the novelty bonus in force included
+        (a recording replays with the bonus it ran with, whatever later defaults say)."""
+        return asdict(self) | {"novelty_bonus": self.frame_novelty_bonus}
 
     @classmethod
     def from_dict(cls, values: dict[str, Any]) -> LearnerConfig:

@@ -196,9 +196,9 @@ class TaskLearner:
             weights = beliefs.confidence.copy()
         weights /= weights.sum()
         novelty = None
-        if self.config.novelty_bonus > 0 and self.n_targets == 0:
+        if self.config.frame_novelty_bonus > 0 and self.n_targets == 0:
             fade = 2.0 * (1.0 - beliefs.confidence[beliefs.best_task])
-            novelty = fade * self.config.novelty_bonus / np.sqrt(1.0 + self._visits)
+            novelty = fade * self.config.frame_novelty_bonus / np.sqrt(1.0 + self._visits)
         inputs = PlanningInputs(
             beliefs.best_task, weights, novelty, self._predicted_samples, self._class_means
         )

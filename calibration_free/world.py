@@ -401,6 +401,7 @@ def value_iteration(
     check_range("discount", discount, 0.0, 1.0)
     if discount >= 1.0:
         raise ValueError("discount must be < 1 for value iteration to converge")
+    check_range("max_iterations", max_iterations, 1, np.inf)
     if not isinstance(next_state, Transitions):
         next_state = Transitions.deterministic(np.asarray(next_state))
     # Sweeps work on (..., n_actions, n_states) arrays, so that the best action of every

@@ -166,3 +166,23 @@ def test_the_second_target_comes_faster_than_the_first():
     assert len(reached_at) == 3
     gaps = np.diff([0, *reached_at])
     assert gaps[1:].max() < gaps[0]
+
+
+def test_the_novelty_bonus_default_follows_the_frame_and_is_recorded_resolved():
+    from dataclasses import replace
+
+    from calibration_free.config import DEFAULT_NOVELTY_BONUS
+
+    feedback = LearnerConfig()
+    guidance = replace(feedback, frame="guidance")  # as the frame-hypotheses learner does
+    assert feedback.frame_novelty_bonus == DEFAULT_NOVELTY_BONUS["feedback"]
+    assert guidance.frame_novelty_bonus == DEFAULT_NOVELTY_BONUS["guidance"]
+    assert DEFAULT_NOVELTY_BONUS["feedback"] != DEFAULT_NOVELTY_BONUS["guidance"]
+    # A recording holds the bonus in force, and replays with it.
+    recorded = guidance.to_dict()
+    assert recorded["novelty_bonus"] == DEFAULT_NOVELTY_BONUS["guidance"]
+    assert LearnerConfig.from_dict(recorded).frame_novelty_bonus == recorded["novelty_bonus"]
+    # A given bonus is kept whatever the frame.
+    assert replace(LearnerConfig(novelty_bonus=2.5), frame="guidance").frame_novelty_bonus == 2.5
+    with pytest.raises(ValueError, match="novelty_bonus"):
+        LearnerConfig(novelty_bonus=-1.0)

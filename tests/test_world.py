@@ -106,6 +106,8 @@ def test_value_iteration_rejects_a_discount_of_one():
     world = GridWorld(3)
     with pytest.raises(ValueError, match="discount"):
         value_iteration(np.zeros((9, 5)), world.next_state, discount=1.0)
+    with pytest.raises(ValueError, match="max_iterations"):
+        value_iteration(np.zeros((9, 5)), world.next_state, max_iterations=0)
 
 
 def test_grid_rejects_bad_sizes():
