@@ -69,7 +69,8 @@ class SessionConfig:
         return make_world(self.world, grid=self.grid)
 
     def to_dict(self) -> dict[str, Any]:
-        return asdict(self)
+        """Every setting, the learner's as :meth:`LearnerConfig.to_dict` writes them."""
+        return asdict(self) | {"learner": self.learner.to_dict()}
 
 
 #: Steps between two samples of the user's task likelihood (:class:`SessionResult`).

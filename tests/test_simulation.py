@@ -197,3 +197,11 @@ def test_without_declarations_the_user_teaches_one_task_whose_likelihood_rises()
     assert result.first_target_step is None and not any(r.event for r in trace)
     assert result.first_confident_step is not None  # confident, yet it declares nothing
     assert result.user_task_likelihood[-1] > 0.9 > result.user_task_likelihood[0]
+
+
+def test_the_simulate_config_records_the_novelty_bonus_in_force() -> None:
+    from calibration_free.config import DEFAULT_NOVELTY_BONUS
+
+    for frame in ("feedback", "guidance"):
+        config = SessionConfig(learner=LearnerConfig(frame=frame)).to_dict()
+        assert config["learner"]["novelty_bonus"] == DEFAULT_NOVELTY_BONUS[frame]
