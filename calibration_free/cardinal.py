@@ -38,13 +38,18 @@ def cardinal_guidance(points: np.ndarray, goals: np.ndarray, alpha: float) -> np
         :data:`DIRECTIONS` order.
     """
     offset = goals[None, :, :] - points[:, None, :]
-    bearing = np.arctan2(offset[..., 1], offset[..., 0])
-    gap = np.mod(bearing[..., None] - REFERENCE_ANGLES + np.pi, 2 * np.pi) - np.pi  # [-pi, pi)
-    raw = np.maximum(0.0, 1.0 - np.abs(gap) * (2 / np.pi))  # sums to 1 over the directions
+    bearing = np.arctan2(offset[..., 1], offset[..., 0])  # [-pi, pi]
+    gap = np.abs(bearing[..., None] - REFERENCE_ANGLES)  # [0, 2 pi]
+    np.minimum(gap, 2 * np.pi - gap, out=gap)  # |wrap(theta - theta_c)|, in [0, pi]
+    gap *= -2 / np.pi
+    gap += 1.0
+    raw = np.maximum(gap, 0.0, out=gap)  # sums to 1 over the directions
     zero = raw <= 0.0
     n_zero = zero[..., 0].astype(float)
     for k in range(1, len(DIRECTIONS)):  # elementwise: numpy's short-axis sums are slow
         n_zero += zero[..., k]
-    noisy = raw * (1.0 - alpha) + zero * (alpha / np.maximum(n_zero, 1.0))[..., None]
-    noisy[np.all(offset == 0.0, axis=-1)] = 1.0 / len(DIRECTIONS)  # at the goal: uniform
+    noisy = raw
+    noisy *= 1.0 - alpha
+    noisy += zero * (alpha / np.maximum(n_zero, 1.0))[..., None]
+    noisy[(offset[..., 0] == 0.0) & (offset[..., 1] == 0.0)] = 1.0 / len(DIRECTIONS)  # at the goal
     return noisy

@@ -27,7 +27,9 @@ the order: resampling, probe, sampled classifiers, candidates, signals for the m
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
+from functools import cache
 
 import numpy as np
 
@@ -179,11 +181,18 @@ class ContinuousGoalLearner:
         draws = sample_classifiers(
             means, covariances, len(signals), self.config.n_draws, self.rng
         )
+        mapping = None
+        if self.config.probing == "uncertainty":  # on the worker thread meanwhile
+            candidates, chosen = self._map_draws(len(signals))
+            mapping = _map_worker().submit(
+                _expected_matches, signals, labels, chosen, candidates, self.particles,
+                self.config,
+            )
         self.confidence = normal_difference_confidence(
             sampled_log_likelihoods(signals, labels, *draws)
         )
-        if self.config.probing == "uncertainty":
-            self._uncertainty = self._uncertainty_map(signals, labels)
+        if mapping is not None:
+            self._uncertainty = candidates, _weighted_variance(mapping.result(), self._weights())
 
     def estimate(self) -> np.ndarray:
         """The best particle, shape (2,)."""
@@ -192,30 +201,56 @@ class ContinuousGoalLearner:
     def uncertainty_map(self) -> tuple[np.ndarray, np.ndarray]:
         """Candidate probe points (n_candidates, 2) and their uncertainty (n_candidates,)
         under the current pool and weights (draws candidates and signals from the rng)."""
-        labels = np.swapaxes(
-            cardinal_guidance(np.array(self._points), self.particles, self.config.alpha), 0, 1
+        points, signals = np.array(self._points), np.array(self._signals)
+        labels = np.swapaxes(cardinal_guidance(points, self.particles, self.config.alpha), 0, 1)
+        candidates, chosen = self._map_draws(len(signals))
+        expected = _expected_matches(
+            signals, labels, chosen, candidates, self.particles, self.config
         )
-        return self._uncertainty_map(np.array(self._signals), labels)
+        return candidates, _weighted_variance(expected, self._weights())
 
     def _weights(self) -> np.ndarray:
         return self.confidence / self.confidence.sum()
 
-    def _uncertainty_map(
-        self, signals: np.ndarray, labels: np.ndarray
-    ) -> tuple[np.ndarray, np.ndarray]:
-        config = self.config
-        candidates = self.rng.uniform(size=(config.n_candidates, 2))
+    def _map_draws(self, n_signals: int) -> tuple[np.ndarray, np.ndarray]:
+        """The uncertainty map's candidate points (C, 2) and history signals (S,)."""
+        candidates = self.rng.uniform(size=(self.config.n_candidates, 2))
         chosen = self.rng.choice(
-            len(signals), size=min(config.n_map_signals, len(signals)), replace=False
+            n_signals, size=min(self.config.n_map_signals, n_signals), replace=False
         )
-        corrected = _corrected_predictions(signals, labels, chosen, config)  # (H, S, K)
-        frame = cardinal_guidance(candidates, self.particles, config.alpha)  # (C, H, K)
-        expected = np.swapaxes(frame, 0, 1) @ np.swapaxes(corrected, 1, 2)  # (H, C, S)
-        weights = self._weights()
-        mean = np.tensordot(weights, expected, axes=1)  # (C, S)
-        expected -= mean
-        variance = np.tensordot(weights, np.square(expected, out=expected), axes=1)
-        return candidates, variance.sum(axis=1)
+        return candidates, chosen
+
+
+@cache
+def _map_worker() -> ThreadPoolExecutor:
+    """The process's one thread for the uncertainty map's expected matches, which need
+    neither the step's confidence nor a random draw: they run there while the calling
+    thread scores the particles (numpy releases the GIL in both). Each computation is
+    the same sequence of operations wherever it runs: the results do not depend on it."""
+    return ThreadPoolExecutor(1, thread_name_prefix="cfbci-uncertainty-map")
+
+
+def _expected_matches(
+    signals: np.ndarray,
+    labels: np.ndarray,
+    chosen: np.ndarray,
+    candidates: np.ndarray,
+    particles: np.ndarray,
+    config: ContinuousConfig,
+) -> np.ndarray:
+    """``J_t(x', e_s)`` of every particle t, candidate x' and chosen signal s: (H, C, S)."""
+    corrected = _corrected_predictions(signals, labels, chosen, config)  # (H, S, K)
+    frame = cardinal_guidance(candidates, particles, config.alpha)  # (C, H, K)
+    return np.swapaxes(frame, 0, 1) @ np.swapaxes(corrected, 1, 2)
+
+
+def _weighted_variance(expected: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """The weighted variance over particles of ``expected`` (H, C, S), summed over the
+    signals: (C,). Works in place on ``expected``."""
+    mean = np.tensordot(weights, expected, axes=1)  # (C, S)
+    expected -= mean
+    variance = np.tensordot(weights, np.square(expected, out=expected), axes=1)
+    return variance.sum(axis=1)
 
 
 def _corrected_predictions(

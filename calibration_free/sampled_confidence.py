@@ -9,7 +9,7 @@ code, with ``n`` the total number of signals for every class and ``nu = n - d``:
 
 Each of ``J`` draws is a plain Gaussian classifier with equal class priors. A hypothesis's
 log-likelihood under draw ``j`` is the batch matching of the whole history (no confusion
-matrix): ``sum_i log(sum_k p(l_k | x_i, t) p_j(l_k | e_i) + tiny)``. Normalised across
+matrix): ``sum_i log(sum_k p(l_k | x_i, t) p_j(l_k | e_i))``. Normalised across
 hypotheses within each draw, the ``J`` values give a mean ``m_t`` and an unbiased variance
 ``v_t`` per hypothesis; the confidence that ``t`` beats ``u`` is the normal-difference
 probability ``Phi((m_t - m_u) / sqrt(v_t + v_u))`` and ``W_t = min_{u != t}`` of it.
@@ -152,6 +152,7 @@ def sampled_log_likelihoods(
     ndarray, shape (H, J)
     """
     n, d = signals.shape
+    n_hyp, n_draws, n_classes = sampled_means.shape[:3]
     centre = signals.mean(axis=0)  # the quadratic form is translation invariant
     signals, sampled_means = signals - centre, sampled_means - centre
     # Classifiers ordered class first, (K, H, J), so that each class's densities are one
@@ -159,36 +160,51 @@ def sampled_log_likelihoods(
     factors = np.moveaxis(precision_factors, 2, 0)
     flat = (factors @ np.swapaxes(factors, -1, -2)).reshape(-1, d, d)  # precisions
     means = np.moveaxis(sampled_means, 2, 0).reshape(-1, d)
-    # (x - mu)^T P (x - mu) = x^T P x - 2 (P mu)^T x + mu^T P mu: the first two terms for
-    # every classifier and signal as one float32 matrix product with the signals' outer
-    # products (rounding of about 1e-6 relative, far below the sampling noise).
+    # (x - mu)^T P (x - mu) = x^T P x - 2 (P mu)^T x + mu^T P mu, with x^T P x summed over
+    # the upper triangle of the symmetric P (off-diagonal terms twice): the first two
+    # terms for every classifier and signal are one float32 matrix product with the
+    # signals' pairwise products (d (d + 3) / 2 columns; rounding of about 1e-6 relative,
+    # far below the sampling noise), and the densities stay float32 to the matching.
+    row, column = np.triu_indices(d)
     projected = np.einsum("bij,bj->bi", flat, means)
-    left = np.concatenate([flat.reshape(-1, d * d), -2 * projected], axis=1)
-    right = np.concatenate(
-        [(signals[:, :, None] * signals[:, None, :]).reshape(n, d * d), signals], axis=1
+    left = np.concatenate(
+        [flat[:, row, column] * np.where(row == column, 1.0, 2.0), -2 * projected], axis=1
     )
-    quadratic = (left.astype(np.float32) @ right.T.astype(np.float32)).astype(float)
-    quadratic += np.einsum("bi,bi->b", projected, means)[:, None]
-    quadratic -= np.moveaxis(log_det_precision, 2, 0).reshape(-1, 1)
-    n_hyp, n_draws, n_classes = sampled_means.shape[:3]
-    log_density = (-0.5 * quadratic).reshape(n_classes, n_hyp, n_draws, n)
-    matched = _match(np.moveaxis(label_distributions, 2, 0)[:, :, None], log_density)
-    return np.log(matched + np.finfo(float).tiny).sum(axis=-1)
+    right = np.concatenate([signals[:, row] * signals[:, column], signals], axis=1)
+    quadratic = left.astype(np.float32) @ right.T.astype(np.float32)
+    offset = np.einsum("bi,bi->b", projected, means) - np.moveaxis(
+        log_det_precision, 2, 0
+    ).reshape(-1)
+    quadratic += offset.astype(np.float32)[:, None]
+    quadratic *= np.float32(-0.5)
+    log_density = quadratic.reshape(n_classes, n_hyp, n_draws, n)
+    labels = np.moveaxis(label_distributions, 2, 0)[:, :, None].astype(np.float32)
+    matched = _match(labels, log_density)
+    # A signal no label of the frame allows (alpha = 0) under a draw sure of another
+    # class: a finite penalty (log of float32's smallest normal, -87) rather than -inf.
+    np.maximum(matched, np.finfo(np.float32).tiny, out=matched)
+    return np.log(matched).sum(axis=-1, dtype=float)
 
 
 def _match(label_distributions: np.ndarray, log_density: np.ndarray) -> np.ndarray:
     """``sum_k p(l_k | x_i, t) p_j(l_k | e_i)`` with ``p_j`` the softmax of ``log_density``
     (K, H, J, n) over its class axis (equal priors); ``label_distributions`` (K, H, 1, n).
-    Returns (H, J, n). Elementwise over the K classes: numpy's reductions over a short
-    axis are several times slower."""
-    top = np.max(log_density, axis=0)
+    Returns (H, J, n), in the inputs' dtype. Elementwise over the K classes: numpy's
+    reductions over a short axis are several times slower."""
+    top = log_density[0].copy()
+    for log_class in log_density[1:]:
+        np.maximum(top, log_class, out=top)
     total = np.zeros_like(top)
     matched = np.zeros_like(top)
+    density = np.empty_like(top)
     for labels, log_class in zip(label_distributions, log_density, strict=True):
-        density = np.exp(log_class - top)
+        np.subtract(log_class, top, out=density)
+        np.exp(density, out=density)
         total += density
-        matched += labels * density
-    return matched / total
+        density *= labels
+        matched += density
+    matched /= total
+    return matched
 
 
 def normal_difference_confidence(log_likelihoods: np.ndarray) -> np.ndarray:

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from scipy.special import logsumexp
+from scipy.stats import multivariate_normal
 
 from acquisition.gaussian import generate_gaussian_features
 from calibration_free.cardinal import cardinal_guidance
@@ -12,6 +14,7 @@ from calibration_free.sampled_confidence import (
     normal_difference_confidence,
     pairwise_normal_difference,
     sample_classifiers,
+    sampled_log_likelihoods,
     weighted_class_moments,
 )
 from cfbci.continuous import run_continuous_session
@@ -95,6 +98,32 @@ def test_sampled_means_concentrate_like_one_over_n() -> None:
         sampled, _, _ = sample_classifiers(means, covariances, n, 400, rng)
         spreads.append(sampled[0, :, 0].var(axis=0).mean())
     assert spreads[0] / spreads[1] == pytest.approx(10.0, rel=0.3)
+
+
+def test_sampled_log_likelihoods_equal_a_direct_computation() -> None:
+    # Every classifier's class densities from scipy, its class probabilities (equal
+    # priors), the batch matching with each hypothesis's labels, summed over the signals.
+    rng = np.random.default_rng(10)
+    data = generate_gaussian_features(10, 4, 3, 0.9, seed=11)
+    signals = data.features + 5.0  # off-centre: the product centres them itself
+    labels = rng.dirichlet(np.ones(4), size=(3, len(signals)))  # (H, n, K)
+    means, covariances = weighted_class_moments(signals, labels, 0.5)
+    draws = sample_classifiers(means, covariances, len(signals), 2, rng)
+    sampled_means, factors, log_det = draws
+    expected = np.empty((3, 2))
+    for h, j in np.ndindex(3, 2):
+        log_density = np.stack([
+            multivariate_normal(
+                sampled_means[h, j, k], np.linalg.inv(factors[h, j, k] @ factors[h, j, k].T)
+            ).logpdf(signals)
+            for k in range(4)
+        ], axis=1)  # (n, K)
+        assert np.allclose(  # the factors' log determinant is the precision's
+            log_det[h, j], np.linalg.slogdet(factors[h, j] @ np.swapaxes(factors[h, j], 1, 2))[1]
+        )
+        proba = np.exp(log_density - logsumexp(log_density, axis=1, keepdims=True))
+        expected[h, j] = np.log((labels[h] * proba).sum(axis=1)).sum()
+    assert sampled_log_likelihoods(signals, labels, *draws) == pytest.approx(expected, rel=1e-4)
 
 
 def test_too_few_signals_are_refused() -> None:
