@@ -51,6 +51,7 @@ from calibration_free.config import LearnerConfig
 from calibration_free.learner import CalibrationFreeLearner
 from calibration_free.session import session_streams
 from calibration_free.world import GridWorld
+from cfbci.bench_continuous import bench_continuous_step, print_continuous
 from cfbci.blas import single_threaded_blas
 from cfbci.memory import keep_freed_memory
 from cfbci.simulation import SessionConfig, run_session
@@ -239,8 +240,19 @@ def run_bench_update(args: argparse.Namespace, console: Console) -> int:
         seed=args.seed, console=console,
     )
     print_rows(rows, console)
+    report: dict[str, Any] = {"rows": [asdict(r) for r in rows]}
+    if args.continuous_history > 0:
+        with console.status("continuous-goal step"), ProcessPoolExecutor(
+            1, mp_context=get_context("spawn")
+        ) as pool:
+            continuous = pool.submit(
+                bench_continuous_step, args.continuous_history, args.measured_steps,
+                seed=args.seed,
+            ).result()
+        print_continuous(continuous, SECONDS_PER_ACTION, console)
+        report["continuous"] = asdict(continuous)
     if args.json:
-        args.json.write_text(json.dumps({"rows": [asdict(r) for r in rows]}, indent=2) + "\n")
+        args.json.write_text(json.dumps(report, indent=2) + "\n")
     return 0
 
 
@@ -305,6 +317,10 @@ def add_bench_parsers(which: argparse._SubParsersAction) -> None:
     update.add_argument("--measured-steps", type=int, default=30)
     update.add_argument("--naive-repeats", type=int, default=5)
     update.add_argument("--seed", type=int, default=0)
+    update.add_argument(
+        "--continuous-history", type=int, default=200,
+        help="history of the continuous-goal row (50 particles, 1000 candidates; 0: none)",
+    )
     update.add_argument("--json", type=Path, help="write the rows as JSON")
     update.set_defaults(run=run_bench_update)
     simulate = which.add_parser(

@@ -1,5 +1,10 @@
 """The cost of one continuous-goal step (issue 10): resampling, probe choice, relabelling,
-the sampled-classifier confidence and the uncertainty map, at a given history length."""
+the sampled-classifier confidence and the uncertainty map, at a given history length.
+
+``cfbci bench update`` prints it as its continuous row (:func:`print_continuous`), timed in
+a fresh process with one BLAS thread, as the service and ``cfbci simulate`` run it. The
+step uses two threads (the uncertainty map's expected matches beside the particles'
+scores): its CPU time, both threads together, is what it would take on one core."""
 
 from __future__ import annotations
 
@@ -7,15 +12,18 @@ import time
 from dataclasses import dataclass
 
 import numpy as np
+from rich.console import Console
+from rich.table import Table
 
 from acquisition.cardinal_teacher import CardinalTeacher
 from acquisition.gaussian import generate_gaussian_features
 from calibration_free.continuous_goals import ContinuousConfig, ContinuousGoalLearner
+from cfbci.blas import single_threaded_blas
 
 
 @dataclass(frozen=True)
 class ContinuousStepTimes:
-    """Milliseconds per step (wall clock and this process's CPU time)."""
+    """Milliseconds per step (wall clock and this process's CPU time, all threads)."""
 
     history: int
     particles: int
@@ -30,8 +38,12 @@ def bench_continuous_step(
 ) -> ContinuousStepTimes:
     """Time ``steps`` steps of a learner whose history holds ``history`` signals at the
     first timed step (11-D four-class Gaussian signals, like ``move_finger.mat``'s); the
-    history grows by one signal per timed step."""
+    history grows by one signal per timed step. One BLAS thread (this process and its
+    children: run it in a process of its own)."""
     config = config or ContinuousConfig()
+    if history < 1 or steps < 1:
+        raise ValueError(f"history and steps must be >= 1; got {history} and {steps}")
+    single_threaded_blas()
     rng = np.random.default_rng(seed)
     data = generate_gaussian_features(500, 4, 11, 0.98, rng)
     teacher = CardinalTeacher(data.labels, rng)
@@ -50,4 +62,29 @@ def bench_continuous_step(
     return ContinuousStepTimes(
         history, config.n_hypotheses, config.n_candidates,
         float(np.median(wall_ms)), float(np.percentile(wall_ms, 99)), float(np.median(cpu_ms)),
+    )
+
+
+def print_continuous(
+    times: ContinuousStepTimes, seconds_per_action: float, console: Console
+) -> None:
+    """The continuous row: wall and CPU times, and the wall median's share of an action."""
+    table = Table(title="cfbci bench update - a continuous-goal step (new signal -> next probe)")
+    for column in (
+        "particles", "candidates", "history", "median ms", "p99 ms", "CPU median ms",
+        "of the action interval",
+    ):
+        table.add_column(column, justify="right")
+    share = times.median_ms / (10 * seconds_per_action)  # percent
+    table.add_row(
+        str(times.particles), str(times.candidates), str(times.history),
+        f"{times.median_ms:.1f}", f"{times.p99_ms:.1f}", f"{times.cpu_median_ms:.1f}",
+        f"{share:.2f} %",
+    )
+    console.print(table)
+    console.print(
+        f"continuous-goal step: CPU is both threads of the step (the uncertainty map's "
+        f"expected matches run beside the particles' scores), what one core would take; "
+        f"share of the action interval of {seconds_per_action:g} s. One BLAS thread.",
+        soft_wrap=True,
     )

@@ -13,10 +13,12 @@ def test_bench_update_reports_rows_with_the_naive_reference(tmp_path, capsys):
     out = tmp_path / "bench.json"
     code = main([
         "bench", "update", "--grids", "3", "6", "--histories", "12", "20",
-        "--measured-steps", "3", "--naive-repeats", "1", "--json", str(out),
+        "--measured-steps", "3", "--naive-repeats", "1", "--continuous-history", "20",
+        "--json", str(out),
     ])
     assert code == 0
-    rows = json.loads(out.read_text())["rows"]
+    report = json.loads(out.read_text())
+    rows = report["rows"]
     assert [(r["tasks"], r["history"]) for r in rows] == [(9, 12), (9, 20), (36, 12), (36, 20)]
     for row in rows:
         assert set(row) == {
@@ -28,8 +30,17 @@ def test_bench_update_reports_rows_with_the_naive_reference(tmp_path, capsys):
         assert row["peak_memory_mb"] > 10  # an interpreter with numpy at least
     # Measured on every task of the small grid, on a 25-task slice of the larger one.
     assert [r["naive_measured_tasks"] for r in rows] == [9, 9, NAIVE_TASKS, NAIVE_TASKS]
+    # The continuous-goal row: 3 steps from a history of 20 signals, default pool.
+    continuous = report["continuous"]
+    assert (continuous["history"], continuous["particles"], continuous["candidates"]) == (
+        20, 50, 1000
+    )
+    assert 0 < continuous["median_ms"] <= continuous["p99_ms"]
+    assert continuous["cpu_median_ms"] > 0
     printed = capsys.readouterr().out
     assert "speed-up" in printed and "extrapolated linearly" in printed
+    assert "continuous-goal step: CPU is both threads" in printed
+    assert "share of the action interval of 3 s" in printed
 
 
 def test_naive_slice_is_every_task_up_to_25_then_evenly_spaced():
