@@ -134,7 +134,7 @@ def test_alternative_settings_rescore_the_same_history_differently(
     ("arguments", "message"),
     [
         (["--option", "foo=1"], "unknown learner setting(s) ['foo']"),
-        (["--option", "beta=abc"], "learner setting 'beta' must be a float"),
+        (["--option", "beta=abc"], "learner setting 'beta' must be a number"),
         (["--option", "beta=1.5"], "beta"),
         (["--option", "decoder=nope"], "decoder must be one of"),
         (["--option", "beta"], "--option expects KEY=VALUE"),
@@ -155,7 +155,7 @@ def test_alternative_settings_are_checked_like_the_service_does() -> None:
     config = {"learner": {"eps": 0.1}, "frame": "feedback"}
     assert alternative_settings(config, {"decoder": "student_t"}).decoder == "student_t"
     assert alternative_settings(config, {"shrinkage": 1}).shrinkage == 1  # ints are floats
-    with pytest.raises(ValueError, match="n_folds' must be a int"):
+    with pytest.raises(ValueError, match="n_folds' must be an integer"):
         alternative_settings(config, {"n_folds": 5.0})
     with pytest.raises(ValueError, match="at least one key=value"):
         alternative_settings(config, {})

@@ -9,6 +9,8 @@ and a ``target_reached`` event's text from the learner's proposal and beliefs
 from __future__ import annotations
 
 import functools
+import typing
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -59,8 +61,9 @@ def start_state(seed: int, world: World) -> int:
 def learner_settings(values: dict[str, Any], frame: str) -> LearnerConfig:
     """The learner configuration of a config message's ``learner`` object and ``frame``.
 
-    Every value must have the JSON type of its setting's default (a number for a float
-    setting, an integer for an integer one, ...).
+    Every value must have a JSON type its setting's annotation allows (a number for a
+    float setting, an integer for an integer one, a number or a string for ``shrinkage``,
+    a number or null for ``novelty_bonus``, ...).
 
     Raises
     ------
@@ -68,24 +71,42 @@ def learner_settings(values: dict[str, Any], frame: str) -> LearnerConfig:
         On an unknown setting, a value of the wrong type or out of range, or a ``frame``
         setting that differs from the config's.
     """
-    defaults = LearnerConfig().to_dict()
     for name, value in values.items():
-        default = defaults.get(name)
-        if isinstance(default, bool | str):
-            ok = isinstance(value, type(default))
-        elif isinstance(default, int):
-            ok = isinstance(value, int) and not isinstance(value, bool)
-        else:  # a float setting takes any number
-            ok = isinstance(value, int | float) and not isinstance(value, bool)
-        if name in defaults and not ok:
+        kinds = _SETTING_KINDS.get(name)
+        if kinds is not None and not any(_JSON_KINDS[kind](value) for kind in kinds):
             raise ValueError(
-                f"learner setting {name!r} must be a {type(default).__name__}; got {value!r}"
+                f"learner setting {name!r} must be {' or '.join(kinds)}; got {value!r}"
             )
     if values.get("frame", frame) != frame:
         raise ValueError(
             f"learner frame {values['frame']!r} differs from the config's frame {frame!r}"
         )
     return LearnerConfig.from_dict({**values, "frame": frame})
+
+
+#: A JSON value's test for each kind a setting's annotation names.
+_JSON_KINDS: dict[str, Callable[[Any], bool]] = {
+    "a boolean": lambda value: isinstance(value, bool),
+    "an integer": lambda value: isinstance(value, int) and not isinstance(value, bool),
+    "a number": lambda value: isinstance(value, int | float) and not isinstance(value, bool),
+    "a string": lambda value: isinstance(value, str),
+    "null": lambda value: value is None,
+}
+_KIND_OF_TYPE = {
+    bool: "a boolean", int: "an integer", float: "a number", str: "a string",
+    type(None): "null",
+}
+
+
+def _setting_kinds() -> dict[str, tuple[str, ...]]:
+    """The JSON kinds each learner setting takes, from LearnerConfig's annotations."""
+    return {
+        name: tuple(_KIND_OF_TYPE[t] for t in typing.get_args(hint) or (hint,))
+        for name, hint in typing.get_type_hints(LearnerConfig).items()
+    }
+
+
+_SETTING_KINDS = _setting_kinds()
 
 
 def move_fields(
