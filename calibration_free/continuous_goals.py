@@ -27,9 +27,7 @@ the order: resampling, probe, sampled classifiers, candidates, signals for the m
 
 from __future__ import annotations
 
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
-from functools import cache
 
 import numpy as np
 
@@ -181,18 +179,15 @@ class ContinuousGoalLearner:
         draws = sample_classifiers(
             means, covariances, len(signals), self.config.n_draws, self.rng
         )
-        mapping = None
-        if self.config.probing == "uncertainty":  # on the worker thread meanwhile
-            candidates, chosen = self._map_draws(len(signals))
-            mapping = _map_worker().submit(
-                _expected_matches, signals, labels, chosen, candidates, self.particles,
-                self.config,
-            )
         self.confidence = normal_difference_confidence(
             sampled_log_likelihoods(signals, labels, *draws)
         )
-        if mapping is not None:
-            self._uncertainty = candidates, _weighted_variance(mapping.result(), self._weights())
+        if self.config.probing == "uncertainty":
+            candidates, chosen = self._map_draws(len(signals))
+            expected = _expected_matches(
+                signals, labels, chosen, candidates, self.particles, self.config
+            )
+            self._uncertainty = candidates, _weighted_variance(expected, self._weights())
 
     def estimate(self) -> np.ndarray:
         """The best particle, shape (2,)."""
@@ -219,15 +214,6 @@ class ContinuousGoalLearner:
             n_signals, size=min(self.config.n_map_signals, n_signals), replace=False
         )
         return candidates, chosen
-
-
-@cache
-def _map_worker() -> ThreadPoolExecutor:
-    """The process's one thread for the uncertainty map's expected matches, which need
-    neither the step's confidence nor a random draw: they run there while the calling
-    thread scores the particles (numpy releases the GIL in both). Each computation is
-    the same sequence of operations wherever it runs: the results do not depend on it."""
-    return ThreadPoolExecutor(1, thread_name_prefix="cfbci-uncertainty-map")
 
 
 def _expected_matches(

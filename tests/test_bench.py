@@ -39,7 +39,7 @@ def test_bench_update_reports_rows_with_the_naive_reference(tmp_path, capsys):
     assert continuous["cpu_median_ms"] > 0
     printed = capsys.readouterr().out
     assert "speed-up" in printed and "extrapolated linearly" in printed
-    assert "continuous-goal step: CPU is both threads" in printed
+    assert "continuous-goal step: 50 particles x 20 sampled classifiers" in printed
     assert "share of the action interval of 3 s" in printed
 
 
