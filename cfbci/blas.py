@@ -21,6 +21,18 @@ _THREAD_VARIABLES = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS
 
 def single_threaded_blas() -> None:
     """Limit this process and its future children to one BLAS thread."""
+    limit_blas_threads(1)
+
+
+def limit_blas_threads(threads: int) -> None:
+    """Limit this process and its future children to ``threads`` BLAS threads (>= 1).
+
+    ``cfbci --blas-threads N`` sets it for a whole command: results may then differ from
+    one thread's by rounding (a product split over threads sums in another order), which
+    is what it is for: measuring how much a session's outcome depends on it.
+    """
+    if threads < 1:
+        raise ValueError(f"--blas-threads must be >= 1; got {threads}")
     for name in _THREAD_VARIABLES:
-        os.environ[name] = "1"
-    threadpool_limits(1, user_api="blas")
+        os.environ[name] = str(threads)
+    threadpool_limits(threads, user_api="blas")

@@ -22,7 +22,7 @@ from calibration_free.planning import PLANNERS
 from calibration_free.task_likelihoods import LIKELIHOODS
 from calibration_free.worlds import WORLDS
 from cfbci import router
-from cfbci.blas import single_threaded_blas
+from cfbci.blas import limit_blas_threads
 from cfbci.compare import add_compare_command
 from cfbci.export import add_export_command
 from cfbci.flood import add_flood_parser
@@ -659,6 +659,12 @@ def build_parser(chosen: Preset | None = None) -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="cfbci", description="Calibration-free brain-computer interface."
     )
+    parser.add_argument(
+        "--blas-threads", type=int, default=1, metavar="N",
+        help="BLAS threads of this process and its children (default 1: the learner's "
+        "products are small, and threads wait for each other; more changes results by "
+        "rounding only)",
+    )
     commands = parser.add_subparsers(dest="command", required=True)
     _add_simulate(commands, chosen)
     _add_bench(commands)
@@ -687,9 +693,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     if getattr(args, "preset", None):  # parse again, the preset's settings as defaults
         args = build_parser(PRESETS[args.preset]).parse_args(argv)
     keep_freed_memory()
-    single_threaded_blas()
     console = Console(stderr=False)
     try:
+        limit_blas_threads(args.blas_threads)
         return args.run(args, console)
     except (ValueError, FileNotFoundError) as error:
         # soft_wrap: a long path is never broken across lines (it can be copied)
