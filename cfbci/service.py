@@ -11,7 +11,10 @@ idle), gets a ``session_rejected`` event instead.
 **Isolation.** Messages wait in a :class:`wire.intake.Intake` (bounded, one FIFO per running
 session served round-robin, per-session rate limit); the loop never blocks on anything but
 the intake: a config whose source has not subscribed to its events yet waits as a
-:class:`_Pending` entry, started by :meth:`PipelineService.housekeeping` once it has.
+:class:`_Pending` entry, started by :meth:`PipelineService.housekeeping` once it has; so
+does a puddle-world config while its world's policy tables, which every puddle session of
+the process shares, are built on a thread of their own (:class:`_PuddleTables`: 3-4 s and
+about 300 MiB of temporaries, once per process).
 
 **Restart and resume.** Started on a record directory, the service resumes every session
 recorded there that neither ended nor was rejected: it re-runs the learner over the
@@ -47,6 +50,7 @@ from __future__ import annotations
 import logging
 import os
 import signal
+import threading
 import time
 from collections import Counter
 from collections.abc import Callable, Sequence
@@ -92,6 +96,8 @@ from wire.plane import (
     plane_memory_bytes,
     plane_settings,
     plane_stepper,
+    puddle_world,
+    puddle_world_built,
 )
 from wire.protocol import NO_SESSION, ProtocolError, SequenceTracker
 from wire.services import ServiceRegistration, default_service_id
@@ -328,6 +334,40 @@ class _Session:
     queued_ms: list[float] = field(default_factory=list)
 
 
+class _PuddleTables:
+    """Builds the puddle world's policy tables (:func:`wire.plane.puddle_world`) on a
+    daemon thread, once per process, so that the service's loop never waits for them."""
+
+    def __init__(self) -> None:
+        self._thread: threading.Thread | None = None
+        self._error: BaseException | None = None
+
+    def ready(self) -> bool:
+        """Whether the tables are built; starts building them if nobody has.
+
+        Raises
+        ------
+        RuntimeError
+            If the build failed (e.g. out of memory).
+        """
+        if puddle_world_built():
+            return True
+        if self._error is not None:
+            raise RuntimeError(f"the puddle world's tables could not be built: {self._error!r}")
+        if self._thread is None:
+            self._thread = threading.Thread(target=self._build, name="puddle-tables",
+                                            daemon=True)
+            self._thread.start()
+            log.info("building the puddle world's policy tables (once per process)")
+        return False
+
+    def _build(self) -> None:
+        try:
+            puddle_world()
+        except BaseException as error:  # reported by ready(), on the loop
+            self._error = error
+
+
 #: Called with a session's id, its :attr:`_Session.update_ns` and its
 #: :attr:`_Session.queued_ms` when the session ends.
 SessionEndHook = Callable[[str, list[int], list[float]], None]
@@ -402,6 +442,7 @@ class PipelineService:
         # answered with the last state and session_ended again (at most max_sessions).
         self._ended_at_resume: dict[str, tuple[_Session, tuple[dict[str, Any], Any]]] = {}
         self._errors = _ErrorBudget()
+        self._puddle_tables = _PuddleTables()
         self._stopped = False
         self.registration = ServiceRegistration(
             session, service_id or default_service_id(),
@@ -478,6 +519,16 @@ class PipelineService:
         now = time.monotonic_ns()
         for sid, pending in list(self._pending.items()):
             if pending.publisher.matching_status.matching:
+                try:
+                    if not self._world_ready(pending.message.fields):
+                        continue  # its world's tables are being built: no deadline for that
+                except RuntimeError as error:
+                    del self._pending[sid]
+                    self.registration.release(sid)
+                    self._outbox.forget(sid)
+                    self._reject(Rejection(str(error), sid, pending.message.seq,
+                                           pending.message.t_ns))
+                    continue
                 del self._pending[sid]
                 self._guarded(sid, lambda p=pending: self._start(p.message, p.publisher))
             elif now >= pending.deadline_ns:
@@ -554,15 +605,25 @@ class PipelineService:
             raise reject(f"the service runs its maximum of {limits.max_sessions} sessions")
         if len(self._pending) >= PENDING_PER_SESSION * limits.max_sessions:
             raise reject(f"{len(self._pending)} sessions already wait for their source")
+        try:
+            ready = self._world_ready(config)
+        except RuntimeError as error:
+            raise reject(str(error)) from None
         holder = self.registration.claim(sid) if chosen is not None else None
         if holder is not None:
             raise reject(f"session {sid!r} is already served by service {holder!r}")
         publisher = self._outbox.publisher(protocol.key(sid, "event"))
-        if publisher.matching_status.matching:
+        if publisher.matching_status.matching and ready:
             self._start(message, publisher)
-        else:  # never wait here: the loop starts it once its source subscribes
+        else:  # never wait here: the loop starts it once its source subscribes (and its
+            # world's tables are built)
             deadline = time.monotonic_ns() + int(limits.subscriber_timeout * 1e9)
             self._pending[sid] = _Pending(message, publisher, deadline)
+
+    def _world_ready(self, config: dict[str, Any]) -> bool:
+        """Whether a config's world can start now: always, but for the puddle world while
+        its tables are being built (see :class:`_PuddleTables`)."""
+        return config.get("world") != "puddle" or self._puddle_tables.ready()
 
     def _check_memory(
         self,

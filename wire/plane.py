@@ -33,14 +33,16 @@ action at the state and draws its outcome at once (:meth:`PuddleWorld.move`), so
 restart state from the world stream before the next move, as the offline loop draws it
 after that step. The learner never sees ``reset``: only the next move's ``from_state``.
 The world's policy tables (value iteration for the 660 tasks, 3-4 s and about 300 MiB of
-temporaries) are built once per process (:func:`puddle_world`), when the first puddle
-session starts.
+temporaries) are built once per process (:func:`puddle_world`; the service builds them on
+a thread of their own before its first puddle session starts, see
+:mod:`cfbci.service`).
 """
 
 from __future__ import annotations
 
 import dataclasses
 import functools
+import threading
 from typing import Any
 
 import numpy as np
@@ -150,10 +152,24 @@ def puddle_memory_bytes(settings: PuddleConfig, steps: int, n_features: int = 0)
     return int(1.25 * (t * cells * a + max(build, update))) + 2**20
 
 
-@functools.cache
+_PUDDLE_WORLD_LOCK = threading.Lock()
+
+
 def puddle_world() -> PuddleWorld:
     """The puddle world, its policy tables built: once per process (see the module
-    docstring)."""
+    docstring); a thread calling it while another builds them waits for that build."""
+    with _PUDDLE_WORLD_LOCK:
+        return _built_puddle_world()
+
+
+def puddle_world_built() -> bool:
+    """Whether :func:`puddle_world` has built the tables in this process (it returns at
+    once then)."""
+    return _built_puddle_world.cache_info().currsize > 0
+
+
+@functools.cache
+def _built_puddle_world() -> PuddleWorld:
     world = PuddleWorld()
     world.optimal  # noqa: B018 - builds the cached tables
     return world
