@@ -259,26 +259,34 @@ def test_an_epoch_with_a_malformed_reset_is_rejected_and_the_session_goes_on(
         for sid, config in configs.items():
             assert wait_for_subscribers(outbox.publisher(protocol.key(sid, "config")), TIMEOUT)
             outbox.send("config", sid, config)
-            heard: list[protocol.Message] = []
+            backlog: list[protocol.Message] = []
 
-            def next_of(kind: str, sid: str = sid, heard: list = heard) -> protocol.Message:
-                while True:
-                    message = protocol.decode(inbox.get(timeout=TIMEOUT).data)
-                    heard.append(message)
-                    if message.session == sid and message.kind == kind:
-                        return message
+            def take(kind: str, sid: str = sid, backlog: list = backlog,
+                     **fields: object) -> protocol.Message:
+                """The first message of ``sid`` of ``kind`` with ``fields``: messages on
+                different keys may arrive in any order, so the others wait in a backlog."""
+                def match(message: protocol.Message) -> bool:
+                    return message.session == sid and message.kind == kind and all(
+                        message.fields[k] == v for k, v in fields.items())
 
-            assert next_of("event").fields["event"] == "session_started"
-            assert next_of("move").fields["step"] == 1
+                for k, message in enumerate(backlog):
+                    if match(message):
+                        return backlog.pop(k)
+                while not match(message := protocol.decode(inbox.get(timeout=TIMEOUT).data)):
+                    backlog.append(message)
+                return message
+
+            take("event", event="session_started")
+            take("move", step=1)
             publisher = reliable_publisher(client, protocol.key(sid, "epoch"))
             assert wait_for_subscribers(publisher, TIMEOUT)
             fields, problem = bad[sid]
             publisher.put(_raw_epoch(sid, 0, signal, **fields))
-            error = next_of("event").fields
-            assert error["event"] == "error" and problem in error["message"], error
+            error = take("event", event="error").fields
+            assert problem in error["message"], error
             publisher.put(_raw_epoch(sid, 1, signal))  # the next good one is answered
-            assert next_of("move").fields["step"] == 2
-            assert next_of("state").fields["n_signals"] == 1
+            take("move", step=2)
+            take("state", n_signals=1)
             publisher.undeclare()
         outbox.close()
         for pump in pumps:
@@ -329,7 +337,9 @@ def test_cfbci_session_runs_a_puddle_session_that_replays_and_reports(tmp_path: 
     assert "the agent&#x27;s trajectory" in page or "the agent's trajectory" in page
 
 
-def test_cfbci_source_options_of_the_puddle_world_are_checked(capsys: pytest.CaptureFixture) -> None:
+def test_cfbci_source_options_of_the_puddle_world_are_checked(
+    capsys: pytest.CaptureFixture,
+) -> None:
     """The source refuses, before any network, what the puddle world cannot run."""
     for options, problem in (
         (["--frame", "feedback"], "field 'frame' must be 'mixed'"),
