@@ -41,7 +41,7 @@ from cfbci.puddle import PuddleResult, PuddleStep, run_puddle_session
 from replay.recording import read_recording
 from replay.rerun import replay_check
 from wire import protocol
-from wire.plane import goal_probabilities, puddle_world
+from wire.plane import PuddleStepper, goal_probabilities, puddle_world
 from wire.transport import Outbox, Pump, Received, reliable_publisher, wait_for_subscribers
 from wire.zenoh_config import free_tcp_endpoint, peer_config
 
@@ -349,3 +349,17 @@ def test_cfbci_source_options_of_the_puddle_world_are_checked(
     ):
         assert main(["source", "--session", "p", "--world", "puddle", *options]) == 2
         assert problem in capsys.readouterr().err
+
+
+def test_the_service_steppers_share_one_world_and_keep_the_loop_order() -> None:
+    """Every puddle session of a process shares the world whose policy tables were built
+    once; a stepper refuses a second move before the epoch of the first, and an epoch
+    before its move."""
+    config = {"seed": 3, "world": "puddle", "frame": "mixed", "steps": 2, "learner": {}}
+    first, second = PuddleStepper(config), PuddleStepper({**config, "seed": 4})
+    assert first.world is second.world is puddle_world()
+    with pytest.raises(ValueError, match="an epoch before its move"):
+        first.observe(np.zeros(20, dtype=np.float32))
+    first.move()
+    with pytest.raises(ValueError, match="has no epoch yet"):
+        first.move()
