@@ -9,14 +9,33 @@ dataset class standing for that label: class ``k`` is label ``k`` of
 west), unknown to the learner. Random draws, in order, from the teacher's generator: the
 task, then per action the feedback-or-guidance coin, the mistake coin, the direction
 (guidance only), and pool shuffles when a pool is (re)filled.
+
+The signals themselves (:func:`gaussian_signals`, on the session's data stream) are six
+classes of the Gaussian generator, 20-D, nominal accuracy 0.95, as many per class as the
+ErrP synthetic pools: the offline sessions (:mod:`cfbci.puddle`) and the live source
+(:mod:`acquisition.replay_source`) draw them here.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
+from acquisition.gaussian import generate_gaussian_features
+from acquisition.labelled import LabelledFeatures
 from acquisition.signal_pools import SignalPools
+from acquisition.sources import SYNTHETIC_EPOCHS_PER_CLASS
 from calibration_free.puddle import MIXED_LABELS, PuddleWorld
+
+#: The Gaussian stand-in for the thesis's speech features: six words, 20-D.
+SIGNAL_DIMS, SIGNAL_ACCURACY = 20, 0.95
+
+
+def gaussian_signals(rng: np.random.Generator) -> LabelledFeatures:
+    """A puddle session's six-class signals (class ``k`` stands for label ``k`` of
+    :data:`calibration_free.puddle.MIXED_LABELS`)."""
+    return generate_gaussian_features(
+        SYNTHETIC_EPOCHS_PER_CLASS, len(MIXED_LABELS), SIGNAL_DIMS, SIGNAL_ACCURACY, rng
+    )
 
 
 class MixedTeacher:

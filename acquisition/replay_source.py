@@ -18,6 +18,15 @@ into ErrP features exactly as the simulation does; so do the epochs of a session
 (``.mcap``) that holds raw epochs, with its ``sfreq``, ``tmin`` and ``ch_names``; other
 dataset files (and recordings of feature vectors) and synthetic Gaussian signals go out as
 their float32 feature vectors (``signal`` "features").
+
+In the worlds of the plane the source is the environment and its teacher: the continuous
+world's :class:`acquisition.cardinal_teacher.CardinalTeacher` answers each probe point; the
+puddle world's :class:`acquisition.mixed_teacher.MixedTeacher` (its task drawn first from
+the user stream, as :func:`cfbci.puddle.run_puddle_session` draws it) answers each move
+``(from_state, action)`` with a signal of :func:`acquisition.mixed_teacher.gaussian_signals`
+(the data stream's, as offline) and, since it knows its task, says ``reset`` on the epoch
+when the move's ``to_state`` is in the task's goal cell: the service then restarts the
+agent.
 """
 
 from __future__ import annotations
@@ -35,6 +44,7 @@ import zenoh
 
 from acquisition.cardinal_teacher import CardinalTeacher
 from acquisition.labelled import LabelledEpochs, LabelledFeatures
+from acquisition.mixed_teacher import MixedTeacher, gaussian_signals
 from acquisition.sources import DataSpec, synthetic_epochs
 from acquisition.user import SimulatedUser
 from calibration_free.session import StepRecord, session_streams
@@ -42,7 +52,7 @@ from calibration_free.world import World
 from calibration_free.worlds import WORLDS, make_world
 from decoding.validation import check_option
 from wire import protocol
-from wire.plane import PLANE_FRAMES
+from wire.plane import PLANE_FRAMES, PUDDLE_MOVES, plane_settings, puddle_world
 from wire.protocol import SequenceTracker
 from wire.services import QUERY_TIMEOUT, SERVICES, ask_for_offers, pick_service
 from wire.transport import (
@@ -91,9 +101,12 @@ class SourceSettings:
         Seconds without a message from the service before giving up (a failure guard).
     resend_interval : float
         Seconds between two sendings of the unanswered config or epoch.
-    world : {"grid", "line", "pick-and-place", "continuous"}
+    world : {"grid", "line", "pick-and-place", "continuous", "puddle"}
         The world (:func:`calibration_free.worlds.make_world`; "continuous": the plane of
-        goal points, frame "cardinal", ``learner`` the ``ContinuousConfig`` settings).
+        goal points, frame "cardinal", ``learner`` the ``ContinuousConfig`` settings;
+        "puddle": frame "mixed", ``learner`` the ``PuddleConfig`` settings, whose
+        ``mixing`` the teacher takes too, and the signals the puddle world's own: ``data``
+        must be the default).
     class_order : tuple of int or None
         Continuous world: the dataset class of each direction (default: class k for
         direction k); sent in the config's ``dataset``.
@@ -119,6 +132,11 @@ class SourceSettings:
 
     def __post_init__(self) -> None:
         check_option("world", self.world, (*WORLDS, *PLANE_FRAMES))
+        if self.world == "puddle" and self.data != DataSpec():
+            raise ValueError(
+                "the puddle world's signals are its own six-class 20-D Gaussian data; leave "
+                "--dataset, --synthetic, --synthetic-accuracy and --dims out"
+            )
 
     def make_world(self) -> World:
         """The session's world."""
@@ -166,7 +184,10 @@ class _Signals:
     def __init__(self, settings: SourceSettings, rng: np.random.Generator) -> None:
         self.dataset: dict[str, Any] = {"description": settings.data.describe()}
         data: LabelledEpochs | LabelledFeatures
-        if settings.world == "continuous":  # as cfbci simulate --world continuous has them
+        if settings.world == "puddle":  # as cfbci simulate --world puddle has them
+            data = gaussian_signals(rng)
+            self.dataset["description"] = data.source
+        elif settings.world == "continuous":  # as cfbci simulate --world continuous has them
             resolved = settings.data.resolve("guidance")
             data = resolved(np.random.default_rng(settings.seed)) if callable(resolved) else (
                 resolved)
@@ -197,10 +218,12 @@ class _Signals:
             self.ch_names = None
             self.config = {"signal": "features"}
 
-    def epoch_fields(self, step: int) -> dict[str, Any]:
+    def epoch_fields(self, step: int, reset: bool = False) -> dict[str, Any]:
         fields: dict[str, Any] = {"step": step, "signal": self.config["signal"]}
         if self.ch_names is not None:
             fields["ch_names"] = self.ch_names
+        if reset:
+            fields["reset"] = True
         return fields
 
 
@@ -243,6 +266,8 @@ def replay_session(
     data_rng, user_rng, _ = session_streams(settings.seed)
     signals = _Signals(settings, data_rng)
     sid = settings.session
+    if settings.world == "puddle":
+        puddle_world()  # the teacher's policy tables (3-4 s), before the config goes out
     inbox: queue.SimpleQueue[Received] = queue.SimpleQueue()
     pumps = [Pump(session, protocol.key(sid, kind), kind, inbox) for kind in ("move", "state",
                                                                                 "event")]
@@ -303,6 +328,12 @@ def _replay(
     if settings.world == "continuous":
         teacher = CardinalTeacher(signals.labels, user_rng, class_order=settings.class_order)
         return _ContinuousReplay(settings, signals, teacher, resender, config_t_ns, on_step)
+    if settings.world == "puddle":
+        mixing = plane_settings(
+            {"world": "puddle", "frame": settings.frame, "learner": settings.learner}
+        ).mixing
+        mixed = MixedTeacher(puddle_world(), signals.labels, user_rng, mixing=mixing)
+        return _PuddleReplay(settings, signals, mixed, resender, config_t_ns, on_step)
     world = settings.make_world()
     user = SimulatedUser(
         world, settings.frame, signals.labels, user_rng, settings.user_error_rate
@@ -383,11 +414,14 @@ class _Replay:
         else:  # errors about single messages, information, others' sessions on this id
             (log.warning if event == "error" else log.info)("%s: %s", event, text)
 
-    def _send_answer(self, step: int, index: int, target: Any, label: int) -> None:
-        """Publish the epoch of ``step`` (dataset signal ``index``) and the step's truth."""
+    def _send_answer(
+        self, step: int, index: int, target: Any, label: int, reset: bool = False
+    ) -> None:
+        """Publish the epoch of ``step`` (dataset signal ``index``; ``reset`` on it when
+        true) and the step's truth."""
         sid = self.settings.session
         epoch = self.signals.values[index]
-        sent = self.resender.send("epoch", sid, self.signals.epoch_fields(step), epoch)
+        sent = self.resender.send("epoch", sid, self.signals.epoch_fields(step, reset), epoch)
         self.epoch_sent_ns[step] = sent.t_ns
         if self.last_truth is not None:  # lost if the service restarted before it came
             self.resender.also(self.last_truth)
@@ -472,3 +506,49 @@ class _ContinuousReplay(_Replay):
         goal = [float(x) for x in self.teacher.goal]
         self._send_answer(fields["step"], index, goal, direction)
         self.events[fields["step"]] = None
+
+
+class _PuddleReplay(_Replay):
+    """The puddle world's source: a :class:`MixedTeacher` answers each move (its
+    ``from_state`` and ``action``) with a signal of its label's class, and says ``reset``
+    on the epoch when the move's ``to_state`` is in its task's goal cell (see the module
+    docstring); the truth holds the task and the label. A reset step's record has the event
+    "reset"."""
+
+    def __init__(
+        self,
+        settings: SourceSettings,
+        signals: _Signals,
+        teacher: MixedTeacher,
+        resender: Resender,
+        config_t_ns: int,
+        on_step: Callable[[StepRecord], None] | None,
+    ) -> None:
+        super().__init__(
+            settings, signals, None, None, resender, config_t_ns, on_step  # type: ignore[arg-type]
+        )
+        self.teacher = teacher
+        self.goal = teacher.world.tasks[teacher.task].goal
+
+    def _answer(self, move: protocol.Message) -> None:
+        fields = move.fields
+        step, start, end = fields["step"], fields["from_state"], fields["to_state"]
+        if fields["action"] not in PUDDLE_MOVES or not (
+            isinstance(start, list) and isinstance(end, list)
+        ):
+            raise RuntimeError(
+                f"the service's move of step {step} is {fields['action']!r} from {start!r} to "
+                f"{end!r}, not a move of the puddle world ({', '.join(PUDDLE_MOVES)} between "
+                "points)"
+            )
+        if self.agent is not None and start != self.agent:
+            log.warning("step %d: move from %s, the agent was at %s", step, start, self.agent)
+        if self.settings.interval > 0:
+            time.sleep(self.settings.interval)  # the user's reaction time
+        action = PUDDLE_MOVES.index(fields["action"])
+        index, label = self.teacher.answer(np.asarray(start, dtype=float), action)
+        world = self.teacher.world
+        reset = bool(world.task_cell(np.asarray(end, dtype=float)) == self.goal)
+        self._send_answer(step, index, self.teacher.task, label, reset)
+        self.events[step] = "reset" if reset else None
+        self.agent = None if reset else end  # the service draws the restart state

@@ -6,7 +6,9 @@ own endpoint; the service listens on its own and connects to the display's; the 
 connects to both. The display shows the session as it goes
 (the session's moves, states, events and truth; not its config, whose only subscriber
 must be the service: the source waits for a subscriber to it before sending it): a grid
-world as a text grid, another world as the agent's state and a ranked list of tasks.
+world as a text grid, another world as the agent's state and a ranked list of tasks, the
+continuous world as its probe and best particle, the puddle world as the agent's point,
+the most likely task and the taught task's likelihood.
 
 The service runs this one session of the user's own on a private loopback network, so its
 memory limit (``max_session_mb``, which guards a shared service against its clients) is the
@@ -35,6 +37,7 @@ from rich.table import Table
 from rich.text import Text
 
 from acquisition.replay_source import SourceSettings, SourceSummary, run_source
+from calibration_free.puddle import puddle_tasks
 from calibration_free.world import GridWorld, World
 from cfbci.limits import ServiceLimits
 from cfbci.service import serve
@@ -274,6 +277,69 @@ class PlaneProgress:
         )
 
 
+@dataclass
+class PuddleProgress:
+    """What the display knows of a puddle-world session: the agent's latest move, the most
+    likely task and, from the truth, the taught task's normalised likelihood.
+
+    Attributes
+    ----------
+    steps, step : int
+    agent : list of float
+        The latest move's ``to_state``.
+    restarts : int
+        Moves that did not start where the previous one ended (the agent restarted).
+    best_task : int
+    best : float
+        Its normalised likelihood.
+    taught : int or None
+        The taught task (truth).
+    confidence : ndarray
+        Every task's normalised likelihood.
+    """
+
+    steps: int
+    step: int = 0
+    agent: list[float] = field(default_factory=lambda: [0.0, 0.0])
+    restarts: int = 0
+    best_task: int = 0
+    best: float = 0.0
+    taught: int | None = None
+    confidence: np.ndarray = field(default_factory=lambda: np.zeros(0))
+
+    def update(self, message: protocol.Message) -> None:
+        """Take in one message of the session."""
+        fields = message.fields
+        if message.kind == "move":
+            if self.step and fields["step"] == self.step + 1 and fields["from_state"] != (
+                    self.agent):
+                self.restarts += 1
+            self.step, self.agent = fields["step"], fields["to_state"]
+        elif message.kind == "state":
+            assert message.payload is not None
+            self.confidence = message.payload
+            self.best_task = fields["best_task"]
+            self.best = float(message.payload[self.best_task])
+        elif message.kind == "truth":
+            self.taught = fields["target"]
+
+    def render(self) -> Group:
+        """Step, the agent's point, restarts, the best and the taught task."""
+        tasks = puddle_tasks()
+
+        def name(task: int) -> str:
+            return f"goal {tasks[task].goal}, puddle {list(tasks[task].puddle)}"
+
+        taught = "-" if self.taught is None or not len(self.confidence) else (
+            f"{float(self.confidence[self.taught]):.3f} ({name(self.taught)})")
+        return Group(
+            Text(f"step {self.step}/{self.steps}   agent ({self.agent[0]:.3f}, "
+                 f"{self.agent[1]:.3f})   restarts {self.restarts}"),
+            Text(f"most likely task {self.best_task} ({name(self.best_task)}) {self.best:.3f}"
+                 f"   taught task {taught}"),
+        )
+
+
 def _display(
     session: zenoh.Session,
     settings: SourceSettings,
@@ -281,10 +347,13 @@ def _display(
     console: Console,
 ) -> SourceSummary:
     """Show the session until the source is done; return its summary."""
-    progress: Progress | PlaneProgress = (
-        PlaneProgress(settings.steps) if settings.world in PLANE_FRAMES
-        else Progress(settings.make_world(), settings.steps)
-    )
+    progress: Progress | PlaneProgress | PuddleProgress
+    if settings.world == "puddle":
+        progress = PuddleProgress(settings.steps)
+    elif settings.world in PLANE_FRAMES:
+        progress = PlaneProgress(settings.steps)
+    else:
+        progress = Progress(settings.make_world(), settings.steps)
     inbox: queue.SimpleQueue[Received] = queue.SimpleQueue()
     # Not cfbci/<session>/* : a subscriber to the config would tell the source that the
     # service is listening before it is.

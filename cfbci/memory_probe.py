@@ -15,6 +15,8 @@ balanced accuracy fits the k-fold decoders even for a likelihood that needs none
 peak resident growth is ``VmHWM`` afterwards minus ``VmRSS`` before. Linux only.
 
 ``python tools/session_memory.py`` prints the table of cases (:data:`TABLE_CASES`).
+:func:`measure_puddle` measures a puddle-world session the same way, from before its
+world's policy tables are built.
 """
 
 from __future__ import annotations
@@ -32,16 +34,20 @@ import numpy as np
 
 from acquisition.gaussian import generate_gaussian_features
 from acquisition.loaders import N_CLASSES
+from acquisition.mixed_teacher import SIGNAL_DIMS, gaussian_signals
 from calibration_free.config import LearnerConfig
 from calibration_free.learner import CalibrationFreeLearner
+from calibration_free.puddle_learner import PuddleConfig
 from calibration_free.world import World
 from calibration_free.worlds import make_world
 from cfbci import simulation
 from cfbci.blas import single_threaded_blas
 from cfbci.limits import world_memory_bytes
 from cfbci.memory import keep_freed_memory
+from cfbci.puddle import run_puddle_session
 from cfbci.simulation import SessionConfig, run_session
 from wire.messages import state_fields
+from wire.plane import puddle_memory_bytes, puddle_world
 
 #: Signals per class of a measured session's data set.
 SIGNALS_PER_CLASS = 600
@@ -194,4 +200,28 @@ def _peak_growth_mib(case: MemoryCase) -> float:
     Path("/proc/self/clear_refs").write_text("5")  # resets VmHWM to the current RSS
     before = _status_kib("VmRSS")
     run_session(case.seed, config, data)
+    return (_status_kib("VmHWM") - before) / 1024
+
+
+def measure_puddle(steps: int, seed: int = 0) -> tuple[float, float]:
+    """A puddle session of ``steps`` steps measured in a fresh spawned process, the world's
+    policy tables built in it (what a service pays for its first puddle session), beside
+    :func:`wire.plane.puddle_memory_bytes`' estimate: ``(measured MiB, estimate MiB)``."""
+    with ProcessPoolExecutor(1, mp_context=_SPAWN) as pool:
+        measured = pool.submit(_puddle_peak_growth_mib, steps, seed).result()
+    estimate = puddle_memory_bytes(PuddleConfig(), steps, SIGNAL_DIMS) / 2**20
+    return measured, estimate
+
+
+def _puddle_peak_growth_mib(steps: int, seed: int) -> float:
+    """In the measuring process: the peak resident growth of building the puddle world and
+    running one session in it (its signals drawn before), MiB."""
+    keep_freed_memory()
+    single_threaded_blas()
+    data = gaussian_signals(np.random.default_rng(seed))
+    gc.collect()
+    _release_free_heap()
+    Path("/proc/self/clear_refs").write_text("5")
+    before = _status_kib("VmRSS")
+    run_puddle_session(seed, PuddleConfig(), puddle_world(), steps, data=data)
     return (_status_kib("VmHWM") - before) / 1024

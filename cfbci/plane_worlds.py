@@ -89,7 +89,9 @@ def run_plane_job(job: PlaneJob) -> dict[str, Any]:
 
 
 def add_live_plane_options(parser: argparse.ArgumentParser) -> None:
-    """The continuous world's options of ``cfbci source`` and ``cfbci session``."""
+    """The continuous world's options of ``cfbci source`` and ``cfbci session`` (the puddle
+    world has none: its learner settings go with ``--set``, e.g. ``--set
+    exploration=random``)."""
     parser.add_argument(
         "--class-order", default=None, metavar="K,K,K,K",
         help="continuous world: dataset class of each direction up,down,right,left "
@@ -102,16 +104,17 @@ def live_source_fields(
 ) -> dict[str, Any]:
     """The plane-world fields of a ``SourceSettings`` (``class_order``), after checking the
     learner settings as the service will (``LearnerConfig`` in a discrete world,
-    :func:`wire.plane.plane_settings` in a plane world).
+    :func:`wire.plane.plane_settings` in a plane world: ``ContinuousConfig`` or
+    ``PuddleConfig`` settings).
 
     Raises
     ------
     ValueError
         On a bad setting, or a ``--class-order`` outside the continuous world.
     """
+    if world != "continuous" and class_order is not None:
+        raise ValueError("--class-order is an option of --world continuous only")
     if world not in PLANE_FRAMES:
-        if class_order is not None:
-            raise ValueError("--class-order is an option of --world continuous only")
         LearnerConfig.from_dict({"frame": frame, **learner})
         return {}
     plane_settings({"world": world, "frame": frame, "learner": learner})

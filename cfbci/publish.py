@@ -4,9 +4,10 @@ For regression and latency tests of a running ``cfbci serve``. The recorded sess
 sent again over Zenoh, open-loop, as a source would (docs/protocol.md), under a new
 session id: its ``config`` (the recorded fields; ``steps`` cut to the epochs the recording
 holds, ``dataset`` noting the recording it comes from), then every accepted recorded epoch
-in order, each followed by the recorded ``truth`` of its step (so that a recording service
-records it), all with fresh sequence numbers and timestamps (:class:`wire.transport.Outbox`,
-reliable publication with congestion control BLOCK). The service's answers are read by our
+in order (a puddle epoch with its ``reset`` flag), each followed by the recorded
+``truth`` of its step (so that a recording service records it), all with fresh sequence
+numbers and timestamps (:class:`wire.transport.Outbox`, reliable publication with
+congestion control BLOCK). The service's answers are read by our
 own threads (:class:`wire.transport.Pump`), never in Zenoh callbacks.
 
 Pacing
@@ -216,7 +217,11 @@ def _prepare(recording: Recording, where: str) -> _Published:
     truth_fields = ("step", "target", "label")
     return _Published(
         config=fields,
-        epochs=[({"step": e["step"], **epoch_fields}, decode_array(e)) for e in epochs],
+        epochs=[
+            ({"step": e["step"], **epoch_fields, **({"reset": True} if e.get("reset") else {})},
+             decode_array(e))
+            for e in epochs
+        ],
         truths={
             m["step"]: {name: m[name] for name in truth_fields}
             for _, m in recording.messages.get("/truth", [])

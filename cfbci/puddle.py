@@ -9,20 +9,26 @@ enters its task's goal cell it starts again from a uniform state (the task stays
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 
-from acquisition.gaussian import generate_gaussian_features
 from acquisition.labelled import LabelledFeatures
-from acquisition.mixed_teacher import MixedTeacher
-from acquisition.sources import SYNTHETIC_EPOCHS_PER_CLASS
-from calibration_free.puddle import MIXED_LABELS, PuddleWorld
+from acquisition.mixed_teacher import (
+    SIGNAL_ACCURACY,
+    SIGNAL_DIMS,
+    MixedTeacher,
+    gaussian_signals,
+)
+from calibration_free.puddle import PuddleWorld
 from calibration_free.puddle_learner import PuddleConfig, PuddleLearner
 from calibration_free.session import session_streams, world_stream
 
-#: The Gaussian stand-in for the thesis's speech features: six words, 20-D.
-SIGNAL_DIMS, SIGNAL_ACCURACY = 20, 0.95
+__all__ = [
+    "SIGNAL_ACCURACY", "SIGNAL_DIMS", "PuddleResult", "PuddleStep", "gaussian_signals",
+    "run_puddle_session",
+]
 
 
 @dataclass(frozen=True)
@@ -55,11 +61,33 @@ class PuddleResult:
         }
 
 
-def gaussian_signals(rng: np.random.Generator) -> LabelledFeatures:
-    """The session's six-class signals."""
-    return generate_gaussian_features(
-        SYNTHETIC_EPOCHS_PER_CLASS, len(MIXED_LABELS), SIGNAL_DIMS, SIGNAL_ACCURACY, rng
-    )
+@dataclass(frozen=True)
+class PuddleStep:
+    """One step of an offline session, for a trace (``run_puddle_session``'s ``on_step``).
+
+    Attributes
+    ----------
+    step : int
+        1-based.
+    state : ndarray, shape (2,)
+        The agent's state when the action was chosen.
+    action : int
+        Index into :data:`calibration_free.puddle.ACTIONS`.
+    label : int
+        The teacher's label (index into :data:`calibration_free.puddle.MIXED_LABELS`).
+    next_state : ndarray, shape (2,)
+        The move's outcome (in the goal cell when ``restart`` is not None).
+    restart : ndarray of shape (2,) or None
+        The uniform state the agent started again from, when the move entered the task's
+        goal cell.
+    """
+
+    step: int
+    state: np.ndarray
+    action: int
+    label: int
+    next_state: np.ndarray
+    restart: np.ndarray | None
 
 
 def run_puddle_session(
@@ -68,8 +96,13 @@ def run_puddle_session(
     world: PuddleWorld,
     steps: int = 525,
     data: LabelledFeatures | None = None,
+    on_step: Callable[[PuddleStep], None] | None = None,
 ) -> PuddleResult:
-    """One closed-loop session; ``data`` defaults to :func:`gaussian_signals`."""
+    """One closed-loop session; ``data`` defaults to :func:`gaussian_signals`.
+
+    ``on_step``, if given, is called with every step's :class:`PuddleStep` (it changes
+    nothing in the session).
+    """
     data_rng, user_rng, learner_rng = session_streams(seed)
     moves = world_stream(seed)
     data = gaussian_signals(data_rng) if data is None else data
@@ -80,13 +113,18 @@ def run_puddle_session(
     update_steps, taught, reached = [], [], 0
     for step in range(1, steps + 1):
         action = learner.propose(state)
-        index, _ = teacher.answer(state, action)
+        index, label = teacher.answer(state, action)
         learner.observe(state, action, data.features[index])
         if step % config.update_every == 0:
             update_steps.append(step)
             taught.append(float(learner.probabilities[teacher.task]))
-        state = world.move(state, action, moves)
+        before, state = state, world.move(state, action, moves)
+        restart = None
         if world.task_cell(state) == goal:
             reached += 1
-            state = moves.uniform(size=2)
+            restart = moves.uniform(size=2)
+        if on_step is not None:
+            on_step(PuddleStep(step, before, action, label, state, restart))
+        if restart is not None:
+            state = restart
     return PuddleResult(seed, teacher.task, tuple(update_steps), tuple(taught), reached)

@@ -29,6 +29,7 @@ from replay.figures import calibration_figure, save_figures, session_figures
 from replay.html_report import SessionReport, write_html
 from replay.metrics import aggregate, session_metrics
 from replay.plane_report import plane_figures, plane_metrics
+from replay.puddle_report import puddle_figures, puddle_metrics
 from replay.recording import read_recording
 from wire.plane import is_plane
 
@@ -69,7 +70,10 @@ def report_session(job: ReportJob) -> SessionReport:
         if not recording.config:
             detail = f" ({recording.warning})" if recording.warning else ""
             raise ValueError(f"{path}: the recording holds no session configuration{detail}")
-        if is_plane(recording.config):  # the continuous world: particles and probe points
+        if recording.config.get("world") == "puddle":  # likelihood and trajectory
+            metrics = puddle_metrics(recording, str(path))
+            figures = puddle_figures(recording, metrics, Path(job.out_dir), job.stem)
+        elif is_plane(recording.config):  # the continuous world: particles and probe points
             metrics = plane_metrics(recording, str(path))
             figures = plane_figures(recording, metrics, Path(job.out_dir), job.stem)
         else:

@@ -11,7 +11,10 @@ idle), gets a ``session_rejected`` event instead.
 **Isolation.** Messages wait in a :class:`wire.intake.Intake` (bounded, one FIFO per running
 session served round-robin, per-session rate limit); the loop never blocks on anything but
 the intake: a config whose source has not subscribed to its events yet waits as a
-:class:`_Pending` entry, started by :meth:`PipelineService.housekeeping` once it has.
+:class:`_Pending` entry, started by :meth:`PipelineService.housekeeping` once it has; so
+does a puddle-world config while its world's policy tables, which every puddle session of
+the process shares, are built on a thread of their own (:class:`_PuddleTables`: 3-4 s and
+about 300 MiB of temporaries, once per process).
 
 **Restart and resume.** Started on a record directory, the service resumes every session
 recorded there that neither ended nor was rejected: it re-runs the learner over the
@@ -32,10 +35,14 @@ stream (:func:`calibration_free.session.session_streams` ``[1]``; the grid's: it
 draw), as :class:`acquisition.user.SimulatedUser` draws it, so that a live session replays
 ``cfbci simulate`` exactly; the learner's stream is ``session_streams(seed)[2]``, and a
 stochastic move (the line world's edges) takes the number of its step from the world
-stream (:func:`calibration_free.world.transition_draws`). A continuous-world session
-(``world`` "continuous") has no World: its learner is a :class:`wire.plane.ContinuousStepper`
-(probe points and particles, docs/protocol.md), recorded with its particles on
-``/particles``.
+stream (:func:`calibration_free.world.transition_draws`). A session of a world in the
+plane has no World: its learner is a :class:`wire.plane.PlaneStepper`. The continuous
+world's (:class:`~wire.plane.ContinuousStepper`: probe points and particles,
+docs/protocol.md) is recorded with its particles on ``/particles``; the puddle world's
+(:class:`~wire.plane.PuddleStepper`) owns the agent's state and the world stream, draws
+each move's outcome and, after an epoch that says ``reset``, the restart state, and is
+recorded with the goal cells' probabilities on ``/belief`` and the agent's moves on
+``/position``.
 """
 
 from __future__ import annotations
@@ -43,6 +50,7 @@ from __future__ import annotations
 import logging
 import os
 import signal
+import threading
 import time
 from collections import Counter
 from collections.abc import Callable, Sequence
@@ -63,6 +71,7 @@ from replay.recording import Recording, SessionRecorder, decode_array, read_reco
 from replay.rerun import (
     STATE_MESSAGE_FIELDS,
     move_divergence,
+    recorded_resets,
     recorded_signals,
     rerun_of,
     signal_extractor,
@@ -78,7 +87,18 @@ from wire.messages import (
     target_text,
     world_text,
 )
-from wire.plane import ContinuousStepper, continuous_memory_bytes, is_plane, plane_settings
+from wire.plane import (
+    TASK_CELLS,
+    PlaneStepper,
+    PuddleStepper,
+    goal_probabilities,
+    is_plane,
+    plane_memory_bytes,
+    plane_settings,
+    plane_stepper,
+    puddle_world,
+    puddle_world_built,
+)
 from wire.protocol import NO_SESSION, ProtocolError, SequenceTracker
 from wire.services import ServiceRegistration, default_service_id
 from wire.transport import Outbox, Pump, Received
@@ -260,8 +280,8 @@ class _Session:
         None in a plane world.
     draws : TransitionDraws or None
         The session's world stream (stochastic moves); None in a plane world.
-    learner : CalibrationFreeLearner or ContinuousStepper
-        The stepper of the continuous world's learner there.
+    learner : CalibrationFreeLearner or PlaneStepper
+        The stepper of a plane world's learner there.
     state : int or None
         The agent's state before the last move (None in a plane world).
     recorder : SessionRecorder or None
@@ -298,7 +318,7 @@ class _Session:
     config_t_ns: int
     world: World | None
     draws: TransitionDraws | None
-    learner: CalibrationFreeLearner | ContinuousStepper
+    learner: CalibrationFreeLearner | PlaneStepper
     state: int | None
     recorder: SessionRecorder | None
     active_ns: int
@@ -312,6 +332,40 @@ class _Session:
     shape: tuple[int, ...] | None = None
     update_ns: list[int] = field(default_factory=list)
     queued_ms: list[float] = field(default_factory=list)
+
+
+class _PuddleTables:
+    """Builds the puddle world's policy tables (:func:`wire.plane.puddle_world`) on a
+    daemon thread, once per process, so that the service's loop never waits for them."""
+
+    def __init__(self) -> None:
+        self._thread: threading.Thread | None = None
+        self._error: BaseException | None = None
+
+    def ready(self) -> bool:
+        """Whether the tables are built; starts building them if nobody has.
+
+        Raises
+        ------
+        RuntimeError
+            If the build failed (e.g. out of memory).
+        """
+        if puddle_world_built():
+            return True
+        if self._error is not None:
+            raise RuntimeError(f"the puddle world's tables could not be built: {self._error!r}")
+        if self._thread is None:
+            self._thread = threading.Thread(target=self._build, name="puddle-tables",
+                                            daemon=True)
+            self._thread.start()
+            log.info("building the puddle world's policy tables (once per process)")
+        return False
+
+    def _build(self) -> None:
+        try:
+            puddle_world()
+        except BaseException as error:  # reported by ready(), on the loop
+            self._error = error
 
 
 #: Called with a session's id, its :attr:`_Session.update_ns` and its
@@ -388,6 +442,7 @@ class PipelineService:
         # answered with the last state and session_ended again (at most max_sessions).
         self._ended_at_resume: dict[str, tuple[_Session, tuple[dict[str, Any], Any]]] = {}
         self._errors = _ErrorBudget()
+        self._puddle_tables = _PuddleTables()
         self._stopped = False
         self.registration = ServiceRegistration(
             session, service_id or default_service_id(),
@@ -464,6 +519,16 @@ class PipelineService:
         now = time.monotonic_ns()
         for sid, pending in list(self._pending.items()):
             if pending.publisher.matching_status.matching:
+                try:
+                    if not self._world_ready(pending.message.fields):
+                        continue  # its world's tables are being built: no deadline for that
+                except RuntimeError as error:
+                    del self._pending[sid]
+                    self.registration.release(sid)
+                    self._outbox.forget(sid)
+                    self._reject(Rejection(str(error), sid, pending.message.seq,
+                                           pending.message.t_ns))
+                    continue
                 del self._pending[sid]
                 self._guarded(sid, lambda p=pending: self._start(p.message, p.publisher))
             elif now >= pending.deadline_ns:
@@ -540,15 +605,25 @@ class PipelineService:
             raise reject(f"the service runs its maximum of {limits.max_sessions} sessions")
         if len(self._pending) >= PENDING_PER_SESSION * limits.max_sessions:
             raise reject(f"{len(self._pending)} sessions already wait for their source")
+        try:
+            ready = self._world_ready(config)
+        except RuntimeError as error:
+            raise reject(str(error)) from None
         holder = self.registration.claim(sid) if chosen is not None else None
         if holder is not None:
             raise reject(f"session {sid!r} is already served by service {holder!r}")
         publisher = self._outbox.publisher(protocol.key(sid, "event"))
-        if publisher.matching_status.matching:
+        if publisher.matching_status.matching and ready:
             self._start(message, publisher)
-        else:  # never wait here: the loop starts it once its source subscribes
+        else:  # never wait here: the loop starts it once its source subscribes (and its
+            # world's tables are built)
             deadline = time.monotonic_ns() + int(limits.subscriber_timeout * 1e9)
             self._pending[sid] = _Pending(message, publisher, deadline)
+
+    def _world_ready(self, config: dict[str, Any]) -> bool:
+        """Whether a config's world can start now: always, but for the puddle world while
+        its tables are being built (see :class:`_PuddleTables`)."""
+        return config.get("world") != "puddle" or self._puddle_tables.ready()
 
     def _check_memory(
         self,
@@ -573,14 +648,14 @@ class PipelineService:
     def _check_plane_memory(
         self, config: dict[str, Any], n_features: int, reject: Callable[[str], Rejection]
     ) -> None:
-        """Reject a continuous-world session whose :func:`continuous_memory_bytes` is over
+        """Reject a plane-world session whose :func:`wire.plane.plane_memory_bytes` is over
         the limit."""
-        needed = continuous_memory_bytes(plane_settings(config), config["steps"], n_features)
+        needed = plane_memory_bytes(config, n_features)
         if needed > self.limits.max_session_mb * 2**20:
             what = f"{n_features} features, " if n_features else ""
             raise reject(
-                f"the session would commit about {needed / 2**20:.0f} MiB ({what}continuous "
-                f"world, {config['steps']} steps), more than the limit of "
+                f"the session would commit about {needed / 2**20:.0f} MiB ({what}"
+                f"{config['world']} world, {config['steps']} steps), more than the limit of "
                 f"{self.limits.max_session_mb:g} MiB"
             )
 
@@ -595,7 +670,7 @@ class PipelineService:
         recorder = self.recordings.open(sid, {"seq": message.seq, "t_ns": message.t_ns, **config})
         if is_plane(config):
             session = _Session(
-                sid, config, message.t_ns, None, None, ContinuousStepper(config), None,
+                sid, config, message.t_ns, None, None, plane_stepper(config), None,
                 recorder, time.monotonic_ns(),
             )
         else:
@@ -639,8 +714,9 @@ class PipelineService:
         config = {k: v for k, v in recording.config.items() if k not in ("seq", "t_ns")}
         rerun = rerun_of(config)
         epochs = recording.accepted_epochs()
-        for signal_ in recorded_signals(recording)[: rerun.steps]:
-            rerun.observe(signal_)
+        inputs = zip(recorded_signals(recording), recorded_resets(recording), strict=True)
+        for signal_, reset in list(inputs)[: rerun.steps]:
+            rerun.observe(signal_, reset=reset)
         recorded_moves = [m for _, m in recording.messages.get("/move", [])]
         divergence = move_divergence(recorded_moves, rerun.moves[: len(recorded_moves)])
         if divergence is not None or len(recorded_moves) < len(rerun.moves) - 1:
@@ -678,7 +754,12 @@ class PipelineService:
         fields, state = rerun.moves[-1], rerun.states[len(rerun.moves) - 1]
         confidence = np.asarray(state["confidence"], dtype=np.float32)
         session.answer = (fields, {k: state[k] for k in STATE_MESSAGE_FIELDS}, confidence)
-        self._send(session, "move", fields, record=len(recorded_moves) < len(rerun.moves))
+        record_move = len(recorded_moves) < len(rerun.moves)
+        sent = self._send(session, "move", fields, record=record_move)
+        if record_move and recorder is not None and isinstance(rerun.learner, PuddleStepper):
+            recorder.record_position(
+                fields["from_state"], fields["to_state"], fields["step"], sent.t_ns
+            )
         self._send_state(session, record=recorded_states < len(rerun.moves),
                          beliefs=session.answer[1:])
         session.answer_unheard = True
@@ -725,8 +806,8 @@ class PipelineService:
             header = {"seq": message.seq, "t_ns": message.t_ns, "step": session.step}
             session.recorder.record_array("/features", header, signal_, received.t_ns)
         started_ns = time.perf_counter_ns()
-        if isinstance(session.learner, ContinuousStepper):
-            session.learner.observe(signal_)
+        if isinstance(session.learner, PlaneStepper):
+            session.learner.observe(signal_, message.fields.get("reset", False))
         else:
             assert session.world is not None and session.draws is not None
             session.learner.observe(session.state, session.action, signal_)
@@ -777,6 +858,12 @@ class PipelineService:
                 f"{session.config.get('ch_names')}",
                 **where,
             )
+        if "reset" in fields and session.config["world"] != "puddle":
+            raise ProtocolError(
+                f"field 'reset' is allowed only in the puddle world; this session's world is "
+                f"{session.config['world']!r}",
+                **where,
+            )
         if session.shape is not None and payload.shape != session.shape:
             raise ProtocolError(
                 f"epoch shape {list(payload.shape)} differs from the session's first epoch's "
@@ -811,8 +898,8 @@ class PipelineService:
         :attr:`_Session.update_ns`. ``queued_ms``: how long that epoch waited in the
         intake. Both are recorded with the move (``update_ms``, ``queued_ms``).
         """
-        if isinstance(session.learner, ContinuousStepper):
-            self._next_probe(session, started_ns, queued_ms)
+        if isinstance(session.learner, PlaneStepper):
+            self._next_plane_move(session, started_ns, queued_ms)
             return
         proposal = session.learner.propose(session.state)
         timing = self._timing(session, started_ns, queued_ms)
@@ -844,16 +931,21 @@ class PipelineService:
             timing["queued_ms"] = queued_ms
         return timing
 
-    def _next_probe(
+    def _next_plane_move(
         self, session: _Session, started_ns: int | None, queued_ms: float | None
     ) -> None:
-        """:meth:`_next_move` in the continuous world: the next probe point, then the
-        state of the particles as the latest epoch scored them."""
-        assert isinstance(session.learner, ContinuousStepper)
+        """:meth:`_next_move` in a plane world: the next probe point (continuous) or move
+        (puddle), then the beliefs as the latest epoch left them (the continuous world's
+        particles as that epoch scored them)."""
+        assert isinstance(session.learner, PlaneStepper)
         fields = session.learner.move()
         timing = self._timing(session, started_ns, queued_ms)
         session.step = fields["step"]
-        self._send(session, "move", fields, recorded_only=timing)
+        message = self._send(session, "move", fields, recorded_only=timing)
+        if session.recorder is not None and isinstance(session.learner, PuddleStepper):
+            session.recorder.record_position(
+                fields["from_state"], fields["to_state"], fields["step"], message.t_ns
+            )
         state, confidence = self._send_state(session)
         session.answer = (fields, state, confidence)
 
@@ -867,13 +959,18 @@ class PipelineService:
         confidence) when given; return what was sent."""
         if beliefs is None:
             learner = session.learner
-            beliefs = learner.state if isinstance(learner, ContinuousStepper) else (
+            beliefs = learner.state if isinstance(learner, PlaneStepper) else (
                 state_fields(learner))
         fields, confidence = beliefs
         confidence = np.asarray(confidence, dtype=np.float32)
         message = self._send(session, "state", fields, confidence, record=record)
         if session.recorder is not None and record:
-            if session.world is None:
+            if session.config.get("world") == "puddle":
+                session.recorder.record_grid(
+                    goal_probabilities(confidence), TASK_CELLS, 1.0 / TASK_CELLS, "plane",
+                    message.t_ns,
+                )
+            elif session.world is None:
                 session.recorder.record_particles(fields["points"], confidence, message.t_ns)
             else:
                 session.recorder.record_belief(confidence, session.world, message.t_ns)

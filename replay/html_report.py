@@ -136,6 +136,12 @@ def metrics_table(metrics: SessionMetrics) -> str:
          "–" if latency is None else
          f"{latency.median_ms:.2f} / {latency.p90_ms:.2f} / {latency.p99_ms:.2f} / "
          f"{latency.max_ms:.2f} (n = {latency.n})"],
+        *([["taught task's normalised likelihood at the updates",
+            ", ".join(f"{v:.3g} @{k}" for k, v in zip(metrics.update_steps or [],
+                                                       metrics.taught_likelihood, strict=True)
+                      if v is not None) or "–"],
+           ["restarts (goal cell reached)", metrics.goals_reached]]
+          if metrics.taught_likelihood is not None else []),
         ["re-run identical to the recording", metrics.replay_identical],
         ["truncated", metrics.truncated],
     ]

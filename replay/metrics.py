@@ -66,6 +66,9 @@ SCALAR_METRICS: dict[str, str] = {
     "final_accuracy_truth": "decoder balanced accuracy vs true labels, last step",
     "final_accuracy_self": "decoder balanced accuracy, self-estimate, last step",
     "final_distance": "continuous world: the best particle's distance to the goal, last step",
+    "final_taught_likelihood": "puddle world: the taught task's normalised likelihood, last "
+    "update",
+    "goals_reached": "puddle world: restarts (the agent entered the taught goal cell)",
     "latency_median_ms": "median learner update, ms",
     "latency_p90_ms": "90th percentile learner update, ms",
     "latency_p99_ms": "99th percentile learner update, ms",
@@ -154,7 +157,8 @@ class SessionMetrics:
         The user's target task at each step (truth).
     confidence_true, confidence_best_other : list of float or None
         Confidence of the true task, and of the most confident other task, when the
-        learner chose each step's move.
+        learner chose each step's move (the puddle world's: after each epoch, over
+        ``n_seen``).
     best_other_task : list of int or None
         The task of ``confidence_best_other``.
     n_seen : list of int
@@ -180,6 +184,19 @@ class SessionMetrics:
         (None elsewhere; see :mod:`replay.plane_report`).
     final_distance : float or None
         Its last value.
+    update_steps : list of int or None
+        Puddle world: the epochs after which the learner updated (every ``update_every``;
+        None elsewhere; see :mod:`replay.puddle_report`).
+    taught_likelihood : list of float or None
+        Puddle world: the taught task's normalised likelihood after those epochs (float32,
+        as the states carry it).
+    final_taught_likelihood : float or None
+        Its last value.
+    restarts : list of int or None
+        Puddle world: the steps whose epoch said ``reset`` (the agent entered the goal cell
+        and restarted).
+    goals_reached : int or None
+        Their number.
     """
 
     file: str
@@ -223,6 +240,11 @@ class SessionMetrics:
     distance: list[float | None] | None = None
     final_distance: float | None = None
     calibration_counts: list[list[int]] | None = None
+    update_steps: list[int] | None = None
+    taught_likelihood: list[float | None] | None = None
+    final_taught_likelihood: float | None = None
+    restarts: list[int] | None = None
+    goals_reached: int | None = None
 
     def scalars(self) -> dict[str, float | int | None]:
         """The :data:`SCALAR_METRICS` of this session."""

@@ -34,7 +34,13 @@ world's particles go, with every state, to ``/particles``: a ``foxglove.PointClo
 ``plane``, the unit square at z = 0) of one point per particle, float32 fields ``x``, ``y``
 and ``confidence`` (Foxglove's 3D panel colours the points by it); its probe points are the
 ``/move`` messages' ``to_state``. The exact (float64) particles are the ``/state``
-messages' ``points``, which replay compares.
+messages' ``points``, which replay compares. The puddle world's belief goes, with every
+state, to ``/belief``: a ``foxglove.Grid`` (frame ``plane``, 5 x 5 cells of 0.2, row 0 at
+y = 0) of each goal cell's probability, the tasks' normalised likelihoods summed over
+puddles (the exact 660 are the ``/state`` confidences); with every move, ``/position``
+holds the agent's position: a ``foxglove.PointCloud`` (frame ``plane``) of the move's two
+points ``from_state`` and ``to_state``, float32 fields ``x``, ``y`` and ``step`` (with a
+decay time, Foxglove's 3D panel draws the trajectory).
 """
 
 from __future__ import annotations
@@ -127,6 +133,8 @@ _IDENTITY_POSE = {
 }
 #: Where each kind of world puts the belief accompanying a state.
 BELIEF_TOPICS = ("/belief", "/ranking", "/particles")
+#: Topics of one world only: the beliefs', and the puddle world's ``/position``.
+WORLD_TOPICS = (*BELIEF_TOPICS, "/position")
 
 SCHEMAS: dict[str, dict[str, Any]] = {
     "/config": {
@@ -163,6 +171,19 @@ SCHEMAS: dict[str, dict[str, Any]] = {
         },
     },
     "/particles": {
+        "title": "foxglove.PointCloud",
+        "description": "A collection of N-dimensional points",
+        "type": "object",
+        "properties": {
+            "timestamp": _TIME,
+            "frame_id": {"type": "string"},
+            "pose": _POSE,
+            "point_stride": _COUNT,
+            "fields": _PACKED_FIELDS,
+            "data": {"type": "string", "contentEncoding": "base64"},
+        },
+    },
+    "/position": {
         "title": "foxglove.PointCloud",
         "description": "A collection of N-dimensional points",
         "type": "object",
@@ -220,7 +241,13 @@ def belief_topic(config: dict[str, Any]) -> str:
     """Where a recording of this configuration puts the belief over tasks: ``/belief`` (a
     grid world, or a configuration of protocol version 2) or ``/ranking``."""
     world = config.get("world", "grid")
-    return {"grid": "/belief", "continuous": "/particles"}.get(world, "/ranking")
+    return {"grid": "/belief", "continuous": "/particles", "puddle": "/belief"}.get(
+        world, "/ranking")
+
+
+def world_topics(config: dict[str, Any]) -> tuple[str, ...]:
+    """The :data:`WORLD_TOPICS` a recording of this configuration has."""
+    return (belief_topic(config), *(("/position",) if config.get("world") == "puddle" else ()))
 
 
 def _to_json(value: Any) -> bytes:
@@ -261,7 +288,7 @@ class SessionRecorder:
         # chunk_size=0: every message closes its chunk (schemas and channels go into the first)
         self._writer = Writer(self._file, chunk_size=0, compression=CompressionType.NONE)
         self._writer.start(profile="", library="cfbci")
-        unused = set(BELIEF_TOPICS) - {belief_topic(config)}
+        unused = set(WORLD_TOPICS) - set(world_topics(config))
         self._channels = {
             topic: self._writer.register_channel(
                 topic, "json", self._writer.register_schema(s["title"], "jsonschema", _to_json(s))
@@ -363,20 +390,49 @@ class SessionRecorder:
         if not isinstance(world, GridWorld):
             self.record_ranking(confidence, world, log_time_ns)
             return
-        grid_size = world.size
-        data, _ = _base64_float32(confidence)
+        self.record_grid(confidence, world.size, 1.0, "grid", log_time_ns)
+
+    def record_grid(
+        self, values: np.ndarray, side: int, cell_size: float, frame_id: str, log_time_ns: int
+    ) -> None:
+        """Record ``side`` x ``side`` values (cell ``row * side + col``, row 0 at y = 0) on
+        ``/belief`` as a ``foxglove.Grid`` of cells ``cell_size`` wide in ``frame_id``,
+        float32 field ``confidence``."""
+        if np.shape(values) != (side * side,):
+            raise ValueError(f"values must have shape ({side * side},); got {np.shape(values)}")
+        data, _ = _base64_float32(values)
         grid = {
             "timestamp": _timestamp(log_time_ns),
-            "frame_id": "grid",
+            "frame_id": frame_id,
             "pose": _IDENTITY_POSE,
-            "column_count": grid_size,
-            "cell_size": {"x": 1.0, "y": 1.0},
-            "row_stride": 4 * grid_size,
+            "column_count": side,
+            "cell_size": {"x": cell_size, "y": cell_size},
+            "row_stride": 4 * side,
             "cell_stride": 4,
             "fields": [{"name": "confidence", "offset": 0, "type": _FLOAT32}],
             "data": data,
         }
         self.record("/belief", grid, log_time_ns)
+
+    def record_position(
+        self, from_state: list[float], to_state: list[float], step: int, log_time_ns: int
+    ) -> None:
+        """Record a puddle move's two points on ``/position`` as a ``foxglove.PointCloud``
+        (frame ``plane``; float32 fields ``x``, ``y`` and ``step``)."""
+        packed = np.array([[*from_state, step], [*to_state, step]], dtype=np.float64)
+        data, _ = _base64_float32(packed)
+        cloud = {
+            "timestamp": _timestamp(log_time_ns),
+            "frame_id": "plane",
+            "pose": _IDENTITY_POSE,
+            "point_stride": 12,
+            "fields": [
+                {"name": name, "offset": 4 * k, "type": _FLOAT32}
+                for k, name in enumerate(("x", "y", "step"))
+            ],
+            "data": data,
+        }
+        self.record("/position", cloud, log_time_ns)
 
     def record_particles(
         self, points: list[list[float]], confidence: np.ndarray, log_time_ns: int

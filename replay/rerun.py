@@ -2,7 +2,8 @@
 
 The learner is rebuilt from the recorded configuration exactly as the service built it
 (same world, settings, seed-derived streams and start state), fed the recorded epochs in
-order (raw epochs go through the ErrP feature extractor again), and every move, state
+order (raw epochs go through the ErrP feature extractor again; a puddle epoch's ``reset``
+flag restarts the agent as it did in the service), and every move, state
 and target event it produces is compared with the recording: discrete fields exactly,
 floating-point fields (confidences, balanced accuracy, class counts) exactly too, since
 the computation is deterministic; timing fields are not compared.
@@ -31,7 +32,7 @@ from wire.messages import (
     state_fields,
     target_text,
 )
-from wire.plane import ContinuousStepper, is_plane
+from wire.plane import PlaneStepper, is_plane, plane_stepper
 
 MOVE_FIELDS = ("step", "from_state", "action", "to_state", "target_reached")
 STATE_FIELDS = ("best_task", "confident", "n_signals", "class_counts", "balanced_accuracy")
@@ -96,6 +97,11 @@ def signal_extractor(config: dict[str, Any], first_epoch: np.ndarray) -> ErrPFea
     return extractor.fit(first_epoch[None])
 
 
+def recorded_resets(recording: Recording) -> list[bool]:
+    """The ``reset`` flag of every accepted recorded epoch (False where it has none)."""
+    return [bool(message.get("reset", False)) for message in recording.accepted_epochs()]
+
+
 def recorded_signals(recording: Recording) -> list[np.ndarray]:
     """The learner's inputs, float32, from the accepted recorded epochs (raw or features)."""
     epochs = [decode_array(message) for message in recording.accepted_epochs()]
@@ -158,8 +164,13 @@ class Rerun:
             self.events.append(target_text(self.world, step, self.state))
         return proposal.action
 
-    def observe(self, signal: np.ndarray, on_observe: Observer | None = None) -> None:
-        """Observe the epoch of the last move's step; choose the next move if one is due."""
+    def observe(
+        self, signal: np.ndarray, on_observe: Observer | None = None, reset: bool = False
+    ) -> None:
+        """Observe the epoch of the last move's step; choose the next move if one is due
+        (``reset``: never true in these worlds)."""
+        if reset:
+            raise ValueError("only the puddle world's epochs may say reset")
         self.learner.observe(self.state, self.action, signal)
         if on_observe is not None:
             on_observe(self.learner.n_signals, self.learner)
@@ -171,16 +182,16 @@ class Rerun:
 
 
 class PlaneRerun:
-    """The learner of a recorded continuous-world configuration, stepped as the service
-    steps it: :class:`Rerun`'s interface (``world`` and ``draws`` None, ``learner`` the
-    :class:`wire.plane.ContinuousStepper`, ``action`` 0)."""
+    """The learner of a recorded plane-world configuration, stepped as the service steps
+    it: :class:`Rerun`'s interface (``world`` and ``draws`` None, ``learner`` the world's
+    :class:`wire.plane.PlaneStepper`, ``action`` 0)."""
 
     world = None
     draws = None
     action = 0
 
     def __init__(self, config: dict[str, Any]) -> None:
-        self.learner = ContinuousStepper(config)
+        self.learner: PlaneStepper = plane_stepper(config)
         self.steps = config["steps"]
         self.events: list[str] = []
         self.states: list[dict] = []
@@ -199,9 +210,12 @@ class PlaneRerun:
         fields, confidence = self.learner.state
         self.states.append({**fields, "confidence": [float(x) for x in confidence]})
 
-    def observe(self, signal: np.ndarray, on_observe: Observer | None = None) -> None:
-        """Observe the epoch of the last probe; choose the next one if one is due."""
-        self.learner.observe(signal)
+    def observe(
+        self, signal: np.ndarray, on_observe: Observer | None = None, reset: bool = False
+    ) -> None:
+        """Observe the epoch of the last move (and its ``reset`` flag); choose the next
+        move if one is due."""
+        self.learner.observe(signal, reset)
         if on_observe is not None:
             on_observe(self.learner.n_signals, self.learner)  # type: ignore[arg-type]
         self._record_state()
@@ -230,8 +244,9 @@ def recompute(
         change the learner.
     """
     rerun = rerun_of(recording.config)
-    for signal in recorded_signals(recording)[: rerun.steps]:
-        rerun.observe(signal, on_observe)
+    inputs = zip(recorded_signals(recording), recorded_resets(recording), strict=True)
+    for signal, reset in list(inputs)[: rerun.steps]:
+        rerun.observe(signal, on_observe, reset)
     return rerun.moves, rerun.states, rerun.events
 
 

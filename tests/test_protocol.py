@@ -96,6 +96,15 @@ EXAMPLES: dict[str, Message] = {
     ),
     "truth_goal": Message("truth", "s-01", 12, 56, {"step": 13, "target": [0.3, 0.4],
                                                     "label": 2}),
+    "move_puddle": Message(  # the puddle world (version 6)
+        "move", "s-01", 6, 1003,
+        {"step": 7, "from_state": [0.25, 0.5], "action": "north", "to_state": [0.25, 0.61],
+         "target_reached": False},
+    ),
+    "epoch_reset": Message(
+        "epoch", "s-01", 6, 1004, {"step": 7, "signal": "features", "reset": True},
+        np.zeros(20, dtype=np.float32),
+    ),
     "event": Message(
         "event", "s-01", 1, 3,
         {"event": "session_started", "message": "grid 5, 500 steps", "config_t_ns": 1},
@@ -205,7 +214,7 @@ def framing_cases() -> list[tuple[bytes, str]]:
         (frame(b"[1, 2]"), "header must be a JSON object; got list"),
         (frame(b"[" * 100_000), "header is not valid JSON"),
         (frame({k: v for k, v in header.items() if k != "v"}), "missing field 'v'"),
-        (frame(header | {"v": 2}), "unknown protocol version 2; .* speaks version 5"),
+        (frame(header | {"v": 2}), "unknown protocol version 2; .* speaks version 6"),
         (frame(header | {"v": True}), "unknown protocol version true"),
         (frame(header | {"kind": "moves"}), 'unknown kind "moves"'),
         (frame(header | {"kind": ["move"]}), "unknown kind"),
@@ -227,8 +236,17 @@ REQUIRED = [
     (name, field)
     for name, message in EXAMPLES.items()
     for field in [*COMMON, *message.fields]
-    if field not in ("v", "kind")
+    if field not in ("v", "kind") and field not in SPECS[message.kind].optional
 ]
+
+
+def test_the_puddle_epochs_optional_reset_is_a_bool_or_absent():
+    """``reset`` (version 6) may be left out; present, it must be true or false."""
+    without = decode(tampered("epoch_reset", drop=("reset",)))
+    assert "reset" not in without.fields
+    assert decode(encode(EXAMPLES["epoch_reset"])).fields["reset"] is True
+    for value in ("yes", 1, None):
+        rejects(tampered("epoch_reset", reset=value), "field 'reset' must be true or false")
 
 
 @pytest.mark.parametrize(("name", "field"), REQUIRED)

@@ -195,7 +195,7 @@ def test_an_unknown_world_is_named_and_the_service_keeps_serving(tmp_path: Path)
         error = next_event("maze")
         assert error["event"] == "error"
         assert ('field \'world\' must be one of "grid", "line", "pick-and-place", '
-                '"continuous"; got "maze"') in error["message"]
+                '"continuous", "puddle"; got "maze"') in error["message"]
         publisher.put(_raw_config("maze", world="line", grid=5, **config))
         error = next_event("maze")
         assert error["event"] == "error"

@@ -1,4 +1,5 @@
-"""The continuous-goal world through the live path: one stepper for the service and replay.
+"""The worlds in the plane through the live path: one stepper per world for the service and
+replay (:class:`ContinuousStepper`, :class:`PuddleStepper`; :func:`plane_stepper`).
 
 A session config of ``world`` "continuous" (frame "cardinal") carries the
 :class:`calibration_free.continuous_goals.ContinuousConfig` settings in its ``learner``
@@ -18,24 +19,50 @@ adds in another order: differences of 1e-8 in the confidences, which an argmax o
 resampling draw can turn into another decision), so every step is computed with one BLAS
 thread (:data:`ONE_BLAS_THREAD`), whatever the process's setting, as
 ``run_continuous_session`` computes it.
+
+A config of ``world`` "puddle" (frame "mixed") carries the
+:class:`calibration_free.puddle_learner.PuddleConfig` settings in its ``learner`` object.
+:class:`PuddleStepper` runs the :class:`~calibration_free.puddle_learner.PuddleLearner` in
+the order of :func:`cfbci.puddle.run_puddle_session`, and owns the agent's state and the
+session's world stream (:func:`calibration_free.session.world_stream`), which the source
+never sees: the start state is its first draw (``uniform(size=2)``); ``move`` proposes the
+action at the state and draws its outcome at once (:meth:`PuddleWorld.move`), so that the
+``move`` carries ``from_state``, ``action`` (north, south, east or west) and ``to_state``;
+``observe`` gives the learner the epoch of that move and, when the epoch says ``reset``
+(the environment, which knows the task, saw ``to_state`` in the goal cell), draws the
+restart state from the world stream before the next move, as the offline loop draws it
+after that step. The learner never sees ``reset``: only the next move's ``from_state``.
+The world's policy tables (value iteration for the 660 tasks, 3-4 s and about 300 MiB of
+temporaries) are built once per process (:func:`puddle_world`; the service builds them on
+a thread of their own before its first puddle session starts, see
+:mod:`cfbci.service`).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import functools
+import threading
 from typing import Any
 
 import numpy as np
 from threadpoolctl import threadpool_limits
 
 from calibration_free.continuous_goals import ContinuousConfig, ContinuousGoalLearner
-from calibration_free.session import session_streams
+from calibration_free.puddle import ACTIONS as PUDDLE_ACTIONS
+from calibration_free.puddle import MIXED_LABELS, TASK_CELLS, PuddleWorld, puddle_tasks
+from calibration_free.puddle_learner import PuddleConfig, PuddleLearner
+from calibration_free.session import session_streams, world_stream
 
 #: The plane worlds the live path runs, and the frame each requires.
-PLANE_FRAMES: dict[str, str] = {"continuous": "cardinal"}
+PLANE_FRAMES: dict[str, str] = {"continuous": "cardinal", "puddle": "mixed"}
+#: The learner settings (``learner`` object) of each plane world.
+PLANE_SETTINGS: dict[str, type] = {"continuous": ContinuousConfig, "puddle": PuddleConfig}
 #: The continuous world's only action: teleport to the probe point.
 PROBE = "probe"
-#: ``threadpool_limits`` arguments of every continuous-learner computation.
+#: The puddle world's actions, in its order (a move's ``action``).
+PUDDLE_MOVES: tuple[str, ...] = PUDDLE_ACTIONS
+#: ``threadpool_limits`` arguments of every plane-learner computation.
 ONE_BLAS_THREAD: dict[str, Any] = {"limits": 1, "user_api": "blas"}
 
 
@@ -44,8 +71,9 @@ def is_plane(config: dict[str, Any]) -> bool:
     return config.get("world") in PLANE_FRAMES
 
 
-def plane_settings(config: dict[str, Any]) -> ContinuousConfig:
-    """The continuous learner's settings of a config message's fields.
+def plane_settings(config: dict[str, Any]) -> ContinuousConfig | PuddleConfig:
+    """The learner settings of a plane world's config message fields: a
+    :class:`ContinuousConfig` (world "continuous") or a :class:`PuddleConfig` ("puddle").
 
     Raises
     ------
@@ -58,7 +86,8 @@ def plane_settings(config: dict[str, Any]) -> ContinuousConfig:
         raise ValueError(
             f"field 'frame' must be {PLANE_FRAMES[world]!r} in world {world!r}; got {frame!r}"
         )
-    defaults = {f.name: f.default for f in dataclasses.fields(ContinuousConfig)}
+    settings = PLANE_SETTINGS[world]
+    defaults = {f.name: f.default for f in dataclasses.fields(settings)}
     values = config["learner"]
     unknown = sorted(set(values) - set(defaults))
     if unknown:
@@ -78,7 +107,7 @@ def plane_settings(config: dict[str, Any]) -> ContinuousConfig:
             raise ValueError(
                 f"learner setting {name!r} must be a {type(default).__name__}; got {value!r}"
             )
-    return ContinuousConfig(**values)
+    return settings(**values)
 
 
 def continuous_memory_bytes(settings: ContinuousConfig, steps: int, n_features: int = 0) -> int:
@@ -98,7 +127,93 @@ def continuous_memory_bytes(settings: ContinuousConfig, steps: int, n_features: 
     )
 
 
-class ContinuousStepper:
+def puddle_memory_bytes(settings: PuddleConfig, steps: int, n_features: int = 0) -> int:
+    """An upper estimate of a puddle session's peak memory, bytes.
+
+    With T = 660 tasks, S = 2500 discretisation cells, A = 4 actions, K = 6 labels, n =
+    ``steps`` signals of d features, P = ``n_map_states`` and M = ``n_map_signals``: the
+    optimal-action table ``T S A`` booleans for the whole session, plus the larger of
+    building it (value iteration over every task at once: ``7 T S A`` floats; once per
+    process, counted for every session as the discrete worlds count theirs) and an
+    update's peak: the relabelled history and its log-probabilities ``10 T n K`` floats,
+    the decoders ``6 T (K + 1) d``, the uncertainty map ``3 T P M + 2 T (P + M) K`` and the
+    history ``2 n d``; 25 % allocator slack and 1 MiB. Measured (peak resident growth, one
+    BLAS thread): 294 MiB for the tables' building, 54 MiB for a 150-step session and 144
+    MiB for 525 steps after it; estimated 450 MiB for either (the building dominates).
+    """
+    world = PuddleWorld()  # its tables are not built here
+    t, a, k = world.n_tasks, world.n_actions, len(MIXED_LABELS)
+    cells = world.resolution**2
+    n, d = steps, n_features
+    p, m = settings.n_map_states, min(settings.n_map_signals, steps)
+    build = 7 * t * cells * a * 8
+    update = 8 * (10 * t * n * k + 6 * t * (k + 1) * d + 3 * t * p * m + 2 * t * (p + m) * k
+                  + 2 * n * d)
+    return int(1.25 * (t * cells * a + max(build, update))) + 2**20
+
+
+_PUDDLE_WORLD_LOCK = threading.Lock()
+
+
+def puddle_world() -> PuddleWorld:
+    """The puddle world, its policy tables built: once per process (see the module
+    docstring); a thread calling it while another builds them waits for that build."""
+    with _PUDDLE_WORLD_LOCK:
+        return _built_puddle_world()
+
+
+def puddle_world_built() -> bool:
+    """Whether :func:`puddle_world` has built the tables in this process (it returns at
+    once then)."""
+    return _built_puddle_world.cache_info().currsize > 0
+
+
+@functools.cache
+def _built_puddle_world() -> PuddleWorld:
+    world = PuddleWorld()
+    world.optimal  # noqa: B018 - builds the cached tables
+    return world
+
+
+class PlaneStepper:
+    """A plane world's learner, stepped as the service steps it (the interface of
+    :class:`ContinuousStepper` and :class:`PuddleStepper`).
+
+    Attributes
+    ----------
+    steps : int
+        Steps of the session.
+    moves : list of dict
+        The ``move`` fields so far.
+    state : tuple of (dict, ndarray)
+        The ``state`` fields and float32 payload after the latest epoch (before any: the
+        initial beliefs).
+    """
+
+    steps: int
+    moves: list[dict[str, Any]]
+    state: tuple[dict[str, Any], np.ndarray]
+
+    @property
+    def n_signals(self) -> int:
+        raise NotImplementedError
+
+    @property
+    def finished(self) -> bool:
+        """Every step's epoch has been observed."""
+        return self.n_signals >= self.steps
+
+    def move(self) -> dict[str, Any]:
+        """Choose the move of the next step; its ``move`` fields."""
+        raise NotImplementedError
+
+    def observe(self, signal: np.ndarray, reset: bool = False) -> None:
+        """The epoch (feature vector, shape (d,)) answering the last move, and its
+        ``reset`` flag (False where the epoch has none)."""
+        raise NotImplementedError
+
+
+class ContinuousStepper(PlaneStepper):
     """The continuous learner of a config, stepped as the service steps it.
 
     Parameters
@@ -132,11 +247,6 @@ class ContinuousStepper:
     def n_signals(self) -> int:
         return self.learner.n_signals
 
-    @property
-    def finished(self) -> bool:
-        """Every step's epoch has been observed."""
-        return self.n_signals >= self.steps
-
     def move(self) -> dict[str, Any]:
         """Propose the probe of the next step; its ``move`` fields."""
         with threadpool_limits(**ONE_BLAS_THREAD):
@@ -149,10 +259,13 @@ class ContinuousStepper:
         self.moves.append(fields)
         return fields
 
-    def observe(self, signal: np.ndarray) -> None:
-        """The epoch (feature vector, shape (d,)) answering the last probe."""
+    def observe(self, signal: np.ndarray, reset: bool = False) -> None:
+        """The epoch (feature vector, shape (d,)) answering the last probe (``reset``:
+        never true in this world)."""
         if self._point is None:
             raise ValueError("an epoch before the first move")
+        if reset:
+            raise ValueError("the continuous world has no reset")
         with threadpool_limits(**ONE_BLAS_THREAD):
             self.learner.observe(self._point, signal)
         self.state = self._state_fields()
@@ -168,3 +281,118 @@ class ContinuousStepper:
             "points": [[float(x), float(y)] for x, y in learner.particles],
         }
         return fields, learner.confidence.astype(np.float32)
+
+
+class PuddleStepper(PlaneStepper):
+    """The puddle learner of a config, the agent's state and the world stream, stepped as
+    the service steps them (see the module docstring).
+
+    Parameters
+    ----------
+    config : dict
+        A config message's fields (``world`` "puddle").
+
+    Attributes
+    ----------
+    world : PuddleWorld
+        Shared by every session of the process (:func:`puddle_world`).
+    learner : PuddleLearner
+    agent : ndarray, shape (2,)
+        The agent's state: where the next move starts (after the last move, before its
+        epoch: where it started).
+    restarts : list of int
+        Steps whose epoch said ``reset`` (the agent restarted after them).
+    state : tuple of (dict, ndarray)
+        The ``state`` fields and payload (every task's normalised likelihood, float32,
+        shape (660,)) after the latest epoch.
+    """
+
+    def __init__(self, config: dict[str, Any]) -> None:
+        self.steps = config["steps"]
+        self.world = puddle_world()
+        settings = plane_settings(config)
+        assert isinstance(settings, PuddleConfig)
+        self._draws = world_stream(config["seed"])
+        self.learner = PuddleLearner(self.world, settings, session_streams(config["seed"])[2])
+        self.agent = self._draws.uniform(size=2)
+        self.moves: list[dict[str, Any]] = []
+        self.restarts: list[int] = []
+        self._pending: tuple[np.ndarray, int, np.ndarray] | None = None
+        self._observed = 0
+        self.state = self._state_fields()
+
+    @property
+    def n_signals(self) -> int:
+        return self._observed
+
+    def move(self) -> dict[str, Any]:
+        """Propose the action at the agent's state and draw its outcome; the ``move``."""
+        if self._pending is not None:
+            raise ValueError(f"the move of step {len(self.moves)} has no epoch yet")
+        with threadpool_limits(**ONE_BLAS_THREAD):
+            action = self.learner.propose(self.agent)
+        outcome = self.world.move(self.agent, action, self._draws)
+        self._pending = (self.agent, action, outcome)
+        fields = {
+            "step": len(self.moves) + 1, "from_state": [float(x) for x in self.agent],
+            "action": PUDDLE_MOVES[action], "to_state": [float(x) for x in outcome],
+            "target_reached": False,
+        }
+        self.moves.append(fields)
+        return fields
+
+    def observe(self, signal: np.ndarray, reset: bool = False) -> None:
+        """The epoch answering the last move; ``reset``: the agent restarts from a uniform
+        state of the world stream instead of the move's outcome."""
+        if self._pending is None:
+            raise ValueError("an epoch before its move")
+        state, action, outcome = self._pending
+        with threadpool_limits(**ONE_BLAS_THREAD):
+            self.learner.observe(state, action, signal)
+        self._pending = None
+        self._observed += 1
+        if reset:
+            self.restarts.append(self._observed)
+            self.agent = self._draws.uniform(size=2)
+        else:
+            self.agent = outcome
+        self.state = self._state_fields()
+
+    def _state_fields(self) -> tuple[dict[str, Any], np.ndarray]:
+        probabilities = self.learner.probabilities
+        fields = {
+            "best_task": int(np.argmax(probabilities)),
+            "confident": False,  # the puddle learner declares no task
+            "n_signals": self._observed,
+            "class_counts": [],
+            "balanced_accuracy": None,
+            "points": [],
+        }
+        return fields, probabilities.astype(np.float32)
+
+
+@functools.cache
+def _goal_cells() -> np.ndarray:
+    """The goal cell of every puddle task, in task order."""
+    return np.array([task.goal for task in puddle_tasks()])
+
+
+def goal_probabilities(probabilities: np.ndarray) -> np.ndarray:
+    """Every goal cell's probability (``row * 5 + col``, row 0 at the bottom): the
+    puddle tasks' normalised likelihoods summed over their puddles, shape (25,)."""
+    return np.bincount(_goal_cells(), weights=np.asarray(probabilities, dtype=np.float64),
+                       minlength=TASK_CELLS**2)
+
+
+def plane_stepper(config: dict[str, Any]) -> ContinuousStepper | PuddleStepper:
+    """The stepper of a plane world's config."""
+    return PuddleStepper(config) if config["world"] == "puddle" else ContinuousStepper(config)
+
+
+def plane_memory_bytes(config: dict[str, Any], n_features: int = 0) -> int:
+    """The memory estimate of a plane world's config (:func:`continuous_memory_bytes` or
+    :func:`puddle_memory_bytes`)."""
+    settings = plane_settings(config)
+    if isinstance(settings, PuddleConfig):
+        return puddle_memory_bytes(settings, config["steps"], n_features)
+    return continuous_memory_bytes(settings, config["steps"], n_features)

@@ -25,9 +25,9 @@ import numpy as np
 
 from calibration_free.frames import FRAMES
 from calibration_free.worlds import WORLDS, make_world
-from wire.plane import PLANE_FRAMES, PROBE
+from wire.plane import PLANE_FRAMES, PROBE, PUDDLE_MOVES
 
-VERSION: int = 5
+VERSION: int = 6
 PREFIX: str = "cfbci"
 MAX_BYTES: int = 16 * 2**20
 NO_SESSION: str = "_"  # key segment of the service's events about unusable session ids
@@ -40,6 +40,7 @@ EVENTS: tuple[str, ...] = (
 ACTION_NAMES: tuple[str, ...] = (
     *dict.fromkeys(name for world in WORLDS for name in make_world(world).action_names),
     PROBE,
+    *PUDDLE_MOVES,
 )
 #: The worlds of a config: the discrete ones, then those of the plane.
 CONFIG_WORLDS: tuple[str, ...] = (*WORLDS, *PLANE_FRAMES)
@@ -83,7 +84,7 @@ TYPES: dict[str, tuple[str, Callable[[Any], bool]]] = {
     "float[]": ("a list of finite numbers", _list_of(_is_float)),
     "state": (
         "a state index (an integer >= 0), or a point [x, y] of two finite numbers (the "
-        "continuous world)",
+        "worlds in the plane)",
         lambda x: _is_count(x) or _is_point(x),
     ),
     "point[]": ("a list of points [x, y] of two finite numbers", _list_of(_is_point)),
@@ -186,13 +187,15 @@ SPECS: dict[str, KindSpec] = {
                 "str", "the world the device acts in (see \"Worlds\")", CONFIG_WORLDS
             ),
             "frame": Field(
-                "str", "interaction frame (the continuous world's: cardinal)",
+                "str", "interaction frame (the continuous world's: cardinal; the puddle "
+                "world's: mixed)",
                 (*FRAMES, *PLANE_FRAMES.values()),
             ),
             "steps": Field("count", "device actions (epochs) in the session"),
             "learner": Field(
                 "object", "learner settings, as `LearnerConfig` field: value (the likelihood "
-                "is `learner.likelihood`); the continuous world's: `ContinuousConfig` fields"
+                "is `learner.likelihood`); the continuous world's: `ContinuousConfig` fields; "
+                "the puddle world's: `PuddleConfig` fields"
             ),
             "dataset": Field("object", "description of the data the source answers from"),
             "signal": _SIGNAL,
@@ -224,6 +227,14 @@ SPECS: dict[str, KindSpec] = {
             "raw EEG epoch or ErrP feature vector, microvolts",
         ),
         conditional={_EPOCHS: {"ch_names": _CH_NAMES}},
+        optional={
+            "reset": Field(
+                "bool", "puddle world only: true when the move's `to_state` is in the user's "
+                "goal cell, so the environment restarts the agent (the service draws the "
+                "restart state before the next move; the learner never reads this field); "
+                "absent: false"
+            ),
+        },
     ),
     "truth": KindSpec(
         "source",
@@ -232,11 +243,12 @@ SPECS: dict[str, KindSpec] = {
             "step": _STEP,
             "target": Field(
                 "state", "the user's target task when the epoch was produced (the continuous "
-                "world's: the goal point)"
+                "world's: the goal point; the puddle world's: the task index)"
             ),
             "label": Field(
                 "count", "class of the epoch (feedback: 0 correct, 1 error; guidance: the "
-                "guidance action's class; cardinal: the direction)"
+                "guidance action's class; cardinal: the direction; mixed: 0 correct, "
+                "1 incorrect, 2-5 north, south, east, west)"
             ),
         },
     ),
@@ -245,9 +257,15 @@ SPECS: dict[str, KindSpec] = {
         "The device's next action.",
         {
             "step": _STEP,
-            "from_state": Field("state", "state before the action (continuous: the probe)"),
+            "from_state": Field(
+                "state", "state before the action (continuous: the probe; puddle: the agent's "
+                "point)"
+            ),
             "action": Field("str", "the action, one of its world's", ACTION_NAMES),
-            "to_state": Field("state", "state after the action (continuous: the probe)"),
+            "to_state": Field(
+                "state", "state after the action (continuous: the probe; puddle: the point "
+                "the move reached, drawn by the service)"
+            ),
             "target_reached": Field(
                 "bool", "the action is the world's declaration action performed while confident"
             ),
