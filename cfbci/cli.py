@@ -24,6 +24,7 @@ from calibration_free.worlds import WORLDS
 from cfbci import router
 from cfbci.blas import limit_blas_threads
 from cfbci.compare import add_compare_command
+from cfbci.curves import add_curves_command
 from cfbci.export import add_export_command
 from cfbci.flood import add_flood_parser
 from cfbci.limits import add_options as add_limit_options
@@ -678,6 +679,7 @@ def build_parser(chosen: Preset | None = None) -> argparse.ArgumentParser:
     add_sweep_command(commands)
     add_export_command(commands)
     add_compare_command(commands)
+    add_curves_command(commands)
     add_datasets_command(commands)
     _add_zenoh_config(add_view_command(commands))
     add_world_command(commands)

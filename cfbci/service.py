@@ -82,6 +82,7 @@ from wire.messages import (
     config_world,
     learner_settings,
     move_fields,
+    resolved_config,
     start_state,
     state_fields,
     target_text,
@@ -94,7 +95,6 @@ from wire.plane import (
     goal_probabilities,
     is_plane,
     plane_memory_bytes,
-    plane_settings,
     plane_stepper,
     puddle_world,
     puddle_world_built,
@@ -574,7 +574,7 @@ class PipelineService:
 
         running = self._sessions.get(sid)
         if running is not None:
-            if running.config_t_ns == message.t_ns and running.config == config:
+            if running.config_t_ns == message.t_ns and running.config == _resolved(config):
                 self._event(sid, "session_started", "session already started (config re-sent)",
                             message.t_ns)
                 return
@@ -591,10 +591,7 @@ class PipelineService:
         if len(config.get("ch_names", ())) > limits.max_epoch_values:
             raise reject(f"more than {limits.max_epoch_values} ch_names")
         try:
-            if is_plane(config):
-                plane_settings(config)
-            else:
-                learner_settings(config["learner"], config["frame"])
+            resolved_config(config)
         except (ValueError, TypeError) as exc:
             raise reject(f"bad config: {exc}") from None
         if is_plane(config):
@@ -661,12 +658,13 @@ class PipelineService:
 
     def _start(self, message: protocol.Message, publisher: zenoh.Publisher) -> None:
         """Create the learner and the recording of a config; publish the first move."""
-        sid, config = message.session, message.fields
+        sid, config = message.session, resolved_config(message.fields)
         if len(self._sessions) >= self.limits.max_sessions:
             raise Rejection(
                 f"the service runs its maximum of {self.limits.max_sessions} sessions", sid,
                 message.seq, message.t_ns,
             )
+        # Recorded with every learner setting it runs with (defaults included).
         recorder = self.recordings.open(sid, {"seq": message.seq, "t_ns": message.t_ns, **config})
         if is_plane(config):
             session = _Session(
@@ -711,7 +709,11 @@ class PipelineService:
 
     def _resume(self, recording: Recording) -> None:
         """Rebuild a session's learner by re-running it over its recording, and go on."""
-        config = {k: v for k, v in recording.config.items() if k not in ("seq", "t_ns")}
+        # A recording of an older version may hold only the settings its source sent: it
+        # resumes (as it replays) with today's defaults for the others.
+        config = resolved_config(
+            {k: v for k, v in recording.config.items() if k not in ("seq", "t_ns")}
+        )
         rerun = rerun_of(config)
         epochs = recording.accepted_epochs()
         inputs = zip(recorded_signals(recording), recorded_resets(recording), strict=True)
@@ -1060,6 +1062,14 @@ class PipelineService:
         if session not in self._sessions and session not in self._pending:
             never_ran = session != NO_SESSION and self.recordings.get(session) is None
             self._outbox.forget(session, numbering=never_ran)
+
+
+def _resolved(config: dict[str, Any]) -> dict[str, Any] | None:
+    """:func:`resolved_config`, or None for a config whose learner settings are bad."""
+    try:
+        return resolved_config(config)
+    except (ValueError, TypeError):
+        return None
 
 
 def _world_text(session: _Session) -> str:

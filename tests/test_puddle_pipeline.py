@@ -188,7 +188,7 @@ def test_a_bad_puddle_config_is_rejected_naming_the_field(tmp_path: Path) -> Non
         ("setting", {"frame": "mixed", "learner": {"particles": 5}},
          "unknown learner setting(s) 'particles' for world 'puddle'"),
         ("type", {"frame": "mixed", "learner": {"update_every": 1.5}},
-         "learner setting 'update_every' must be a int; got 1.5"),
+         "learner setting 'update_every' must be an integer; got 1.5"),
         ("choice", {"frame": "mixed", "learner": {"exploration": "greedy"}},
          "exploration must be one of"),
         ("range", {"frame": "mixed", "learner": {"mixing": 1.0}},

@@ -152,7 +152,11 @@ def test_a_live_pick_and_place_guidance_session_equals_its_simulation(tmp_path: 
     check_recording(path, steps, "pick-and-place")
     recording = read_recording(path)
     assert recording.config["signal"] == "features"
-    assert recording.config["learner"] == {"likelihood": "simple"}
+    # Recorded with every setting the learner ran with: it replays under them whatever
+    # later defaults are.
+    assert recording.config["learner"] == LearnerConfig(
+        frame="guidance", likelihood="simple"
+    ).to_dict()
     assert {m["label"] for _, m in recording.messages["/truth"]} <= {0, 1, 2, 3}
     assert all(len(m["confidence"]) == 624 for _, m in recording.messages["/state"])
     metrics = check_replay_and_report(path, tmp_path, result)

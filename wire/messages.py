@@ -8,9 +8,8 @@ and a ``target_reached`` event's text from the learner's proposal and beliefs
 
 from __future__ import annotations
 
+import dataclasses
 import functools
-import typing
-from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -20,6 +19,8 @@ from calibration_free.learner import CalibrationFreeLearner, Proposal
 from calibration_free.session import session_streams
 from calibration_free.world import GridWorld, TransitionDraws, World
 from calibration_free.worlds import make_world
+from wire.plane import is_plane, plane_settings
+from wire.settings import check_setting_kinds
 
 
 def config_world(config: dict[str, Any]) -> World:
@@ -71,12 +72,7 @@ def learner_settings(values: dict[str, Any], frame: str) -> LearnerConfig:
         On an unknown setting, a value of the wrong type or out of range, or a ``frame``
         setting that differs from the config's.
     """
-    for name, value in values.items():
-        kinds = _SETTING_KINDS.get(name)
-        if kinds is not None and not any(_JSON_KINDS[kind](value) for kind in kinds):
-            raise ValueError(
-                f"learner setting {name!r} must be {' or '.join(kinds)}; got {value!r}"
-            )
+    check_setting_kinds(values, LearnerConfig)
     if values.get("frame", frame) != frame:
         raise ValueError(
             f"learner frame {values['frame']!r} differs from the config's frame {frame!r}"
@@ -84,29 +80,22 @@ def learner_settings(values: dict[str, Any], frame: str) -> LearnerConfig:
     return LearnerConfig.from_dict({**values, "frame": frame})
 
 
-#: A JSON value's test for each kind a setting's annotation names.
-_JSON_KINDS: dict[str, Callable[[Any], bool]] = {
-    "a boolean": lambda value: isinstance(value, bool),
-    "an integer": lambda value: isinstance(value, int) and not isinstance(value, bool),
-    "a number": lambda value: isinstance(value, int | float) and not isinstance(value, bool),
-    "a string": lambda value: isinstance(value, str),
-    "null": lambda value: value is None,
-}
-_KIND_OF_TYPE = {
-    bool: "a boolean", int: "an integer", float: "a number", str: "a string",
-    type(None): "null",
-}
+def resolved_config(config: dict[str, Any]) -> dict[str, Any]:
+    """A config's fields with its ``learner`` object complete: every setting its learner
+    runs with, defaults included (:meth:`LearnerConfig.to_dict`, or the plane world's
+    settings). The service records and compares configs in this form, so that a recording
+    replays under the settings it ran with, whatever later versions' defaults are.
 
-
-def _setting_kinds() -> dict[str, tuple[str, ...]]:
-    """The JSON kinds each learner setting takes, from LearnerConfig's annotations."""
-    return {
-        name: tuple(_KIND_OF_TYPE[t] for t in typing.get_args(hint) or (hint,))
-        for name, hint in typing.get_type_hints(LearnerConfig).items()
-    }
-
-
-_SETTING_KINDS = _setting_kinds()
+    Raises
+    ------
+    ValueError
+        As :func:`learner_settings` and :func:`wire.plane.plane_settings`.
+    """
+    if is_plane(config):
+        settings = dataclasses.asdict(plane_settings(config))
+    else:
+        settings = learner_settings(config["learner"], config["frame"]).to_dict()
+    return {**config, "learner": settings}
 
 
 def move_fields(

@@ -53,6 +53,7 @@ from calibration_free.puddle import ACTIONS as PUDDLE_ACTIONS
 from calibration_free.puddle import MIXED_LABELS, TASK_CELLS, PuddleWorld, puddle_tasks
 from calibration_free.puddle_learner import PuddleConfig, PuddleLearner
 from calibration_free.session import session_streams, world_stream
+from wire.settings import check_setting_kinds
 
 #: The plane worlds the live path runs, and the frame each requires.
 PLANE_FRAMES: dict[str, str] = {"continuous": "cardinal", "puddle": "mixed"}
@@ -95,18 +96,7 @@ def plane_settings(config: dict[str, Any]) -> ContinuousConfig | PuddleConfig:
             f"unknown learner setting(s) {', '.join(map(repr, unknown))} for world {world!r}; "
             f"the known ones are {', '.join(defaults)}"
         )
-    for name, value in values.items():
-        default = defaults[name]
-        if isinstance(default, str):
-            ok = isinstance(value, str)
-        elif isinstance(default, int):
-            ok = isinstance(value, int) and not isinstance(value, bool)
-        else:
-            ok = isinstance(value, int | float) and not isinstance(value, bool)
-        if not ok:
-            raise ValueError(
-                f"learner setting {name!r} must be a {type(default).__name__}; got {value!r}"
-            )
+    check_setting_kinds(values, settings)
     return settings(**values)
 
 
