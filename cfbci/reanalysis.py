@@ -48,6 +48,7 @@ from calibration_free.config import LearnerConfig
 from replay.recording import Recording, read_recording
 from replay.rerun import recorded_learner, recorded_signals
 from wire.messages import config_world, learner_settings
+from wire.plane import is_plane
 
 #: Name of the recording's own settings in the report.
 OWN = "own settings"
@@ -449,6 +450,11 @@ def reanalyse(
     if not recording.config:
         raise ValueError(f"{where}: the recording holds no session configuration")
     config = recording.config
+    if is_plane(config):
+        raise ValueError(
+            f"{where}: a {config['world']} world recording: re-analysis (--option, --compare) "
+            "re-scores the discrete worlds' learner; check it with cfbci replay FILE"
+        )
     recorded_settings = learner_settings(config["learner"], config["frame"])
     settings = [(describe(o), alternative_settings(config, o)) for o in alternatives]
     history = recorded_history(recording, where)

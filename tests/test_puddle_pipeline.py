@@ -306,7 +306,9 @@ def test_the_memory_estimate_covers_a_puddle_session() -> None:
     assert measured <= estimate <= 2.5 * measured
 
 
-def test_cfbci_session_runs_a_puddle_session_that_replays_and_reports(tmp_path: Path) -> None:
+def test_cfbci_session_runs_a_puddle_session_that_replays_and_reports(
+    tmp_path: Path, capsys: pytest.CaptureFixture
+) -> None:
     """``cfbci session --world puddle --frame mixed`` records the simulation's moves;
     ``cfbci replay`` finds it identical; ``cfbci report`` draws the taught task's
     likelihood and the trajectory, and ``metrics.json`` holds the likelihood at the
@@ -320,6 +322,9 @@ def test_cfbci_session_runs_a_puddle_session_that_replays_and_reports(tmp_path: 
     recording = read_recording(record)
     check_moves([m for _, m in recording.messages["/move"]], trace)
     assert main(["replay", str(record)]) == 0
+    capsys.readouterr()
+    assert main(["replay", str(record), "--option", "eps=0.2"]) == 2  # discrete worlds only
+    assert "a puddle world recording: re-analysis" in capsys.readouterr().err
 
     out = tmp_path / "report"
     assert main(["report", str(record), "--out", str(out), "--jobs", "1"]) == 0
