@@ -136,6 +136,21 @@ BELIEF_TOPICS = ("/belief", "/ranking", "/particles")
 #: Topics of one world only: the beliefs', and the puddle world's ``/position``.
 WORLD_TOPICS = (*BELIEF_TOPICS, "/position")
 
+#: foxglove.PointCloud, the schema of the plane worlds' point topics.
+_POINT_CLOUD = {
+    "title": "foxglove.PointCloud",
+    "description": "A collection of N-dimensional points",
+    "type": "object",
+    "properties": {
+        "timestamp": _TIME,
+        "frame_id": {"type": "string"},
+        "pose": _POSE,
+        "point_stride": _COUNT,
+        "fields": _PACKED_FIELDS,
+        "data": {"type": "string", "contentEncoding": "base64"},
+    },
+}
+
 SCHEMAS: dict[str, dict[str, Any]] = {
     "/config": {
         "title": "cfbci.Config",
@@ -170,32 +185,8 @@ SCHEMAS: dict[str, dict[str, Any]] = {
             "data": {"type": "string", "contentEncoding": "base64"},
         },
     },
-    "/particles": {
-        "title": "foxglove.PointCloud",
-        "description": "A collection of N-dimensional points",
-        "type": "object",
-        "properties": {
-            "timestamp": _TIME,
-            "frame_id": {"type": "string"},
-            "pose": _POSE,
-            "point_stride": _COUNT,
-            "fields": _PACKED_FIELDS,
-            "data": {"type": "string", "contentEncoding": "base64"},
-        },
-    },
-    "/position": {
-        "title": "foxglove.PointCloud",
-        "description": "A collection of N-dimensional points",
-        "type": "object",
-        "properties": {
-            "timestamp": _TIME,
-            "frame_id": {"type": "string"},
-            "pose": _POSE,
-            "point_stride": _COUNT,
-            "fields": _PACKED_FIELDS,
-            "data": {"type": "string", "contentEncoding": "base64"},
-        },
-    },
+    "/particles": _POINT_CLOUD,
+    "/position": _POINT_CLOUD,
     "/ranking": {
         "title": "cfbci.Ranking",
         "description": "The most confident tasks, best first (a world without a grid layout)",
