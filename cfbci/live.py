@@ -186,8 +186,9 @@ def run_live_session(
     Returns
     -------
     dict
-        ``{"steps", "first_target_step", "correct_targets", "wrong_targets",
-        "recording"}``.
+        ``{"world", "steps", "first_target_step", "correct_targets", "wrong_targets",
+        "recording"}``, and in the puddle world ``"restarts"`` (epochs that said
+        ``reset``). The plane worlds declare no targets: their target counts stay 0.
     """
     context = multiprocessing.get_context("spawn")
     service_endpoints = list(listen) or [free_tcp_endpoint()]
@@ -220,13 +221,17 @@ def run_live_session(
     written = record.parent / f"{settings.session}.mcap"
     if written != record:
         written.replace(record)
-    return {
+    result = {
+        "world": settings.world,
         "steps": summary.steps,
         "first_target_step": summary.first_target_step,
         "correct_targets": summary.correct_targets,
         "wrong_targets": summary.wrong_targets,
         "recording": str(record),
     }
+    if settings.world == "puddle":
+        result["restarts"] = sum(r.event == "reset" for r in summary.records)
+    return result
 
 
 @dataclass
@@ -389,13 +394,21 @@ def own_limits() -> ServiceLimits:
 def print_summary(result: dict[str, Any], console: Console, elapsed: float) -> None:
     """A one-table summary of a live session."""
     table = Table(title="cfbci session")
-    for column in ("steps", "first target", "correct", "wrong", "recording", "time"):
+    if result.get("world") in ("continuous", "puddle"):  # no targets are declared there
+        outcome = {"world": result["world"]}
+        if "restarts" in result:
+            outcome["restarts (goal reached)"] = str(result["restarts"])
+    else:
+        outcome = {
+            "first target": str(result["first_target_step"] or "-"),
+            "correct": str(result["correct_targets"]),
+            "wrong": str(result["wrong_targets"]),
+        }
+    row = {"steps": str(result["steps"]), **outcome, "recording": result["recording"],
+           "time": f"{elapsed:.1f} s"}
+    for column in row:
         table.add_column(column)
-    table.add_row(
-        str(result["steps"]), str(result["first_target_step"] or "-"),
-        str(result["correct_targets"]), str(result["wrong_targets"]), result["recording"],
-        f"{elapsed:.1f} s",
-    )
+    table.add_row(*row.values())
     console.print(table)
 
 

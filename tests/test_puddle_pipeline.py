@@ -317,7 +317,9 @@ def test_cfbci_session_runs_a_puddle_session_that_replays_and_reports(
     record, summary = tmp_path / "puddle.mcap", tmp_path / "puddle.json"
     assert main(["session", "--world", "puddle", "--frame", "mixed", "--steps", str(steps),
                  "--seed", str(SEED), "--record", str(record), "--json", str(summary)]) == 0
-    assert json.loads(summary.read_text())["steps"] == steps
+    written = json.loads(summary.read_text())
+    assert (written["steps"], written["world"], written["restarts"]) == (steps, "puddle", 1)
+    assert "restarts (goal reached)" in capsys.readouterr().out
     result, trace = offline(SEED, steps)
     recording = read_recording(record)
     check_moves([m for _, m in recording.messages["/move"]], trace)
