@@ -67,9 +67,14 @@ def _series(path: Path, index: int, session: Any, metric: str) -> list[float]:
 
 
 def plot_curves(
-    runs: dict[str, tuple[np.ndarray, np.ndarray]], metric: str, statistic: str, out: Path
+    runs: dict[str, tuple[np.ndarray, np.ndarray]],
+    metric: str,
+    statistic: str,
+    out: Path,
+    log_y: bool = False,
 ) -> list[dict[str, Any]]:
-    """Draw every run's curve and band; returns the rows that were drawn."""
+    """Draw every run's curve and band (``log_y``: on a log scale); returns the rows that
+    were drawn."""
     from matplotlib.figure import Figure  # only here: importing cfbci.cli stays light
 
     if statistic not in STATISTICS:
@@ -89,7 +94,9 @@ def plot_curves(
         rows.append({"run": label, "steps": steps.tolist(), statistic: centre.tolist()})
     band = "one standard error" if statistic == "mean" else "interquartile range"
     axes.set(xlabel="step", ylabel=f"{metric} ({statistic}; band: {band})")
-    axes.grid(alpha=0.3)
+    if log_y:
+        axes.set_yscale("log")
+    axes.grid(alpha=0.3, which="both")
     axes.legend(fontsize="small")
     figure.savefig(out, dpi=150)
     return rows
@@ -100,7 +107,7 @@ def run_curves(args: argparse.Namespace, console: Console) -> int:
     runs = {path.stem: run_series(path, args.metric) for path in args.runs}
     if len(runs) != len(args.runs):
         raise ValueError("two runs have the same file name: their labels would clash")
-    plot_curves(runs, args.metric, args.statistic, args.out)
+    plot_curves(runs, args.metric, args.statistic, args.out, log_y=args.log_y)
     console.print(f"wrote {args.out} ({len(runs)} runs, {args.metric}, {args.statistic})")
     return 0
 
@@ -114,5 +121,6 @@ def add_curves_command(commands: argparse._SubParsersAction) -> None:
     p.add_argument("runs", type=Path, nargs="+", help="simulate JSON files (label: file name)")
     p.add_argument("--metric", required=True, choices=sorted(STEP_AXES))
     p.add_argument("--statistic", choices=STATISTICS, default="mean")
+    p.add_argument("--log-y", action="store_true", help="a log scale for the values")
     p.add_argument("--out", type=Path, required=True, help="the figure (.png, .pdf, .svg)")
     p.set_defaults(run=run_curves)
