@@ -93,7 +93,7 @@ def plot_curves(
         axes.fill_between(steps, low, high, alpha=0.2)
         rows.append({"run": label, "steps": steps.tolist(), statistic: centre.tolist()})
     band = "one standard error" if statistic == "mean" else "interquartile range"
-    axes.set(xlabel="step", ylabel=f"{metric} ({statistic}; band: {band})")
+    axes.set(xlabel="step", ylabel=f"{metric}\n({statistic}; band: {band})")
     if log_y:
         axes.set_yscale("log")
     axes.grid(alpha=0.3, which="both")
