@@ -15,8 +15,6 @@ import numpy as np
 
 #: The frame's labels, in class order.
 DIRECTIONS: tuple[str, ...] = ("up", "down", "right", "left")
-#: Reference angle of each direction, radians (north, south, east, west).
-REFERENCE_ANGLES = np.array([np.pi / 2, -np.pi / 2, 0.0, np.pi])
 
 
 def cardinal_guidance(points: np.ndarray, goals: np.ndarray, alpha: float) -> np.ndarray:
@@ -37,13 +35,20 @@ def cardinal_guidance(points: np.ndarray, goals: np.ndarray, alpha: float) -> np
         ``p(direction | point, goal)``, each row summing to 1, directions in
         :data:`DIRECTIONS` order.
     """
-    offset = goals[None, :, :] - points[:, None, :]
-    bearing = np.arctan2(offset[..., 1], offset[..., 0])  # [-pi, pi]
-    gap = np.abs(bearing[..., None] - REFERENCE_ANGLES)  # [0, 2 pi]
-    np.minimum(gap, 2 * np.pi - gap, out=gap)  # |wrap(theta - theta_c)|, in [0, pi]
-    gap *= -2 / np.pi
-    gap += 1.0
-    raw = np.maximum(gap, 0.0, out=gap)  # sums to 1 over the directions
+    east = goals[None, :, 0] - points[:, None, 0]  # the goal's offset, (n_points, n_goals)
+    north = goals[None, :, 1] - points[:, None, 1]
+    # The bearing in quarter turns, u in [-2, 2]; a direction's raw score
+    # 1 - |wrap(theta - theta_c)| / (pi / 2) is then 1 - |u - u_c| for up, down and right
+    # (where the wrap matters the score is negative either way) and |u| - 1 for left.
+    # Exact at the reference angles: arctan2 returns pi / 2 and pi exactly.
+    quarter_turns = np.arctan2(north, east) / (np.pi / 2)
+    magnitude = np.abs(quarter_turns)
+    raw = np.empty((*quarter_turns.shape, len(DIRECTIONS)))
+    np.subtract(1.0, np.abs(quarter_turns - 1.0), out=raw[..., 0])  # up
+    np.subtract(1.0, np.abs(quarter_turns + 1.0), out=raw[..., 1])  # down
+    np.subtract(1.0, magnitude, out=raw[..., 2])  # right
+    np.subtract(magnitude, 1.0, out=raw[..., 3])  # left
+    np.maximum(raw, 0.0, out=raw)  # sums to 1 over the directions
     zero = raw <= 0.0
     n_zero = zero[..., 0].astype(float)
     for k in range(1, len(DIRECTIONS)):  # elementwise: numpy's short-axis sums are slow
@@ -51,5 +56,5 @@ def cardinal_guidance(points: np.ndarray, goals: np.ndarray, alpha: float) -> np
     noisy = raw
     noisy *= 1.0 - alpha
     noisy += zero * (alpha / np.maximum(n_zero, 1.0))[..., None]
-    noisy[(offset[..., 0] == 0.0) & (offset[..., 1] == 0.0)] = 1.0 / len(DIRECTIONS)  # at the goal
+    noisy[(east == 0.0) & (north == 0.0)] = 1.0 / len(DIRECTIONS)  # at the goal
     return noisy

@@ -180,14 +180,10 @@ class ContinuousGoalLearner:
             means, covariances, len(signals), self.config.n_draws, self.rng
         )
         self.confidence = normal_difference_confidence(
-            sampled_log_likelihoods(signals, labels, *draws)
+            sampled_log_likelihoods(signals, labels, draws)
         )
         if self.config.probing == "uncertainty":
-            candidates, chosen = self._map_draws(len(signals))
-            expected = _expected_matches(
-                signals, labels, chosen, candidates, self.particles, self.config
-            )
-            self._uncertainty = candidates, _weighted_variance(expected, self._weights())
+            self._uncertainty = self._map(signals, labels)
 
     def estimate(self) -> np.ndarray:
         """The best particle, shape (2,)."""
@@ -198,63 +194,78 @@ class ContinuousGoalLearner:
         under the current pool and weights (draws candidates and signals from the rng)."""
         points, signals = np.array(self._points), np.array(self._signals)
         labels = np.swapaxes(cardinal_guidance(points, self.particles, self.config.alpha), 0, 1)
-        candidates, chosen = self._map_draws(len(signals))
-        expected = _expected_matches(
-            signals, labels, chosen, candidates, self.particles, self.config
-        )
-        return candidates, _weighted_variance(expected, self._weights())
+        return self._map(signals, labels)
 
     def _weights(self) -> np.ndarray:
         return self.confidence / self.confidence.sum()
 
-    def _map_draws(self, n_signals: int) -> tuple[np.ndarray, np.ndarray]:
-        """The uncertainty map's candidate points (C, 2) and history signals (S,)."""
+    def _map(self, signals: np.ndarray, labels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Draw the candidates (C, 2) and the chosen signals; their uncertainty (C,)."""
         candidates = self.rng.uniform(size=(self.config.n_candidates, 2))
         chosen = self.rng.choice(
-            n_signals, size=min(self.config.n_map_signals, n_signals), replace=False
+            len(signals), size=min(self.config.n_map_signals, len(signals)), replace=False
         )
-        return candidates, chosen
+        corrected = _corrected_predictions(signals, labels, chosen, self.config)
+        frame = cardinal_guidance(candidates, self.particles, self.config.alpha)
+        return candidates, map_uncertainty(frame, corrected, self._weights())
 
 
-def _expected_matches(
-    signals: np.ndarray,
-    labels: np.ndarray,
-    chosen: np.ndarray,
-    candidates: np.ndarray,
-    particles: np.ndarray,
-    config: ContinuousConfig,
+def map_uncertainty(
+    frame: np.ndarray, corrected: np.ndarray, weights: np.ndarray
 ) -> np.ndarray:
-    """``J_t(x', e_s)`` of every particle t, candidate x' and chosen signal s: (H, C, S)."""
-    corrected = _corrected_predictions(signals, labels, chosen, config)  # (H, S, K)
-    frame = cardinal_guidance(candidates, particles, config.alpha)  # (C, H, K)
-    return np.swapaxes(frame, 0, 1) @ np.swapaxes(corrected, 1, 2)
+    """The weighted variance over particles t of the expected matches
+    ``J_t(x', e_s) = sum_k p(l_k | x', t) q_t(l_k | e_s)``, summed over the signals s.
 
+    As ``sum_s (E_w[J^2] - E_w[J]^2)``: ``sum_s J^2`` needs only ``sum_s q q^T`` per
+    particle, and ``E_w[J]`` is one matrix product, so the (H, C, S) array of matches is
+    never formed.
 
-def _weighted_variance(expected: np.ndarray, weights: np.ndarray) -> np.ndarray:
-    """The weighted variance over particles of ``expected`` (H, C, S), summed over the
-    signals: (C,). Works in place on ``expected``."""
-    mean = np.tensordot(weights, expected, axes=1)  # (C, S)
-    expected -= mean
-    variance = np.tensordot(weights, np.square(expected, out=expected), axes=1)
-    return variance.sum(axis=1)
+    Parameters
+    ----------
+    frame : ndarray, shape (C, H, K)
+        ``p(l | x', t)`` at every candidate point under every particle.
+    corrected : ndarray, shape (H, S, K)
+        ``q_t(l | e_s)`` of every particle's decoder for the chosen signals.
+    weights : ndarray, shape (H,)
+        Normalised particle weights.
+
+    Returns
+    -------
+    ndarray, shape (C,)
+        Non-negative.
+    """
+    by_particle = np.swapaxes(frame, 0, 1)  # (H, C, K)
+    second = weights[:, None, None] * (np.swapaxes(corrected, 1, 2) @ corrected)  # (H, K, K)
+    mean_square = np.einsum("tck,tck->c", by_particle @ second, by_particle)
+    weighted = np.swapaxes(weights[:, None, None] * corrected, 1, 2)  # (H, K, S)
+    mean = frame.reshape(len(frame), -1) @ weighted.reshape(-1, corrected.shape[1])  # (C, S)
+    return np.maximum(mean_square - np.einsum("cs,cs->c", mean, mean), 0.0)
 
 
 def _corrected_predictions(
     signals: np.ndarray, labels: np.ndarray, chosen: np.ndarray, config: ContinuousConfig
 ) -> np.ndarray:
     """``q_t(. | e_s)`` of every particle's Student-t decoder for the chosen signals,
-    corrected by its 10-fold cross-validated confusion: (H, len(chosen), K)."""
+    corrected by its 10-fold cross-validated confusion: (H, len(chosen), K).
+
+    Signal i is in fold ``i % n_folds``. All folds at once: the history, padded with
+    zero-weight rows to whole rows of ``n_folds``, is laid out (n_folds, rows, ...), and
+    each fold's decoders (trained without it) score their own fold's signals."""
+    n, n_folds = len(signals), config.n_folds
+    rows = -(-n // n_folds)
+    padded_signals = np.zeros((rows * n_folds, signals.shape[1]))
+    padded_signals[:n] = signals
+    padded_labels = np.zeros((labels.shape[0], rows * n_folds, labels.shape[2]))
+    padded_labels[:, :n] = labels
+    by_fold = np.swapaxes(padded_signals.reshape(rows, n_folds, -1), 0, 1)  # (F, rows, d)
+    fold_labels = np.moveaxis(padded_labels.reshape(len(labels), rows, n_folds, -1), 2, 0)
     whole = soft_class_statistics(signals, labels)
-    folds = np.arange(len(signals)) % config.n_folds
-    cv_log = np.empty(labels.shape)
-    for f in range(config.n_folds):  # fold f's signals, scored by the decoders trained without it
-        part = soft_class_statistics(signals[folds == f], labels[:, folds == f])
-        held_out = ClassStatistics(
-            whole.counts - part.counts, whole.sums - part.sums, whole.scatters - part.scatters
-        )
-        cv_log[:, folds == f] = fit_student_t(held_out, config.shrinkage).log_proba(
-            signals[folds == f]
-        )
+    part = soft_class_statistics(by_fold, fold_labels)  # batch (F, H)
+    held_out = ClassStatistics(
+        whole.counts - part.counts, whole.sums - part.sums, whole.scatters - part.scatters
+    )
+    fold_log = fit_student_t(held_out, config.shrinkage).log_proba(by_fold[:, None])
+    cv_log = np.moveaxis(fold_log, 0, 2).reshape(len(labels), rows * n_folds, -1)[:, :n]
     full = fit_student_t(whole, config.shrinkage)
     label_counts = np.swapaxes(labels, -1, -2) @ np.exp(cv_log)  # (H, K, K)
     confusion = confusion_matrices(label_counts, full.present, smoothing=1.0)

@@ -17,10 +17,12 @@ probability ``Phi((m_t - m_u) / sqrt(v_t + v_u))`` and ``W_t = min_{u != t}`` of
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 from scipy.special import log_softmax, ndtr
 
-from decoding.statistics import ClassStatistics, shrink_towards_identity
+from decoding.statistics import ClassStatistics, shrink_towards_identity, spd_inverse
 
 
 def soft_class_statistics(signals: np.ndarray, weights: np.ndarray) -> ClassStatistics:
@@ -28,21 +30,24 @@ def soft_class_statistics(signals: np.ndarray, weights: np.ndarray) -> ClassStat
 
     Parameters
     ----------
-    signals : ndarray, shape (n, d)
-    weights : ndarray, shape (H, n, K)
+    signals : ndarray, shape (*S, n, d)
+    weights : ndarray, shape (*S, H, n, K)
+        ``S``: optional leading axes, each entry its own signals (e.g. the folds of a
+        cross-validation).
 
     Returns
     -------
     ClassStatistics
-        Batch shape (H,): counts (H, K), sums (H, K, d), scatters (H, K, d, d).
+        Batch shape (*S, H): counts (*S, H, K), sums (*S, H, K, d), scatters
+        (*S, H, K, d, d).
     """
-    n, d = signals.shape
-    by_class = np.swapaxes(weights, 1, 2)  # (H, K, n)
-    outer = (signals[:, :, None] * signals[:, None, :]).reshape(n, d * d)
+    d = signals.shape[-1]
+    by_class = np.swapaxes(weights, -1, -2)  # (*S, H, K, n)
+    outer = (signals[..., :, None] * signals[..., None, :]).reshape(*signals.shape[:-1], d * d)
     return ClassStatistics(
         counts=by_class.sum(axis=-1),
-        sums=by_class @ signals,
-        scatters=(by_class @ outer).reshape(*by_class.shape[:2], d, d),
+        sums=by_class @ signals[..., None, :, :],
+        scatters=(by_class @ outer[..., None, :, :]).reshape(*by_class.shape[:-1], d, d),
     )
 
 
@@ -74,14 +79,33 @@ def weighted_class_moments(
     return means, shrink_towards_identity(covariances, shrinkage)
 
 
+@dataclass(frozen=True)
+class SampledClassifiers:
+    """Gaussian classifiers drawn from the class posteriors, laid out batch last: class,
+    hypothesis, draw (K, H, J), so that each class's densities are one contiguous block.
+
+    Attributes
+    ----------
+    means : ndarray, shape (d, K, H, J)
+    factors : ndarray, shape (d, d, K, H, J)
+        Lower-triangular ``B`` with precision ``B B^T`` (Bartlett decomposition).
+    log_det : ndarray, shape (K, H, J)
+        Log-determinant of each precision.
+    """
+
+    means: np.ndarray
+    factors: np.ndarray
+    log_det: np.ndarray
+
+
 def sample_classifiers(
     means: np.ndarray,
     covariances: np.ndarray,
     n_signals: int,
     n_draws: int,
     rng: np.random.Generator,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Draw Gaussian classifiers from the Jeffreys posterior of each class.
+) -> SampledClassifiers:
+    """Draw ``n_draws`` Gaussian classifiers from the Jeffreys posterior of each class.
 
     Parameters
     ----------
@@ -92,14 +116,8 @@ def sample_classifiers(
     n_draws : int
         ``J``.
     rng : Generator
-        Draws the Bartlett factors, then the mean offsets.
-
-    Returns
-    -------
-    sampled_means : ndarray, shape (H, J, K, d)
-    precision_factors : ndarray, shape (H, J, K, d, d)
-        Lower-triangular ``B`` with precision ``B B^T`` (Bartlett decomposition).
-    log_det_precision : ndarray, shape (H, J, K)
+        Draws the Bartlett factors' normals, then their chi-squares, then the means'
+        normals and chi-squares, each as one array in the batch-last layout.
     """
     n_hyp, n_classes, d = means.shape
     if n_signals <= d:
@@ -110,32 +128,36 @@ def sample_classifiers(
     nu = n_signals - d
     scale = covariances * dof  # S_l
     # Precision ~ Wishart(S^-1, n - 1): B = L A with L = chol(S^-1), A Bartlett-lower.
-    chol_inverse = np.linalg.cholesky(np.linalg.inv(scale))  # (H, K, d, d)
-    shape = (n_hyp, n_draws, n_classes)
-    bartlett = np.zeros((*shape, d, d))
-    bartlett[(..., *np.tril_indices(d, k=-1))] = rng.standard_normal((*shape, d * (d - 1) // 2))
-    diagonal = np.sqrt(rng.chisquare(dof - np.arange(d), size=(*shape, d)))
-    index = np.arange(d)
-    bartlett[..., index, index] = diagonal
-    factors = chol_inverse[:, None] @ bartlett
+    chol_inverse = _batch_last(np.linalg.cholesky(spd_inverse(scale)[0]))  # (d, d, K, H)
+    shape = (n_classes, n_hyp, n_draws)
+    lower = np.tril_indices(d, k=-1)
+    bartlett = np.zeros((d, d, *shape))
+    bartlett[lower] = rng.standard_normal((len(lower[0]), *shape))
+    degrees = (dof - np.arange(d)).reshape(d, 1, 1, 1)
+    diagonal = np.sqrt(rng.chisquare(degrees, size=(d, *shape)))
+    bartlett[np.arange(d), np.arange(d)] = diagonal
+    factors = np.zeros_like(bartlett)
+    for r, m in zip(*np.tril_indices(d), strict=True):  # B_r. = sum_{m <= r} L_rm A_m.
+        factors[r, : m + 1] += chol_inverse[r, m, ..., None] * bartlett[m, : m + 1]
     log_det = 2 * (
-        np.log(np.diagonal(chol_inverse, axis1=-2, axis2=-1)).sum(-1)[:, None]
-        + np.log(diagonal).sum(-1)
+        np.log(np.diagonal(chol_inverse)).sum(axis=-1)[..., None] + np.log(diagonal).sum(axis=0)
     )
     # mu ~ t_nu(mean, S / (n nu)): a Gaussian offset divided by sqrt(chi2_nu / nu).
-    chol_scale = np.linalg.cholesky(scale / (n_signals * nu))
-    gaussian = rng.standard_normal((*shape, d))
-    mixing = np.sqrt(rng.chisquare(nu, size=(*shape, 1)) / nu)
-    offsets = (chol_scale[:, None] @ gaussian[..., None])[..., 0] / mixing
-    return means[:, None] + offsets, factors, log_det
+    chol_scale = _batch_last(np.linalg.cholesky(scale / (n_signals * nu)))
+    gaussian = rng.standard_normal((d, *shape))
+    mixing = np.sqrt(rng.chisquare(nu, size=shape) / nu)
+    offsets = np.einsum("rmkh,mkhj->rkhj", chol_scale, gaussian) / mixing
+    return SampledClassifiers(_batch_last(means)[..., None] + offsets, factors, log_det)
+
+
+def _batch_last(array: np.ndarray) -> np.ndarray:
+    """(H, K, *trailing) -> (*trailing, K, H), contiguous."""
+    moved = np.moveaxis(array, (0, 1), (-1, -2))
+    return np.ascontiguousarray(moved)
 
 
 def sampled_log_likelihoods(
-    signals: np.ndarray,
-    label_distributions: np.ndarray,
-    sampled_means: np.ndarray,
-    precision_factors: np.ndarray,
-    log_det_precision: np.ndarray,
+    signals: np.ndarray, label_distributions: np.ndarray, classifiers: SampledClassifiers
 ) -> np.ndarray:
     """Batch matching log-likelihood of every hypothesis under every sampled classifier.
 
@@ -144,7 +166,7 @@ def sampled_log_likelihoods(
     signals : ndarray, shape (n, d)
     label_distributions : ndarray, shape (H, n, K)
         ``p(l | x_i, t)`` of each hypothesis's frame at each step.
-    sampled_means, precision_factors, log_det_precision
+    classifiers : SampledClassifiers
         From :func:`sample_classifiers`.
 
     Returns
@@ -152,29 +174,22 @@ def sampled_log_likelihoods(
     ndarray, shape (H, J)
     """
     n, d = signals.shape
-    n_hyp, n_draws, n_classes = sampled_means.shape[:3]
+    n_classes, n_hyp, n_draws = classifiers.log_det.shape
     centre = signals.mean(axis=0)  # the quadratic form is translation invariant
-    signals, sampled_means = signals - centre, sampled_means - centre
-    # Classifiers ordered class first, (K, H, J), so that each class's densities are one
-    # contiguous block of the product below.
-    factors = np.moveaxis(precision_factors, 2, 0)
-    flat = (factors @ np.swapaxes(factors, -1, -2)).reshape(-1, d, d)  # precisions
-    means = np.moveaxis(sampled_means, 2, 0).reshape(-1, d)
+    signals = signals - centre
+    means = classifiers.means.reshape(d, -1) - centre[:, None]
+    upper, projected, offset = _precision_terms(classifiers.factors.reshape(d, d, -1), means)
     # (x - mu)^T P (x - mu) = x^T P x - 2 (P mu)^T x + mu^T P mu, with x^T P x summed over
     # the upper triangle of the symmetric P (off-diagonal terms twice): the first two
     # terms for every classifier and signal are one float32 matrix product with the
     # signals' pairwise products (d (d + 3) / 2 columns; rounding of about 1e-6 relative,
     # far below the sampling noise), and the densities stay float32 to the matching.
     row, column = np.triu_indices(d)
-    projected = np.einsum("bij,bj->bi", flat, means)
-    left = np.concatenate(
-        [flat[:, row, column] * np.where(row == column, 1.0, 2.0), -2 * projected], axis=1
-    )
+    upper *= np.where(row == column, 1.0, 2.0)[:, None]
+    left = np.concatenate([upper, -2 * projected]).T.astype(np.float32)
     right = np.concatenate([signals[:, row] * signals[:, column], signals], axis=1)
-    quadratic = left.astype(np.float32) @ right.T.astype(np.float32)
-    offset = np.einsum("bi,bi->b", projected, means) - np.moveaxis(
-        log_det_precision, 2, 0
-    ).reshape(-1)
+    quadratic = left @ right.T.astype(np.float32)
+    offset -= classifiers.log_det.reshape(-1)
     quadratic += offset.astype(np.float32)[:, None]
     quadratic *= np.float32(-0.5)
     log_density = quadratic.reshape(n_classes, n_hyp, n_draws, n)
@@ -184,6 +199,26 @@ def sampled_log_likelihoods(
     # class: a finite penalty (log of float32's smallest normal, -87) rather than -inf.
     np.maximum(matched, np.finfo(np.float32).tiny, out=matched)
     return np.log(matched).sum(axis=-1, dtype=float)
+
+
+def _precision_terms(
+    factors: np.ndarray, means: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The precisions ``P = B B^T`` of lower-triangular factors ``B`` (d, d, N), batch last:
+    their upper triangles (d (d + 1) / 2, N) in ``np.triu_indices`` order, ``P mu``
+    (d, N) and ``mu^T P mu`` (N,) for means ``mu`` (d, N). Row by row over the whole
+    batch (``P_rc = sum_{k <= r} B_rk B_ck`` for r <= c): numpy's batched product of
+    small matrices costs about a microsecond per matrix."""
+    d = factors.shape[0]
+    upper = np.empty((d * (d + 1) // 2, factors.shape[-1]))
+    start = 0
+    for r in range(d):
+        upper[start : start + d - r] = np.einsum(
+            "kn,ckn->cn", factors[r, : r + 1], factors[r:, : r + 1]
+        )
+        start += d - r
+    whitened = np.einsum("kin,kn->in", factors, means)  # B^T mu
+    return upper, np.einsum("ikn,kn->in", factors, whitened), np.square(whitened).sum(axis=0)
 
 
 def _match(label_distributions: np.ndarray, log_density: np.ndarray) -> np.ndarray:

@@ -31,9 +31,10 @@ u = T K d, u' = T K' d, v = T K d² and w = T K n d:
 * fit (per step): pooled LDA (and categorical) 3 J u + 4 J u' (the pooled statistics'
   sums, their projection, its scaled copy, the small solve's result, the coefficients
   twice) and 4 J T d (the shrunk eigenvalues per task, the unlabelled signals' sums);
-  per-class decoders (1 + 5 F) v (the whole history's and the folds' training scatters,
-  then per fold the covariances, shrunk scatters, scales and their inverses); the
-  Bhattacharyya likelihood's overlaps 5 v (class statistics and moments of every task);
+  per-class decoders (1 + 6 F) v (the whole history's and the folds' training scatters,
+  then per fold the covariances, shrunk scatters, scales, their Cholesky factors and
+  inverses); the Bhattacharyya likelihood's overlaps 5 v (class statistics and moments of
+  every task);
 * cross-validation (per step, always: the service reports every step's cross-validated
   balanced accuracy): all J decoders, the out-of-fold scores (4 T n K; 2 for two-class
   LDA) and, for per-class decoders, 3 w (every signal centred on every class mean, times
@@ -168,7 +169,7 @@ def estimate(world: World, learner: LearnerConfig, steps: int, n_features: int) 
 
     if per_class:  # means, precisions (+ the whole history's training statistics)
         whole = v + 2 * u
-        fit = (1 + 5 * folds) * v + 2 * sets * u
+        fit = (1 + 6 * folds) * v + 2 * sets * u
         folded = sets * (v + u + 2 * tasks * classes) + 3 * tasks * classes * padded * d
     else:  # basis, coefficients, intercepts
         whole = d * d + u + tasks * classes

@@ -38,6 +38,7 @@ from decoding.statistics import (
     ClassStatistics,
     log_softmax,
     shrink_towards_identity,
+    spd_inverse,
 )
 from decoding.validation import check_option
 
@@ -123,7 +124,7 @@ def fit_student_t(
     scatter = shrink_towards_identity(covariances * scatter_weight[..., None, None], shrinkage)
     scale = scatter * ((counts + 1.0) / (np.maximum(counts, 1.0) * dof))[..., None, None]
     scale = np.where(present[..., None, None], scale, np.eye(n_features))
-    _, log_det = np.linalg.slogdet(scale)
+    precisions, log_det = spd_inverse(scale)
     log_norm = (
         gammaln(0.5 * (dof + n_features))
         - gammaln(0.5 * dof)
@@ -132,7 +133,7 @@ def fit_student_t(
     )
     return StudentTDecoders(
         means=means,
-        precisions=np.linalg.inv(scale),
+        precisions=precisions,
         log_norm=np.where(present, log_norm, -np.inf),
         dof=dof,
         present=present,

@@ -9,7 +9,12 @@ from scipy.stats import multivariate_normal
 
 from acquisition.gaussian import generate_gaussian_features
 from calibration_free.cardinal import cardinal_guidance
-from calibration_free.continuous_goals import ContinuousConfig, ContinuousGoalLearner, resample
+from calibration_free.continuous_goals import (
+    ContinuousConfig,
+    ContinuousGoalLearner,
+    map_uncertainty,
+    resample,
+)
 from calibration_free.sampled_confidence import (
     normal_difference_confidence,
     pairwise_normal_difference,
@@ -95,8 +100,8 @@ def test_sampled_means_concentrate_like_one_over_n() -> None:
         data = generate_gaussian_features(n // 4, 4, 3, 0.9, seed=5)
         weights = np.eye(4)[data.labels][None]
         means, covariances = weighted_class_moments(data.features, weights, 0.5)
-        sampled, _, _ = sample_classifiers(means, covariances, n, 400, rng)
-        spreads.append(sampled[0, :, 0].var(axis=0).mean())
+        sampled = sample_classifiers(means, covariances, n, 400, rng).means  # (d, K, H, J)
+        spreads.append(sampled[:, 0, 0].var(axis=1).mean())
     assert spreads[0] / spreads[1] == pytest.approx(10.0, rel=0.3)
 
 
@@ -109,21 +114,20 @@ def test_sampled_log_likelihoods_equal_a_direct_computation() -> None:
     labels = rng.dirichlet(np.ones(4), size=(3, len(signals)))  # (H, n, K)
     means, covariances = weighted_class_moments(signals, labels, 0.5)
     draws = sample_classifiers(means, covariances, len(signals), 2, rng)
-    sampled_means, factors, log_det = draws
     expected = np.empty((3, 2))
     for h, j in np.ndindex(3, 2):
+        factors = [draws.factors[..., k, h, j] for k in range(4)]
+        assert all(np.array_equal(f, np.tril(f)) for f in factors)
         log_density = np.stack([
-            multivariate_normal(
-                sampled_means[h, j, k], np.linalg.inv(factors[h, j, k] @ factors[h, j, k].T)
-            ).logpdf(signals)
-            for k in range(4)
+            multivariate_normal(draws.means[:, k, h, j], np.linalg.inv(f @ f.T)).logpdf(signals)
+            for k, f in enumerate(factors)
         ], axis=1)  # (n, K)
         assert np.allclose(  # the factors' log determinant is the precision's
-            log_det[h, j], np.linalg.slogdet(factors[h, j] @ np.swapaxes(factors[h, j], 1, 2))[1]
+            draws.log_det[:, h, j], [np.linalg.slogdet(f @ f.T)[1] for f in factors]
         )
         proba = np.exp(log_density - logsumexp(log_density, axis=1, keepdims=True))
         expected[h, j] = np.log((labels[h] * proba).sum(axis=1)).sum()
-    assert sampled_log_likelihoods(signals, labels, *draws) == pytest.approx(expected, rel=1e-4)
+    assert sampled_log_likelihoods(signals, labels, draws) == pytest.approx(expected, rel=1e-4)
 
 
 def test_too_few_signals_are_refused() -> None:
@@ -163,3 +167,17 @@ def test_the_learner_finds_the_goal_whatever_the_class_order() -> None:
     for order in (None, [2, 0, 3, 1]):
         distances = _final_distances(order, "uncertainty")
         assert np.median(distances) < 0.05, distances
+
+
+def test_the_map_uncertainty_equals_the_weighted_variance_of_the_matches() -> None:
+    # Direct: every particle's expected match at every candidate and signal, their
+    # weighted variance over particles, summed over the signals.
+    rng = np.random.default_rng(12)
+    frame = rng.dirichlet(np.ones(4), size=(30, 6))  # (C, H, K)
+    corrected = rng.dirichlet(np.ones(4), size=(6, 5))  # (H, S, K)
+    weights = rng.dirichlet(np.ones(6))
+    matches = np.einsum("chk,hsk->hcs", frame, corrected)
+    mean = np.einsum("h,hcs->cs", weights, matches)
+    expected = np.einsum("h,hcs->c", weights, (matches - mean) ** 2)
+    assert map_uncertainty(frame, corrected, weights) == pytest.approx(expected, rel=1e-9)
+    assert expected.min() > 1e-3  # a case where the variance is not trivially zero

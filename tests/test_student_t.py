@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from scipy.stats import multivariate_t
 
-from decoding.statistics import ClassStatistics, one_hot, shrink_towards_identity
+from decoding.statistics import ClassStatistics, one_hot, shrink_towards_identity, spd_inverse
 from decoding.student_t import fit_student_t
 
 
@@ -82,3 +82,14 @@ def test_a_class_of_copies_of_one_signal_takes_no_part_with_the_total_count():
     # Without shrinkage a class needs more signals than dimensions, as with its own count.
     decoders = fit_student_t(ClassStatistics.from_signals(X, one_hot(y, 2)), 0.0, "total")
     assert decoders.present.tolist() == [True, False]
+
+
+def test_spd_inverse_equals_numpys_inverse_and_log_determinant():
+    rng = np.random.default_rng(0)
+    factors = rng.normal(size=(3, 5, 11, 30))
+    matrices = factors @ np.swapaxes(factors, -1, -2) / 30 + 0.1 * np.eye(11)
+    inverses, log_det = spd_inverse(matrices)
+    assert np.allclose(inverses, np.linalg.inv(matrices), rtol=1e-10, atol=1e-12)
+    assert np.allclose(log_det, np.linalg.slogdet(matrices)[1], rtol=1e-12)
+    with pytest.raises(np.linalg.LinAlgError):
+        spd_inverse(np.diag([1.0, -1.0]))
