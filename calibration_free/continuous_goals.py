@@ -37,8 +37,8 @@ from calibration_free.sampled_confidence import (
     normal_difference_confidence,
     sample_classifiers,
     sampled_log_likelihoods,
+    shrunk_class_moments,
     soft_class_statistics,
-    weighted_class_moments,
 )
 from decoding.statistics import ClassStatistics
 from decoding.student_t import fit_student_t
@@ -175,7 +175,8 @@ class ContinuousGoalLearner:
         labels = np.swapaxes(
             cardinal_guidance(points, self.particles, self.config.alpha), 0, 1
         )  # (H, n, K)
-        means, covariances = weighted_class_moments(signals, labels, self.config.shrinkage)
+        statistics = soft_class_statistics(signals, labels)  # (H,): each particle's classes
+        means, covariances = shrunk_class_moments(statistics, signals, self.config.shrinkage)
         draws = sample_classifiers(
             means, covariances, len(signals), self.config.n_draws, self.rng
         )
@@ -183,7 +184,7 @@ class ContinuousGoalLearner:
             sampled_log_likelihoods(signals, labels, draws)
         )
         if self.config.probing == "uncertainty":
-            self._uncertainty = self._map(signals, labels)
+            self._uncertainty = self._map(signals, labels, statistics)
 
     def estimate(self) -> np.ndarray:
         """The best particle, shape (2,)."""
@@ -194,18 +195,21 @@ class ContinuousGoalLearner:
         under the current pool and weights (draws candidates and signals from the rng)."""
         points, signals = np.array(self._points), np.array(self._signals)
         labels = np.swapaxes(cardinal_guidance(points, self.particles, self.config.alpha), 0, 1)
-        return self._map(signals, labels)
+        return self._map(signals, labels, soft_class_statistics(signals, labels))
 
     def _weights(self) -> np.ndarray:
         return self.confidence / self.confidence.sum()
 
-    def _map(self, signals: np.ndarray, labels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Draw the candidates (C, 2) and the chosen signals; their uncertainty (C,)."""
+    def _map(
+        self, signals: np.ndarray, labels: np.ndarray, statistics: ClassStatistics
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Draw the candidates (C, 2) and the chosen signals; their uncertainty (C,).
+        ``statistics``: ``soft_class_statistics(signals, labels)``."""
         candidates = self.rng.uniform(size=(self.config.n_candidates, 2))
         chosen = self.rng.choice(
             len(signals), size=min(self.config.n_map_signals, len(signals)), replace=False
         )
-        corrected = _corrected_predictions(signals, labels, chosen, self.config)
+        corrected = _corrected_predictions(signals, labels, statistics, chosen, self.config)
         frame = cardinal_guidance(candidates, self.particles, self.config.alpha)
         return candidates, map_uncertainty(frame, corrected, self._weights())
 
@@ -243,14 +247,19 @@ def map_uncertainty(
 
 
 def _corrected_predictions(
-    signals: np.ndarray, labels: np.ndarray, chosen: np.ndarray, config: ContinuousConfig
+    signals: np.ndarray,
+    labels: np.ndarray,
+    whole: ClassStatistics,
+    chosen: np.ndarray,
+    config: ContinuousConfig,
 ) -> np.ndarray:
     """``q_t(. | e_s)`` of every particle's Student-t decoder for the chosen signals,
     corrected by its 10-fold cross-validated confusion: (H, len(chosen), K).
 
     Signal i is in fold ``i % n_folds``. All folds at once: the history, padded with
     zero-weight rows to whole rows of ``n_folds``, is laid out (n_folds, rows, ...), and
-    each fold's decoders (trained without it) score their own fold's signals."""
+    each fold's decoders (trained without it) score their own fold's signals. ``whole``:
+    the class statistics of the whole history, ``soft_class_statistics(signals, labels)``."""
     n, n_folds = len(signals), config.n_folds
     rows = -(-n // n_folds)
     padded_signals = np.zeros((rows * n_folds, signals.shape[1]))
@@ -259,7 +268,6 @@ def _corrected_predictions(
     padded_labels[:, :n] = labels
     by_fold = np.swapaxes(padded_signals.reshape(rows, n_folds, -1), 0, 1)  # (F, rows, d)
     fold_labels = np.moveaxis(padded_labels.reshape(len(labels), rows, n_folds, -1), 2, 0)
-    whole = soft_class_statistics(signals, labels)
     part = soft_class_statistics(by_fold, fold_labels)  # batch (F, H)
     held_out = ClassStatistics(
         whole.counts - part.counts, whole.sums - part.sums, whole.scatters - part.scatters

@@ -71,7 +71,14 @@ def weighted_class_moments(
         Weighted (biased) covariances, shrunk; a class with no weight gets the covariance
         of all signals.
     """
-    statistics = soft_class_statistics(signals, weights)
+    return shrunk_class_moments(soft_class_statistics(signals, weights), signals, shrinkage)
+
+
+def shrunk_class_moments(
+    statistics: ClassStatistics, signals: np.ndarray, shrinkage: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`weighted_class_moments` from the hypotheses' class statistics of ``signals``
+    (shape (n, d)), already computed (``soft_class_statistics(signals, weights)``)."""
     means, covariances = statistics.class_moments()
     empty = statistics.counts <= np.finfo(float).eps
     if np.any(empty):

@@ -299,7 +299,8 @@ def run_bench_simulate(args: argparse.Namespace, console: Console) -> int:
         f"({report['frame']}, {args.grid} x {args.grid}): wall time per session median "
         f"{wall['median']:.2f} s (min {wall['min']:.2f}, max {wall['max']:.2f}); "
         f"{report['realtime_factor']:.0f}x faster than real time at "
-        f"{SECONDS_PER_ACTION:g} s per action (median over sessions)"
+        f"{SECONDS_PER_ACTION:g} s per action (median over sessions)",
+        soft_wrap=True,  # the dataset's path stays on one line, for copying
     )
     if args.json:
         args.json.write_text(json.dumps(report, indent=2) + "\n")

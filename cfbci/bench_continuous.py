@@ -21,6 +21,7 @@ from acquisition.cardinal_teacher import CardinalTeacher
 from acquisition.gaussian import generate_gaussian_features
 from calibration_free.continuous_goals import ContinuousConfig, ContinuousGoalLearner
 from cfbci.blas import single_threaded_blas
+from cfbci.memory import keep_freed_memory
 
 
 @dataclass(frozen=True)
@@ -40,11 +41,13 @@ def bench_continuous_step(
 ) -> ContinuousStepTimes:
     """Time ``steps`` steps of a learner whose history holds ``history`` signals at the
     first timed step (11-D four-class Gaussian signals, like ``move_finger.mat``'s); the
-    history grows by one signal per timed step. One BLAS thread (this process and its
-    children: run it in a process of its own)."""
+    history grows by one signal per timed step. One BLAS thread and glibc told to keep freed
+    memory (:func:`cfbci.memory.keep_freed_memory`), as in ``cfbci simulate`` and the service
+    (this process and its children: run it in a process of its own)."""
     config = config or ContinuousConfig()
     if history < 1 or steps < 1:
         raise ValueError(f"history and steps must be >= 1; got {history} and {steps}")
+    keep_freed_memory()
     single_threaded_blas()
     rng = np.random.default_rng(seed)
     data = generate_gaussian_features(500, 4, 11, 0.98, rng)
