@@ -524,7 +524,6 @@ class PipelineService:
                         continue  # its world's tables are being built: no deadline for that
                 except RuntimeError as error:
                     del self._pending[sid]
-                    self.registration.release(sid)
                     self._outbox.forget(sid)
                     self._reject(Rejection(str(error), sid, pending.message.seq,
                                            pending.message.t_ns))
@@ -533,7 +532,6 @@ class PipelineService:
                 self._guarded(sid, lambda p=pending: self._start(p.message, p.publisher))
             elif now >= pending.deadline_ns:
                 del self._pending[sid]
-                self.registration.release(sid)
                 self._outbox.forget(sid)
                 self._reject(Rejection(
                     f"no subscriber to the session's events within "
@@ -1048,9 +1046,13 @@ class PipelineService:
     def _reject(self, error: ProtocolError) -> None:
         """Report a rejected message where the protocol says (its session, else ``_``);
         a :class:`Rejection` of a running session (the one its ``config_t_ns`` names) ends
-        it."""
+        it. A session that neither runs nor waits for its source holds no claim (say its
+        start failed): the claim is withdrawn before the rejection is published, so that a
+        source told of it may pick another service at once."""
         session = error.session if error.session is not None else NO_SESSION
         running = self._sessions.get(session)
+        if running is None and session not in self._pending:
+            self.registration.release(session)
         ends = running is not None and running.config_t_ns == getattr(error, "config_t_ns", -1)
         if isinstance(error, Rejection) and (ends or self._errors.allows(session)):
             self._event(session, "session_rejected", str(error), error.config_t_ns)

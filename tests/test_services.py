@@ -17,12 +17,19 @@ from live import SPAWN, TIMEOUT
 from test_pipeline import GRID, STEPS, simulated
 
 from acquisition.replay_source import SourceSettings, SourceSummary, run_source
+from cfbci.limits import ServiceLimits
 from cfbci.router import run_router
 from cfbci.service import serve
 from replay.recording import read_recording
 from wire import protocol
-from wire.services import ask_for_offers, pick_service
-from wire.transport import Pump, Received, reliable_publisher, wait_for_subscribers
+from wire.services import ask_for_offers, claims_of, pick_service
+from wire.transport import (
+    Outbox,
+    Pump,
+    Received,
+    reliable_publisher,
+    wait_for_subscribers,
+)
 from wire.zenoh_config import free_tcp_endpoint, peer_config
 
 
@@ -135,3 +142,37 @@ def run_two_sessions(
         for pump in pumps:
             pump.close()
     return summaries
+
+
+def test_a_session_whose_start_fails_leaves_no_claim(tmp_path: Path) -> None:
+    # One service that runs one session at most. "x" names it and waits for its source
+    # (claimed); "y" then takes the one slot; when x's source subscribes, x's start fails
+    # (the service is full) and x is rejected: its claim must be gone by then, y's kept.
+    endpoint, client_endpoint = free_tcp_endpoint(), free_tcp_endpoint()
+    limits = ServiceLimits(max_sessions=1, subscriber_timeout=TIMEOUT, idle_timeout=TIMEOUT)
+    service = (serve, ([endpoint], [client_endpoint], tmp_path),
+               {"limits": limits, "service_id": "svc-a"})
+    config = {"seed": 0, "world": "grid", "grid": GRID, "frame": "feedback", "steps": STEPS,
+              "learner": {}, "dataset": {}, "signal": "features", "service": "svc-a"}
+    inbox: queue.SimpleQueue[Received] = queue.SimpleQueue()
+    with zenoh.open(peer_config([client_endpoint], ())) as client, processes(service):
+        outbox = Outbox(client)
+        assert wait_for_subscribers(outbox.publisher(protocol.key("x", "config")), TIMEOUT)
+        outbox.send("config", "x", config)
+        deadline = time.monotonic() + TIMEOUT
+        while claims_of(client, "x") != ["svc-a"]:  # x waits for its source, claimed
+            assert time.monotonic() < deadline, "the service never claimed x"
+        pumps = [Pump(client, protocol.key("y", "event"), "event", inbox)]
+        try:
+            outbox.send("config", "y", config)
+            assert next_message(inbox).fields["event"] == "session_started"
+            pumps.append(Pump(client, protocol.key("x", "event"), "event", inbox))
+            rejected = next_message(inbox)
+            assert (rejected.session, rejected.fields["event"]) == ("x", "session_rejected")
+            assert "maximum of 1" in rejected.fields["message"]
+            assert claims_of(client, "x") == []
+            assert claims_of(client, "y") == ["svc-a"]
+        finally:
+            for pump in pumps:
+                pump.close()
+            outbox.close()
