@@ -255,6 +255,23 @@ def _timestamp(log_time_ns: int) -> dict[str, int]:
     return {"sec": sec, "nsec": nsec}
 
 
+def _plane_points(packed: np.ndarray, third: str, log_time_ns: int) -> dict[str, Any]:
+    """A ``foxglove.PointCloud`` in frame ``plane`` of ``packed`` (shape (n, 3): x, y and
+    the field named ``third``), as float32."""
+    data, _ = _base64_float32(packed)
+    return {
+        "timestamp": _timestamp(log_time_ns),
+        "frame_id": "plane",
+        "pose": _IDENTITY_POSE,
+        "point_stride": 12,
+        "fields": [
+            {"name": name, "offset": 4 * k, "type": _FLOAT32}
+            for k, name in enumerate(("x", "y", third))
+        ],
+        "data": data,
+    }
+
+
 class SessionRecorder:
     """Record one session to an MCAP file, flushing every message to the OS.
 
@@ -411,19 +428,7 @@ class SessionRecorder:
         """Record a puddle move's two points on ``/position`` as a ``foxglove.PointCloud``
         (frame ``plane``; float32 fields ``x``, ``y`` and ``step``)."""
         packed = np.array([[*from_state, step], [*to_state, step]], dtype=np.float64)
-        data, _ = _base64_float32(packed)
-        cloud = {
-            "timestamp": _timestamp(log_time_ns),
-            "frame_id": "plane",
-            "pose": _IDENTITY_POSE,
-            "point_stride": 12,
-            "fields": [
-                {"name": name, "offset": 4 * k, "type": _FLOAT32}
-                for k, name in enumerate(("x", "y", "step"))
-            ],
-            "data": data,
-        }
-        self.record("/position", cloud, log_time_ns)
+        self.record("/position", _plane_points(packed, "step", log_time_ns), log_time_ns)
 
     def record_particles(
         self, points: list[list[float]], confidence: np.ndarray, log_time_ns: int
@@ -445,19 +450,7 @@ class SessionRecorder:
                 f"confidence must have shape ({len(points)},); got {np.shape(confidence)}"
             )
         packed = np.column_stack([np.reshape(points, (-1, 2)), confidence])
-        data, _ = _base64_float32(packed)
-        cloud = {
-            "timestamp": _timestamp(log_time_ns),
-            "frame_id": "plane",
-            "pose": _IDENTITY_POSE,
-            "point_stride": 12,
-            "fields": [
-                {"name": name, "offset": 4 * k, "type": _FLOAT32}
-                for k, name in enumerate(("x", "y", "confidence"))
-            ],
-            "data": data,
-        }
-        self.record("/particles", cloud, log_time_ns)
+        self.record("/particles", _plane_points(packed, "confidence", log_time_ns), log_time_ns)
 
     def record_ranking(self, confidence: np.ndarray, world: World, log_time_ns: int) -> None:
         """Record the :data:`RANKED` most confident tasks on ``/ranking``, best first (ties
