@@ -240,25 +240,34 @@ def _add_bench(commands: argparse._SubParsersAction) -> None:
     latency = which.add_parser(
         "latency",
         help="end-to-end latency over Zenoh (source to service and back) and the learner's share",
-        description="Live sessions at T = 25 (5 x 5 grid, synthetic data, feedback frame, "
-        "default learner) on one service in its own process: epoch published to next move "
-        "received, the learner's update inside the service, each epoch's queueing delay "
-        "there, and the difference (transport and the rest).",
+        description="Live sessions on an N x N grid (synthetic data, feedback frame, default "
+        "learner) on one service in its own process: epoch published to next move received, "
+        "the learner's update inside the service, each epoch's queueing delay there, and the "
+        "difference (transport and the rest); pooled, per session and the worst session.",
     )
+    latency.add_argument("--grid", type=int, default=5, help="grid side N (default 5: T = 25)")
     latency.add_argument(
         "--sessions", type=int, default=1,
         help="concurrent sessions on the one service (default 1)",
     )
     latency.add_argument(
-        "--interval", type=float, default=0.0,
+        "--interval", type=float, default=None,
         help="seconds each source waits before answering a move, its user's reaction; the "
-        "sources start interval/sessions apart (default 0: as fast as possible)",
+        "sources start after random phases in [0, interval) (default: 0, as fast as "
+        "possible, for one session; 0.5 for several)",
+    )
+    latency.add_argument(
+        "--burst", action="store_true",
+        help="then run the same sessions again all starting at once, reported beside",
     )
     latency.add_argument(
         "--steps", type=int, default=1000, help="measured epochs (default 1000)"
     )
     latency.add_argument("--seed", type=int, default=0, help="session seed (default 0)")
-    latency.add_argument("--json", type=Path, help="write the figures (ms) as JSON")
+    latency.add_argument(
+        "--json", type=Path,
+        help="write the figures (ms) as JSON (the burst run's under 'burst_run')",
+    )
     latency.set_defaults(run=_run_bench_latency)
     add_soak_parser(which)
     add_flood_parser(which)
@@ -267,8 +276,13 @@ def _add_bench(commands: argparse._SubParsersAction) -> None:
 def _run_bench_latency(args: argparse.Namespace, console: Console) -> int:
     from cfbci.latency import bench_latency, print_latency
 
-    report = bench_latency(args.steps, args.seed, args.sessions, args.interval)
+    report = bench_latency(args.steps, args.seed, args.sessions, args.interval, args.grid)
     print_latency(report, console)
+    if args.burst:
+        report["burst_run"] = bench_latency(
+            args.steps, args.seed, args.sessions, args.interval, args.grid, burst=True
+        )
+        print_latency(report["burst_run"], console)
     if args.json:
         args.json.write_text(json.dumps(report, indent=2) + "\n")
     return 0
