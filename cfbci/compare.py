@@ -15,6 +15,7 @@ import json
 import math
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from rich.console import Console
@@ -37,6 +38,24 @@ class RankTest:
     p_value: float
 
 
+def simulate_sessions(path: Path) -> list[Any]:
+    """The ``sessions`` list of a simulate JSON file (not empty; its items unchecked).
+
+    Raises
+    ------
+    ValueError
+        Naming the file: not readable JSON, or no ``sessions`` list.
+    """
+    try:
+        report = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as error:
+        raise ValueError(f"{path}: not a readable JSON file ({error})") from None
+    sessions = report.get("sessions") if isinstance(report, dict) else None
+    if not isinstance(sessions, list) or not sessions:
+        raise ValueError(f"{path}: no 'sessions' list (write it with cfbci simulate --json)")
+    return sessions
+
+
 def session_values(path: Path, metric: str) -> np.ndarray:
     """The ``metric`` of every session of a simulate JSON file, shape (n_sessions,).
 
@@ -46,15 +65,8 @@ def session_values(path: Path, metric: str) -> np.ndarray:
         Naming the file (and the session): not a simulate JSON, no sessions, a session
         without the metric, or a value that is not a finite number.
     """
-    try:
-        report = json.loads(path.read_text())
-    except (OSError, json.JSONDecodeError) as error:
-        raise ValueError(f"{path}: not a readable JSON file ({error})") from None
-    sessions = report.get("sessions") if isinstance(report, dict) else None
-    if not isinstance(sessions, list) or not sessions:
-        raise ValueError(f"{path}: no 'sessions' list (write it with cfbci simulate --json)")
     values = []
-    for index, session in enumerate(sessions):
+    for index, session in enumerate(simulate_sessions(path)):
         if not isinstance(session, dict):
             raise ValueError(f"{path}: session {index} is not an object")
         value = session.get(metric)

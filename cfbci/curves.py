@@ -11,13 +11,14 @@ the median with its interquartile band (``--statistic median``).
 from __future__ import annotations
 
 import argparse
-import json
 import math
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 from rich.console import Console
+
+from cfbci.compare import simulate_sessions
 
 #: The step of each element of a series, by series: a session field, or every 10th step.
 STEP_AXES = {"taught_likelihood": "update_steps", "distance_every_10": None}
@@ -35,13 +36,7 @@ def run_series(path: Path, metric: str) -> tuple[np.ndarray, np.ndarray]:
     """
     if metric not in STEP_AXES:
         raise ValueError(f"metric must be one of {sorted(STEP_AXES)}; got {metric!r}")
-    try:
-        report = json.loads(path.read_text())
-    except (OSError, json.JSONDecodeError) as error:
-        raise ValueError(f"{path}: not a readable JSON file ({error})") from None
-    sessions = report.get("sessions") if isinstance(report, dict) else None
-    if not isinstance(sessions, list) or not sessions:
-        raise ValueError(f"{path}: no 'sessions' list (write it with cfbci simulate --json)")
+    sessions = simulate_sessions(path)
     rows = [_series(path, index, session, metric) for index, session in enumerate(sessions)]
     if len({len(row) for row in rows}) != 1:
         raise ValueError(f"{path}: the sessions' {metric!r} series differ in length")
@@ -108,7 +103,9 @@ def run_curves(args: argparse.Namespace, console: Console) -> int:
     if len(runs) != len(args.runs):
         raise ValueError("two runs have the same file name: their labels would clash")
     plot_curves(runs, args.metric, args.statistic, args.out, log_y=args.log_y)
-    console.print(f"wrote {args.out} ({len(runs)} runs, {args.metric}, {args.statistic})")
+    console.print(
+        f"wrote {args.out} ({len(runs)} runs, {args.metric}, {args.statistic})", soft_wrap=True
+    )
     return 0
 
 
