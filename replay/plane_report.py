@@ -22,7 +22,7 @@ from calibration_free.cardinal import DIRECTIONS
 from replay.figures import SavedFigure, latency_figure, save_figures
 from replay.metrics import SessionMetrics, latency_summary, truth_by_step
 from replay.recording import Recording
-from replay.rerun import first_divergence, recompute
+from replay.rerun import replay_verdict
 
 #: Steps whose particle clouds the report draws.
 CLOUD_PANELS = 4
@@ -50,11 +50,7 @@ def plane_metrics(recording: Recording, file: str = "") -> SessionMetrics:
             np.asarray(s["points"][s["best_task"]]) - goal))
         for s in states[1:]
     ]
-    try:
-        divergence = first_divergence(recording, *recompute(recording))
-        identical, note = divergence is None, divergence and divergence.describe()
-    except (ValueError, KeyError, TypeError) as error:
-        identical, note = None, f"re-run failed: {error!r}"
+    identical, note = replay_verdict(recording)
     update_ms = [float(m["update_ms"]) for m in moves if m.get("update_ms") is not None]
     n_particles = len(states[0]["points"]) if states else 0
     return SessionMetrics(

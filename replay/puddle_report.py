@@ -28,7 +28,7 @@ from calibration_free.puddle_learner import PuddleConfig
 from replay.figures import SavedFigure, latency_figure, save_figures
 from replay.metrics import SessionMetrics, latency_summary, truth_by_step
 from replay.recording import Recording
-from replay.rerun import first_divergence, recompute, recorded_resets
+from replay.rerun import recorded_resets, replay_verdict
 
 
 def _states_by_signals(recording: Recording) -> dict[int, dict[str, Any]]:
@@ -74,11 +74,7 @@ def puddle_metrics(recording: Recording, file: str = "") -> SessionMetrics:
     taught_likelihood = [confidence_true[k - 1] for k in update_steps]
     resets = recorded_resets(recording)
     restarts = [k for k, reset in enumerate(resets, start=1) if reset]
-    try:
-        divergence = first_divergence(recording, *recompute(recording))
-        identical, note = divergence is None, divergence and divergence.describe()
-    except (ValueError, KeyError, TypeError) as error:
-        identical, note = None, f"re-run failed: {error!r}"
+    identical, note = replay_verdict(recording)
     update_ms = [float(m["update_ms"]) for m in moves if m.get("update_ms") is not None]
     n_tasks = len(puddle_tasks())
     return SessionMetrics(

@@ -280,6 +280,16 @@ def first_divergence(
     )
 
 
+def replay_verdict(recording: Recording) -> tuple[bool | None, str | None]:
+    """Whether :func:`recompute` reproduces the recording, and the first divergence's
+    description; ``(None, why)`` if the re-run failed."""
+    try:
+        divergence = first_divergence(recording, *recompute(recording))
+    except (ValueError, KeyError, TypeError) as error:
+        return None, f"re-run failed: {error!r}"
+    return divergence is None, divergence and divergence.describe()
+
+
 def move_divergence(recorded: list[dict], moves: list[dict]) -> Divergence | None:
     """The first difference between recorded and recomputed moves (fields or count)."""
     return _first_difference("/move", recorded, moves, MOVE_FIELDS, moves)
