@@ -17,6 +17,7 @@ import json
 import os
 import re
 import socket
+import threading
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
 
@@ -99,6 +100,10 @@ def claims_of(session: zenoh.Session, sid: str, timeout: float = QUERY_TIMEOUT) 
 class ServiceRegistration:
     """A service's side: its queryable of offers and its claims.
 
+    The other services' claims are followed with a liveliness subscriber (with history, so
+    the claims made before this service started are known too): :meth:`claim` checks them
+    locally and never waits on the network.
+
     Parameters
     ----------
     session : zenoh.Session
@@ -114,6 +119,11 @@ class ServiceRegistration:
     ) -> None:
         self.session, self.service, self._load = session, check_service_id(service), load
         self._claims: dict[str, zenoh.LivelinessToken] = {}
+        self._lock = threading.Lock()
+        self._others: dict[str, set[str]] = {}  # session id -> the other services claiming it
+        self._watcher = session.liveliness().declare_subscriber(
+            claim_key("*", "*"), self._on_claim, history=True
+        )
         self._queryable = session.declare_queryable(f"{SERVICES}/{service}", self._answer)
 
     def _answer(self, query: zenoh.Query) -> None:
@@ -121,12 +131,28 @@ class ServiceRegistration:
         offer = ServiceOffer(self.service, sessions, max_sessions)
         query.reply(f"{SERVICES}/{self.service}", json.dumps(asdict(offer)))
 
+    def _on_claim(self, sample: zenoh.Sample) -> None:
+        """A claim appears (PUT) or vanishes (DELETE) on the network (Zenoh's thread)."""
+        parts = str(sample.key_expr).split("/")  # <prefix>/<session>/served-by/<service>
+        if len(parts) != 4 or parts[3] == self.service:
+            return
+        sid, service = parts[1], parts[3]
+        with self._lock:
+            holders = self._others.setdefault(sid, set())
+            if sample.kind == zenoh.SampleKind.PUT:
+                holders.add(service)
+            else:
+                holders.discard(service)
+                if not holders:
+                    del self._others[sid]
+
     def claim(self, sid: str) -> str | None:
         """Claim session ``sid``; None if done (or already ours), else the id of the
-        service that holds it."""
+        service that holds it (the smallest, if several)."""
         if sid in self._claims:
             return None
-        others = [s for s in claims_of(self.session, sid) if s != self.service]
+        with self._lock:
+            others = sorted(self._others.get(sid, ()))
         if others:
             return others[0]
         self._claims[sid] = self.session.liveliness().declare_token(claim_key(sid, self.service))
@@ -139,7 +165,8 @@ class ServiceRegistration:
             token.undeclare()
 
     def close(self) -> None:
-        """Withdraw every claim and the queryable."""
+        """Withdraw every claim, the claims' subscriber and the queryable."""
         for sid in list(self._claims):
             self.release(sid)
+        self._watcher.undeclare()
         self._queryable.undeclare()
