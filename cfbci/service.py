@@ -538,6 +538,9 @@ class PipelineService:
                     f"{self.limits.subscriber_timeout:g} s", sid, pending.message.seq,
                     pending.message.t_ns,
                 ))
+        for sid, keeper in self.registration.take_conflicts().items():
+            self._give_up(sid, f"session {sid!r} is also claimed by service {keeper!r}, which "
+                          "keeps it (the smaller id)")
         idle_ns = int(self.limits.idle_timeout * 1e9)
         for session in [s for s in self._sessions.values() if now - s.active_ns > idle_ns]:
             self._abort(session, f"no epoch for {self.limits.idle_timeout:g} s: session ended")
@@ -545,6 +548,16 @@ class PipelineService:
         drops = self.intake.take_drops()
         if drops:
             log.warning("intake dropped %s", dict(drops))
+
+    def _give_up(self, sid: str, problem: str) -> None:
+        """End a running or waiting session with ``problem``; its claim is withdrawn first,
+        before the rejection is published."""
+        self.registration.release(sid)
+        running, pending = self._sessions.get(sid), self._pending.pop(sid, None)
+        if running is not None:
+            self._abort(running, problem)
+        elif pending is not None:
+            self._reject(Rejection(problem, sid, pending.message.seq, pending.message.t_ns))
 
     def _guarded(self, session: str, action: Callable[[], None]) -> None:
         """Run ``action``; a rejection or a bug is reported on ``session``."""

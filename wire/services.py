@@ -121,6 +121,7 @@ class ServiceRegistration:
         self._claims: dict[str, zenoh.LivelinessToken] = {}
         self._lock = threading.Lock()
         self._others: dict[str, set[str]] = {}  # session id -> the other services claiming it
+        self._conflicts: dict[str, str] = {}  # our sessions also claimed by a smaller id
         self._watcher = session.liveliness().declare_subscriber(
             claim_key("*", "*"), self._on_claim, history=True
         )
@@ -141,26 +142,50 @@ class ServiceRegistration:
             holders = self._others.setdefault(sid, set())
             if sample.kind == zenoh.SampleKind.PUT:
                 holders.add(service)
+                self._note_conflict(sid)
             else:
                 holders.discard(service)
                 if not holders:
                     del self._others[sid]
 
+    def _note_conflict(self, sid: str) -> None:
+        """With the lock held: if ``sid`` is ours and a service with a smaller id claims it
+        too (both checked before either claim reached the other), ours must yield."""
+        smaller = [s for s in self._others.get(sid, ()) if s < self.service]
+        if sid in self._claims and smaller:
+            self._conflicts[sid] = min(smaller)
+
     def claim(self, sid: str) -> str | None:
         """Claim session ``sid``; None if done (or already ours), else the id of the
-        service that holds it (the smallest, if several)."""
+        service that holds it (the smallest, if several).
+
+        Two services may claim one session at the same moment, each before it hears of
+        the other's claim: then the smaller id keeps it, and the other finds it in
+        :meth:`take_conflicts`."""
         if sid in self._claims:
             return None
         with self._lock:
             others = sorted(self._others.get(sid, ()))
         if others:
             return others[0]
-        self._claims[sid] = self.session.liveliness().declare_token(claim_key(sid, self.service))
+        token = self.session.liveliness().declare_token(claim_key(sid, self.service))
+        with self._lock:  # a claim heard meanwhile is seen here, a later one in _on_claim
+            self._claims[sid] = token
+            self._note_conflict(sid)
         return None
+
+    def take_conflicts(self) -> dict[str, str]:
+        """The sessions this service must give up, each with the smaller id of the service
+        that keeps it (see :meth:`claim`); each reported once."""
+        with self._lock:
+            conflicts, self._conflicts = self._conflicts, {}
+        return conflicts
 
     def release(self, sid: str) -> None:
         """Withdraw the claim on ``sid``, if any."""
-        token = self._claims.pop(sid, None)
+        with self._lock:
+            token = self._claims.pop(sid, None)
+            self._conflicts.pop(sid, None)
         if token is not None:
             token.undeclare()
 
