@@ -265,6 +265,18 @@ class _Pending:
     deadline_ns: int
 
 
+@dataclass(frozen=True)
+class _EndedAtResume:
+    """What is kept of a session that ended when the service resumed it, to answer a
+    re-send of its last epoch: its id, last step, that epoch's ``(step, seq, t_ns)`` and the
+    last state's fields and confidence (the learner is not kept)."""
+
+    id: str
+    step: int
+    last_epoch: tuple[int, int, int] | None
+    beliefs: tuple[dict[str, Any], Any]
+
+
 @dataclass
 class _Session:
     """What the service knows of one running session (the learner's side: no labels).
@@ -440,7 +452,7 @@ class PipelineService:
         # Sessions whose last epoch was recorded before a kill and which ended at the
         # resumption, before their source could hear the end: a re-send of that epoch is
         # answered with the last state and session_ended again (at most max_sessions).
-        self._ended_at_resume: dict[str, tuple[_Session, tuple[dict[str, Any], Any]]] = {}
+        self._ended_at_resume: dict[str, _EndedAtResume] = {}
         self._errors = _ErrorBudget()
         self._puddle_tables = _PuddleTables()
         self._stopped = False
@@ -762,7 +774,9 @@ class PipelineService:
             self._send_state(session, record=recorded_states < len(rerun.states),
                              beliefs=beliefs)
             self._finish(session)
-            self._ended_at_resume[sid] = (session, beliefs)
+            self._ended_at_resume[sid] = _EndedAtResume(
+                sid, session.step, session.last_epoch, beliefs
+            )
             return
         fields, state = rerun.moves[-1], rerun.states[len(rerun.moves) - 1]
         confidence = np.asarray(state["confidence"], dtype=np.float32)
@@ -785,8 +799,8 @@ class PipelineService:
         session = self._sessions.get(message.session)
         identity = (message.fields["step"], message.seq, message.t_ns)
         ended = self._ended_at_resume.get(message.session)
-        if session is None and ended is not None and ended[0].last_epoch == identity:
-            self._end_again(*ended)
+        if session is None and ended is not None and ended.last_epoch == identity:
+            self._end_again(ended)
             return
         if session is None:
             problem = "before session_started" if message.session in self._pending else (
@@ -1008,16 +1022,16 @@ class PipelineService:
             session.recorder.record(f"/{kind}", record_, message.t_ns)
         return message
 
-    def _end_again(self, session: _Session, beliefs: tuple[dict[str, Any], Any]) -> None:
+    def _end_again(self, ended: _EndedAtResume) -> None:
         """The re-sent last epoch of a session that ended at its resumption: publish its
-        last state (``beliefs``: fields, confidence) and ``session_ended`` again
-        (unrecorded: its recording is closed)."""
-        self._send_state(session, record=False, beliefs=beliefs)
+        last state and ``session_ended`` again (unrecorded: its recording is closed)."""
+        fields, confidence = ended.beliefs
+        self._outbox.send("state", ended.id, fields, np.asarray(confidence, dtype=np.float32))
         self._event(
-            session.id, "session_ended", f"session {session.id!r} ended after {session.step} "
+            ended.id, "session_ended", f"session {ended.id!r} ended after {ended.step} "
             "steps (sent again: it ended when the service resumed it)"
         )
-        self._outbox.forget(session.id)
+        self._outbox.forget(ended.id)
 
     def _finish(self, session: _Session) -> None:
         """The session's last epoch is in: ``session_ended``, and forget it."""
