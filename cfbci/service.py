@@ -747,7 +747,9 @@ class PipelineService:
         if divergence is not None or len(recorded_moves) < len(rerun.moves) - 1:
             raise ValueError(f"the re-run does not reproduce the recording: {divergence}")
         sid = recording.session
-        if config.get("service") is not None and (holder := self.registration.claim(sid)):
+        if config.get("service") is not None and (
+            holder := self.registration.claim(sid, ask=True)  # just started: ask the network
+        ):
             raise ValueError(f"session {sid!r} is already served by service {holder!r}")
         recorder = self.recordings.resume(recording)
         session = _Session(

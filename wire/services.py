@@ -155,17 +155,23 @@ class ServiceRegistration:
         if sid in self._claims and smaller:
             self._conflicts[sid] = min(smaller)
 
-    def claim(self, sid: str) -> str | None:
+    def claim(self, sid: str, ask: bool = False) -> str | None:
         """Claim session ``sid``; None if done (or already ours), else the id of the
         service that holds it (the smallest, if several).
 
-        Two services may claim one session at the same moment, each before it hears of
-        the other's claim: then the smaller id keeps it, and the other finds it in
-        :meth:`take_conflicts`."""
+        The claims heard so far decide; with ``ask``, the network is also asked
+        (:func:`claims_of`, up to :data:`QUERY_TIMEOUT`): for a service that has just
+        started (resuming its recordings), whose subscriber may not have heard the
+        existing claims yet. Two services may claim one session at the same moment, each
+        before it hears of the other's claim: then the smaller id keeps it, and the other
+        finds it in :meth:`take_conflicts`."""
         if sid in self._claims:
             return None
         with self._lock:
-            others = sorted(self._others.get(sid, ()))
+            heard = set(self._others.get(sid, ()))
+        if ask:
+            heard.update(s for s in claims_of(self.session, sid) if s != self.service)
+        others = sorted(heard)
         if others:
             return others[0]
         token = self.session.liveliness().declare_token(claim_key(sid, self.service))
