@@ -51,16 +51,18 @@ def soft_class_statistics(signals: np.ndarray, weights: np.ndarray) -> ClassStat
     )
 
 
-def weighted_class_moments(
-    signals: np.ndarray, weights: np.ndarray, shrinkage: float
+def shrunk_class_moments(
+    statistics: ClassStatistics, signals: np.ndarray, shrinkage: float
 ) -> tuple[np.ndarray, np.ndarray]:
     """Class means and shrunk class covariances of every hypothesis.
 
     Parameters
     ----------
+    statistics : ClassStatistics
+        ``soft_class_statistics(signals, weights)``, weights (n_hypotheses, n, K) being the
+        soft labels of each signal under each hypothesis (computed once by the caller, who
+        shares them with the uncertainty map).
     signals : ndarray, shape (n, d)
-    weights : ndarray, shape (n_hypotheses, n, K)
-        Soft labels of each signal under each hypothesis.
     shrinkage : float
         Weight of the scaled identity (see :func:`decoding.statistics.shrink_towards_identity`).
 
@@ -71,14 +73,6 @@ def weighted_class_moments(
         Weighted (biased) covariances, shrunk; a class with no weight gets the covariance
         of all signals.
     """
-    return shrunk_class_moments(soft_class_statistics(signals, weights), signals, shrinkage)
-
-
-def shrunk_class_moments(
-    statistics: ClassStatistics, signals: np.ndarray, shrinkage: float
-) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`weighted_class_moments` from the hypotheses' class statistics of ``signals``
-    (shape (n, d)), already computed (``soft_class_statistics(signals, weights)``)."""
     means, covariances = statistics.class_moments()
     empty = statistics.counts <= np.finfo(float).eps
     if np.any(empty):

@@ -61,8 +61,6 @@ _SESSION = "latency"
 #: Epochs at the start of every session left out of the steady-state figures (the first
 #: epoch fits the feature extractor, the first moves fill the learner's tables).
 WARMUP = 5
-#: The timings of the report, each ``{"median", "p99", "max"}`` in ms.
-TIMINGS = ("end_to_end_ms", "update_ms", "queue_ms", "transport_ms")
 
 
 def default_interval(sessions: int) -> float:
@@ -118,7 +116,9 @@ def _stats_ms(values_ns: np.ndarray) -> dict[str, float]:
 def _timings(
     end_to_end_ns: np.ndarray, update_ns: np.ndarray, queue_ms: np.ndarray
 ) -> dict[str, dict[str, float]]:
-    """The :data:`TIMINGS` of a set of epochs (arrays of the same length)."""
+    """``end_to_end_ms``, ``update_ms``, ``queue_ms`` and ``transport_ms`` (each
+    ``{"median", "p99", "max"}`` in ms) of a set of epochs: durations in ns, queueing in
+    ms, arrays of the same length."""
     return {
         "end_to_end_ms": _stats_ms(end_to_end_ns),
         "update_ms": _stats_ms(update_ns),

@@ -20,7 +20,8 @@ from calibration_free.sampled_confidence import (
     pairwise_normal_difference,
     sample_classifiers,
     sampled_log_likelihoods,
-    weighted_class_moments,
+    shrunk_class_moments,
+    soft_class_statistics,
 )
 from cfbci.continuous import run_continuous_session
 
@@ -99,7 +100,9 @@ def test_sampled_means_concentrate_like_one_over_n() -> None:
     for n in (40, 400):
         data = generate_gaussian_features(n // 4, 4, 3, 0.9, seed=5)
         weights = np.eye(4)[data.labels][None]
-        means, covariances = weighted_class_moments(data.features, weights, 0.5)
+        means, covariances = shrunk_class_moments(
+            soft_class_statistics(data.features, weights), data.features, 0.5
+        )
         sampled = sample_classifiers(means, covariances, n, 400, rng).means  # (d, K, H, J)
         spreads.append(sampled[:, 0, 0].var(axis=1).mean())
     assert spreads[0] / spreads[1] == pytest.approx(10.0, rel=0.3)
@@ -112,7 +115,9 @@ def test_sampled_log_likelihoods_equal_a_direct_computation() -> None:
     data = generate_gaussian_features(10, 4, 3, 0.9, seed=11)
     signals = data.features + 5.0  # off-centre: the product centres them itself
     labels = rng.dirichlet(np.ones(4), size=(3, len(signals)))  # (H, n, K)
-    means, covariances = weighted_class_moments(signals, labels, 0.5)
+    means, covariances = shrunk_class_moments(
+        soft_class_statistics(signals, labels), signals, 0.5
+    )
     draws = sample_classifiers(means, covariances, len(signals), 2, rng)
     expected = np.empty((3, 2))
     for h, j in np.ndindex(3, 2):

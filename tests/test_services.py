@@ -179,9 +179,11 @@ def test_a_session_whose_start_fails_leaves_no_claim(tmp_path: Path) -> None:
 
 
 def test_of_two_services_claiming_one_session_the_smaller_id_keeps_it(tmp_path: Path) -> None:
-    # svc-m runs "x"; then claims of "x" appear as if two other services had claimed it at
-    # the same moment as svc-m: svc-z's (a larger id: svc-m keeps the session) and svc-a's
-    # (a smaller id: svc-m gives it up, naming svc-a, and withdraws its own claim).
+    # svc-m runs "x"; then claims of "x" appear as if other services had claimed it at the
+    # same moment as svc-m. svc-z's (a larger id) first: svc-m keeps "x". svc-z also claims
+    # "y", and svc-m refusing a config for "y" shows it has heard svc-z's claims (delivered
+    # in order) without giving "x" up. Then svc-a's (a smaller id): svc-m gives "x" up,
+    # naming svc-a, and withdraws its own claim.
     endpoint, client_endpoint = free_tcp_endpoint(), free_tcp_endpoint()
     service = (serve, ([endpoint], [client_endpoint], tmp_path), {"service_id": "svc-m"})
     config = {"seed": 0, "world": "grid", "grid": GRID, "frame": "feedback", "steps": STEPS,
@@ -189,22 +191,30 @@ def test_of_two_services_claiming_one_session_the_smaller_id_keeps_it(tmp_path: 
     inbox: queue.SimpleQueue[Received] = queue.SimpleQueue()
     with zenoh.open(peer_config([client_endpoint], ())) as client, processes(service):
         outbox = Outbox(client)
-        pump = Pump(client, protocol.key("x", "event"), "event", inbox)
+        pumps = [Pump(client, protocol.key(sid, "event"), "event", inbox) for sid in "xy"]
+        tokens = []
         try:
             assert wait_for_subscribers(outbox.publisher(protocol.key("x", "config")), TIMEOUT)
             sent = outbox.send("config", "x", config)
             assert next_message(inbox).fields["event"] == "session_started"
-            tokens = [client.liveliness().declare_token(claim_key("x", other))
-                      for other in ("svc-z", "svc-a")]
+            tokens += [client.liveliness().declare_token(claim_key(sid, "svc-z"))
+                       for sid in "xy"]
+            outbox.send("config", "y", config)
+            refused = next_message(inbox)
+            assert (refused.session, refused.fields["event"]) == ("y", "session_rejected")
+            assert "already served by service 'svc-z'" in refused.fields["message"]
+            assert claims_of(client, "x") == ["svc-m", "svc-z"]  # svc-m keeps "x"
+            tokens.append(client.liveliness().declare_token(claim_key("x", "svc-a")))
             rejected = next_message(inbox)
-            assert rejected.fields["event"] == "session_rejected"
+            assert (rejected.session, rejected.fields["event"]) == ("x", "session_rejected")
             assert rejected.fields["config_t_ns"] == sent.t_ns
             assert "also claimed by service 'svc-a'" in rejected.fields["message"]
             assert claims_of(client, "x") == ["svc-a", "svc-z"]  # svc-m's is withdrawn
+        finally:
             for token in tokens:
                 token.undeclare()
-        finally:
-            pump.close()
+            for pump in pumps:
+                pump.close()
             outbox.close()
     recording = read_recording(tmp_path / "x.mcap")
     assert not recording.truncated  # ended, and closed, by its service
