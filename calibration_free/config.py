@@ -93,6 +93,16 @@ class LearnerConfig:
         no such bonus (0 reproduces them). Feedback is faster with a light bonus (the
         information planner finds the telling cells itself); guidance needs the strong
         one (see the README's tuning table).
+    goal_pull : float, default 0
+        Progress toward the likely goals, added to the reward of the "uncertainty",
+        "information" and "signal" planners (scaled to a maximum of 1) while not confident:
+        every state gets ``goal_pull`` times the planning weight of the tasks whose state it
+        is, so that value iteration draws the agent toward the leading hypotheses' goals as
+        it explores. The thesis's lesson of its world-properties study (method-extensions
+        §7.2): uncertainty planning alone leaves the agent far from the goal when it
+        becomes confident (pick-and-place: about 16 moves away). 0 reproduces the thesis's
+        planners; on the grid with ErrP feedback it delays the first target (README:
+        "World properties").
     n_planning_signals : int, default 20
         Past signals sampled per step by the uncertainty planner.
     discount : float, default 0.9
@@ -121,6 +131,7 @@ class LearnerConfig:
     epsilon: float = DEFAULT_EPSILON
     planning_weights: str = "posterior"
     novelty_bonus: float | None = None
+    goal_pull: float = 0.0
     n_planning_signals: int = 20
     discount: float = DEFAULT_DISCOUNT
     warmup_steps: int = 10
@@ -157,6 +168,7 @@ class LearnerConfig:
         check_range("n_folds", self.n_folds, 2, 100)
         if self.novelty_bonus is not None:
             check_range("novelty_bonus", self.novelty_bonus, 0.0, 1e6)
+        check_range("goal_pull", self.goal_pull, 0.0, 1e6)
         check_range("n_planning_signals", self.n_planning_signals, 1, 10_000)
         check_range("warmup_steps", self.warmup_steps, 0, 1_000_000)
 

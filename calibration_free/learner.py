@@ -195,14 +195,33 @@ class TaskLearner:
         else:
             weights = beliefs.confidence.copy()
         weights /= weights.sum()
-        novelty = None
-        if self.config.frame_novelty_bonus > 0 and self.n_targets == 0:
-            fade = 2.0 * (1.0 - beliefs.confidence[beliefs.best_task])
-            novelty = fade * self.config.frame_novelty_bonus / np.sqrt(1.0 + self._visits)
         inputs = PlanningInputs(
-            beliefs.best_task, weights, novelty, self._predicted_samples, self._class_means
+            beliefs.best_task,
+            weights,
+            self._state_bonus(beliefs, weights),
+            self._predicted_samples,
+            self._class_means,
         )
         return self._planner.action(state, inputs, self.rng)
+
+    def _state_bonus(self, beliefs: Beliefs, task_weights: np.ndarray) -> np.ndarray | None:
+        """The planner's bonus of every state, shape (n_states,), or None without one.
+
+        The novelty bonus (``novelty_bonus``, until the first target, fading as the best
+        task's confidence grows) plus the goal pull (``goal_pull`` times the planning
+        weight of the tasks whose state each state is).
+        """
+        bonus = None
+        if self.config.frame_novelty_bonus > 0 and self.n_targets == 0:
+            fade = 2.0 * (1.0 - beliefs.confidence[beliefs.best_task])
+            bonus = fade * self.config.frame_novelty_bonus / np.sqrt(1.0 + self._visits)
+        if self.config.goal_pull > 0:
+            goals = np.bincount(
+                self.world.task_states, task_weights, minlength=self.world.n_states
+            )
+            pull = self.config.goal_pull * goals
+            bonus = pull if bonus is None else bonus + pull
+        return bonus
 
     def _sample_indices(self, n_available: int) -> np.ndarray:
         size = min(self.config.n_planning_signals, n_available)

@@ -60,9 +60,10 @@ class PlanningInputs:
         The most likely task.
     task_weights : ndarray, shape (n_tasks,)
         Non-negative task weights summing to 1 (``LearnerConfig.planning_weights``).
-    novelty : ndarray, shape (n_states,), or None
-        Exploration bonus of every state, added to an uncertainty reward scaled to a
-        maximum of 1 (None: no bonus).
+    state_bonus : ndarray, shape (n_states,), or None
+        Bonus of being in every state, added to an uncertainty reward scaled to a maximum
+        of 1: the learner's novelty bonus and its pull toward the likely goals (None:
+        neither).
     predicted_samples : callable () -> ndarray (n_tasks, n_signals, n_classes) or None
         Every task's prediction (the likelihood's, see
         :meth:`calibration_free.task_likelihoods.TaskLikelihood.predict`) of past signals
@@ -74,7 +75,7 @@ class PlanningInputs:
 
     best_task: int
     task_weights: np.ndarray
-    novelty: np.ndarray | None
+    state_bonus: np.ndarray | None
     predicted_samples: Callable[[], np.ndarray | None]
     class_means: Callable[[], np.ndarray | None]
 
@@ -149,12 +150,13 @@ class RewardPlanner(Planner):
         """Uncertainty of every (state, action), shape (n_states, n_actions), or None."""
 
     def action(self, state: int, inputs: PlanningInputs, rng: np.random.Generator) -> int:
-        """The best action from ``state`` under the reward plus ``inputs.novelty``."""
+        """The best action from ``state`` under the reward plus ``inputs.state_bonus``."""
         reward = self.reward(inputs)
         if reward is None:
             return random_action(self.world, rng)
-        if inputs.novelty is not None:
-            reward = reward / max(reward.max(), np.finfo(float).tiny) + inputs.novelty[:, None]
+        if inputs.state_bonus is not None:
+            scale = max(reward.max(), np.finfo(float).tiny)
+            reward = reward / scale + inputs.state_bonus[:, None]
         q = value_iteration(reward, self.world.transitions, discount=self.discount)[state]
         best = np.flatnonzero(q >= q.max() - 1e-12 * max(1.0, abs(q.max())))
         return int(rng.choice(best))

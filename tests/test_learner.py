@@ -186,3 +186,10 @@ def test_the_novelty_bonus_default_follows_the_frame_and_is_recorded_resolved():
     assert replace(LearnerConfig(novelty_bonus=2.5), frame="guidance").frame_novelty_bonus == 2.5
     with pytest.raises(ValueError, match="novelty_bonus"):
         LearnerConfig(novelty_bonus=-1.0)
+
+
+def test_the_goal_pull_is_a_setting_off_by_default_and_recorded():
+    assert LearnerConfig().goal_pull == 0.0
+    assert LearnerConfig.from_dict(LearnerConfig(goal_pull=1.5).to_dict()).goal_pull == 1.5
+    with pytest.raises(ValueError, match="goal_pull"):
+        LearnerConfig(goal_pull=-0.5)

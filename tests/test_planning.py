@@ -4,7 +4,12 @@ import numpy as np
 import pytest
 
 from calibration_free.frames import Frame
-from calibration_free.planning import InformationPlanner, UncertaintyPlanner, greedy_action
+from calibration_free.planning import (
+    InformationPlanner,
+    PlanningInputs,
+    UncertaintyPlanner,
+    greedy_action,
+)
 from calibration_free.world import GOAL, GridWorld
 from calibration_free.worlds import PickAndPlaceWorld, make_world
 
@@ -105,3 +110,24 @@ def test_greedy_action_declares_in_the_tasks_state():
     assert greedy_action(line, 2, 0, np.random.default_rng(0)) == line.LEFT
     place = PickAndPlaceWorld()
     assert greedy_action(place, 5, 5, np.random.default_rng(0)) == place.declaration_action(5)
+
+
+def test_a_state_bonus_on_the_likely_goal_draws_the_agent_to_it():
+    # Every task's decoder says the same of every signal: the uncertainty reward is 0
+    # everywhere, so the action is a tie among all five unless a state bonus (the learner's
+    # goal pull) marks the likely goal, cell 24: then every choice moves toward it.
+    world = GridWorld(5)
+    frame = Frame(world, "feedback", eps=0.1)
+    planner = UncertaintyPlanner(frame, discount=0.95)
+    weights = np.full(world.n_tasks, 1 / world.n_tasks)
+    corrected = np.full((world.n_tasks, 20, 2), 0.5)
+    pull = np.zeros(world.n_states)
+    pull[24] = 1.0
+
+    def actions(bonus):
+        inputs = PlanningInputs(0, weights, bonus, lambda: corrected, lambda: None)
+        return {planner.action(0, inputs, np.random.default_rng(seed)) for seed in range(40)}
+
+    toward = set(np.flatnonzero(world.optimal[24, 0]))
+    assert actions(pull) <= toward
+    assert not actions(None) <= toward  # without it, any action
