@@ -103,6 +103,13 @@ class LearnerConfig:
         becomes confident (pick-and-place: about 16 moves away). 0 reproduces the thesis's
         planners; on the grid with ErrP feedback it delays the first target (README:
         "World properties").
+    resplit_labels : bool, default True
+        Where a task's label allows several classes but not all (guidance: two optimal
+        directions), split it among them again at every signal by the task's latest
+        out-of-fold class probabilities (one EM step on the user's choice,
+        :meth:`~calibration_free.task_decoders.TaskHistory.resplit_own_labels`), for the
+        signals since the last target; False keeps the split made when each signal
+        arrived. No effect in the feedback frame.
     n_planning_signals : int, default 20
         Past signals sampled per step by the uncertainty planner.
     discount : float, default 0.9
@@ -132,6 +139,7 @@ class LearnerConfig:
     planning_weights: str = "posterior"
     novelty_bonus: float | None = None
     goal_pull: float = 0.0
+    resplit_labels: bool = True
     n_planning_signals: int = 20
     discount: float = DEFAULT_DISCOUNT
     warmup_steps: int = 10

@@ -330,6 +330,14 @@ class CalibrationFreeLearner(TaskLearner):
         return self._likelihood.log_likelihood
 
     @property
+    def _resplits_labels(self) -> bool:
+        """Whether ambiguous labels are split again at every signal (the setting, where
+        the frame has labels that allow several classes but not all)."""
+        support = (self.frame.weight_rows > 0).sum(axis=1)
+        ambiguous = np.any((support > 1) & (support < self.frame.n_classes))
+        return self.config.resplit_labels and bool(ambiguous)
+
+    @property
     def likelihood_in_use(self) -> str:
         """The likelihood scoring the tasks now: the configured one, except that
         "bhattacharyya" becomes "matching" at the first target."""
@@ -374,17 +382,20 @@ class CalibrationFreeLearner(TaskLearner):
             self._history = TaskHistory(
                 self.world.n_tasks, self.frame.n_classes, x.shape[0], self.config.n_folds,
                 class_scatters=self._fit.class_scatters or self._likelihood.needs_class_scatters,
+                keeps_frame_labels=self._resplits_labels,
             )
         expected = self.frame.distribution_at(state, action)
         frame_weights = weights = self.frame.weights_at(state, action)
         models = self._current_models()
         predicted = None
         if models is not None:
+            if self._resplits_labels:
+                self._history.resplit_own_labels(models.held_out_proba(self._history))
             predicted = self._likelihood.predict(models, x[None])[:, 0]
             weights = resolve_ambiguous_labels(weights, predicted)
             expected = expect_the_chosen_label(expected, frame_weights, weights)
         self._likelihood.take(expected, predicted)
-        self._history.add(x, weights)
+        self._history.add(x, weights, frame_weights)
         self._models = None
         self._power_sums += expected * float(x @ x)
         self._power_weights += expected

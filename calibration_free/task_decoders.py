@@ -73,6 +73,12 @@ class FoldSums:
         self.own.fill(0.0)
         self.own_total.fill(0.0)
 
+    def replace_own(self, own: np.ndarray) -> None:
+        """Set every task's own part since the last switch, per fold: (n_folds, n_tasks,
+        *shape)."""
+        self.own[:] = own
+        self.own_total[:] = own.sum(axis=0)
+
     def total(self) -> np.ndarray:
         """Every task's total over the folds, shape (n_tasks, *shape)."""
         return self.shared_total + self.own_total
@@ -91,6 +97,9 @@ class TaskHistory:
     n_folds : int, default 10
     class_scatters : bool, default False
         Also keep every task's per-class scatter matrices (the Student-t decoder).
+    keeps_frame_labels : bool, default False
+        Also keep every task's frame label weights of the signals since the last switch,
+        before any ambiguous label was split (:meth:`resplit_own_labels` needs them).
     """
 
     def __init__(
@@ -100,6 +109,7 @@ class TaskHistory:
         n_features: int,
         n_folds: int = DEFAULT_FOLDS,
         class_scatters: bool = False,
+        keeps_frame_labels: bool = False,
     ) -> None:
         if n_folds < 2:
             raise ValueError(f"n_folds must be >= 2; got {n_folds}")
@@ -114,6 +124,7 @@ class TaskHistory:
         # Label weights: rows before the last switch are shared, later ones per task.
         self._shared_weights = np.empty((64, n_classes))
         self._own_weights = np.empty((n_tasks, 64, n_classes))
+        self._own_frame_weights = np.empty((n_tasks, 64, n_classes)) if keeps_frame_labels else None
         self._n_shared = 0
         self._scatter = np.zeros((n_folds, n_features, n_features))
         self._signal_sum = np.zeros((n_folds, n_features))
@@ -149,17 +160,25 @@ class TaskHistory:
     def _n_own(self) -> int:
         return self.n_signals - self._n_shared
 
-    def add(self, signal: np.ndarray, weights: np.ndarray) -> None:
-        """Append ``signal`` (n_features,) with every task's label weights (n_tasks, K)."""
+    def add(
+        self, signal: np.ndarray, weights: np.ndarray, frame_weights: np.ndarray | None = None
+    ) -> None:
+        """Append ``signal`` (n_features,) with every task's label weights (n_tasks, K)
+        and, if the history keeps them, the frame's weights they were split from (the
+        same shape; default ``weights``)."""
         if self.n_signals == len(self._signals):
             self._signals = np.concatenate([self._signals, np.empty_like(self._signals)])
         if self._n_own == self._own_weights.shape[1]:
-            self._own_weights = np.concatenate(
-                [self._own_weights, np.empty_like(self._own_weights)], axis=1
-            )
+            self._own_weights = _doubled(self._own_weights)
+            if self._own_frame_weights is not None:
+                self._own_frame_weights = _doubled(self._own_frame_weights)
         index = self.n_signals
         self._signals[index] = signal
         self._own_weights[:, self._n_own] = weights
+        if self._own_frame_weights is not None:
+            self._own_frame_weights[:, self._n_own] = (
+                weights if frame_weights is None else frame_weights
+            )
         fold = index % self.n_folds
         self._scatter[fold] += np.outer(signal, signal)
         self._signal_sum[fold] += signal
@@ -187,6 +206,48 @@ class TaskHistory:
         for sums in (self._counts, self._sums, self._scatters):
             if sums is not None:
                 sums.adopt(task)
+
+    def resplit_own_labels(self, proba: np.ndarray) -> None:
+        """Split again every ambiguous label since the last switch by ``proba``.
+
+        A frame label that allows several classes but not all (guidance: two optimal
+        directions) is shared among them in proportion to ``proba`` (n_tasks, n_signals,
+        K), each task's latest out-of-fold class probabilities of the signals: one EM step
+        on which of the allowed classes the user chose, where the split made when each
+        signal arrived used the decoder of that time. The tasks' statistics since the
+        switch are rebuilt from the new weights. Needs ``keeps_frame_labels``.
+        """
+        if self._own_frame_weights is None:
+            raise RuntimeError("this history keeps no frame labels to split again")
+        n_own = self._n_own
+        frame = self._own_frame_weights[:, :n_own]
+        support = (frame > 0).sum(axis=-1, keepdims=True)
+        ambiguous = (support > 1) & (support < self.n_classes)
+        if not np.any(ambiguous):
+            return
+        shared = frame * proba[:, self._n_shared :]
+        total = shared.sum(axis=-1, keepdims=True)
+        resplit = np.where(total > 0, shared / np.where(total > 0, total, 1.0), frame)
+        weights = np.where(ambiguous, resplit, frame)
+        self._own_weights[:, :n_own] = weights
+        signals = self._signals[self._n_shared : self.n_signals]
+        folds = np.arange(self._n_shared, self.n_signals) % self.n_folds
+        counts = np.zeros(self._counts.own.shape)
+        sums = np.zeros(self._sums.own.shape)
+        scatters = None if self._scatters is None else np.zeros(self._scatters.own.shape)
+        for fold in range(self.n_folds):
+            members = folds == fold
+            fold_weights, fold_signals = weights[:, members], signals[members]
+            counts[fold] = fold_weights.sum(axis=1)
+            sums[fold] = np.einsum("tik,id->tkd", fold_weights, fold_signals)
+            if scatters is not None:
+                scatters[fold] = np.einsum(
+                    "tik,id,ie->tkde", fold_weights, fold_signals, fold_signals, optimize=True
+                )
+        self._counts.replace_own(counts)
+        self._sums.replace_own(sums)
+        if self._scatters is not None and scatters is not None:
+            self._scatters.replace_own(scatters)
 
     def pooled_statistics(self, with_folds: bool = True) -> PooledStatistics:
         """The pooled statistics of every fold's training set (all signals but that
@@ -278,6 +339,11 @@ class TaskHistory:
         )
         proba = fold_decoders.proba(by_fold[:, None])  # (n_folds, T, per_fold, K)
         return proba.swapaxes(1, 2)  # a view of the decoders' (n_folds, per_fold, T, K)
+
+
+def _doubled(rows: np.ndarray) -> np.ndarray:
+    """``rows`` (n_tasks, capacity, K) with twice the capacity (the new rows unset)."""
+    return np.concatenate([rows, np.empty_like(rows)], axis=1)
 
 
 def in_signal_order(by_fold: np.ndarray, n_signals: int, task: int | None = None) -> np.ndarray:
@@ -465,6 +531,14 @@ class TaskModels:
         """The decoders' own class probabilities ``p`` of signals (n, d): (n_tasks, n, K),
         with unknown classes treated as in :meth:`corrected_proba`."""
         return self._share_unknown_classes(self.decoders.proba(signals))
+
+    def held_out_proba(self, history: TaskHistory) -> np.ndarray:
+        """Every task's class probabilities of the history's signals, (n_tasks, n_signals,
+        K): out-of-fold where the models were cross-validated, the full decoders' own
+        otherwise; unknown classes treated as in :meth:`corrected_proba`."""
+        if self.cv_by_fold is None:
+            return self.proba(history.signals)
+        return self._share_unknown_classes(in_signal_order(self.cv_by_fold, self.n_signals))
 
     def _share_unknown_classes(self, q: np.ndarray) -> np.ndarray:
         n_classes = q.shape[-1]
