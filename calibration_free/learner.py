@@ -390,7 +390,7 @@ class CalibrationFreeLearner(TaskLearner):
         predicted = None
         if models is not None:
             if self._resplits_labels:
-                self._history.resplit_own_labels(models.held_out_proba(self._history))
+                self._history.resplit_own_labels(self._past_signal_proba(models))
             predicted = self._likelihood.predict(models, x[None])[:, 0]
             weights = resolve_ambiguous_labels(weights, predicted)
             expected = expect_the_chosen_label(expected, frame_weights, weights)
@@ -404,6 +404,15 @@ class CalibrationFreeLearner(TaskLearner):
         if target is not None:
             self._switch_task(target)
         self._likelihood.after_signal(self._history, self._current_models)
+
+    def _past_signal_proba(self, models: TaskModels) -> np.ndarray:
+        """Every task's class probabilities of the history's signals (n_tasks, n_signals,
+        K): out-of-fold where the likelihood cross-validates, else the full decoders' own
+        (whatever fits an analysis may have cached, e.g. :meth:`balanced_accuracy`'s)."""
+        assert self._history is not None
+        if self._likelihood.corrects_confusion:
+            return models.held_out_proba()
+        return models.proba(self._history.signals)
 
     def _current_models(self) -> TaskModels | None:
         """Every task's decoders on the history so far (fitted on first use after each

@@ -532,12 +532,12 @@ class TaskModels:
         with unknown classes treated as in :meth:`corrected_proba`."""
         return self._share_unknown_classes(self.decoders.proba(signals))
 
-    def held_out_proba(self, history: TaskHistory) -> np.ndarray:
-        """Every task's class probabilities of the history's signals, (n_tasks, n_signals,
-        K): out-of-fold where the models were cross-validated, the full decoders' own
-        otherwise; unknown classes treated as in :meth:`corrected_proba`."""
+    def held_out_proba(self) -> np.ndarray:
+        """Every task's out-of-fold class probabilities of the signals it was fitted on,
+        (n_tasks, n_signals, K), unknown classes treated as in :meth:`corrected_proba`;
+        needs the cross-validation."""
         if self.cv_by_fold is None:
-            return self.proba(history.signals)
+            raise RuntimeError("these models were fitted without cross-validation")
         return self._share_unknown_classes(in_signal_order(self.cv_by_fold, self.n_signals))
 
     def _share_unknown_classes(self, q: np.ndarray) -> np.ndarray:

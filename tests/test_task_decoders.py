@@ -375,3 +375,60 @@ def test_a_labelling_without_within_class_spread_does_not_stop_the_others():
         assert list(decoders.informative) == [False, True]
         expected = lda(0.5).fit(signals, np.array([0, 0, 1, 1, 1])).predict_proba(signals)
         np.testing.assert_allclose(decoders.proba(signals)[1][:, :2], expected, atol=1e-10)
+
+
+@pytest.mark.parametrize("decoder", ["lda", "gaussian"])
+def test_splitting_ambiguous_labels_again_equals_a_history_built_with_the_new_split(decoder):
+    """Labels that allow two of three classes (guidance's two optimal directions) split
+    again by new probabilities, after a switch: every model equals that of a history
+    built from scratch with the new split; labels of one class, unlabelled signals and the
+    labels adopted before the switch are kept."""
+    rng = np.random.default_rng(7)
+    n_tasks, n_signals, n_classes, n_features, switch = 3, 90, 3, 4, 30
+    signals = rng.normal(size=(n_signals, n_features)) + 0.5
+    frame = np.zeros((n_tasks, n_signals, n_classes))
+    kind = rng.integers(3, size=(n_tasks, n_signals))  # 0: one class, 1: two, 2: none
+    first = rng.integers(n_classes, size=(n_tasks, n_signals))
+    second = (first + 1 + rng.integers(n_classes - 1, size=first.shape)) % n_classes
+    np.put_along_axis(frame, first[..., None], 1.0, axis=-1)
+    two = np.zeros_like(frame)
+    np.put_along_axis(two, first[..., None], 0.5, axis=-1)
+    np.put_along_axis(two, second[..., None], 0.5, axis=-1)
+    frame = np.where((kind == 1)[..., None], two, np.where((kind == 2)[..., None], 0.0, frame))
+    arrival = resolve_ambiguous(frame, rng.dirichlet(np.ones(n_classes), size=frame.shape[:2]))
+    fit = decoder_fit(decoder, 0.5)
+    tasks = TaskHistory(
+        n_tasks, n_classes, n_features, n_folds=5, class_scatters=fit.class_scatters,
+        keeps_frame_labels=True,
+    )
+    for i, x in enumerate(signals):
+        tasks.add(x, arrival[:, i], frame[:, i])
+        if i + 1 == switch:
+            tasks.relabel(1)
+    proba = rng.dirichlet(np.ones(n_classes), size=(n_tasks, n_signals))
+    tasks.resplit_own_labels(proba)
+    expected = arrival.copy()
+    expected[:, :switch] = arrival[1, :switch]
+    expected[:, switch:] = resolve_ambiguous(frame[:, switch:], proba[:, switch:])
+    np.testing.assert_allclose(tasks.label_weights, expected, rtol=0, atol=1e-15)
+    assert not np.allclose(expected[:, switch:], arrival[:, switch:])  # the split moved
+    fast = TaskModels.fit(tasks, fit, 1.0)
+    slow = TaskModels.fit(
+        history_of(signals, expected, n_folds=5, class_scatters=fit.class_scatters), fit, 1.0
+    )
+    np.testing.assert_allclose(fast.cv_proba, slow.cv_proba, rtol=0, atol=1e-10)
+    np.testing.assert_allclose(fast.confusion, slow.confusion, rtol=0, atol=1e-10)
+
+
+def resolve_ambiguous(frame, proba):
+    """The split of labels allowing two classes by ``proba``; other labels as they are."""
+    two = (frame > 0).sum(axis=-1, keepdims=True) == 2
+    shared = frame * proba
+    return np.where(two, shared / np.where(two, shared.sum(axis=-1, keepdims=True), 1.0), frame)
+
+
+def test_a_history_without_frame_labels_refuses_to_split_them_again():
+    tasks = TaskHistory(2, 3, 2)
+    tasks.add(np.ones(2), np.full((2, 3), 1 / 3))
+    with pytest.raises(RuntimeError, match="frame labels"):
+        tasks.resplit_own_labels(np.full((2, 1, 3), 1 / 3))
