@@ -119,6 +119,13 @@ class Frame:
         weights, distribution = _expected_rows(labels, self.eps)
         return weights, distribution, index
 
+    @cached_property
+    def has_ambiguous_labels(self) -> bool:
+        """Whether some label allows several classes but not all (guidance where two
+        actions are optimal); builds the tables."""
+        support = (self.weight_rows > 0).sum(axis=1)
+        return bool(np.any((support > 1) & (support < self.n_classes)))
+
     @property
     def weight_rows(self) -> np.ndarray:
         return self._tables[0]

@@ -333,9 +333,7 @@ class CalibrationFreeLearner(TaskLearner):
     def _resplits_labels(self) -> bool:
         """Whether ambiguous labels are split again at every signal (the setting, where
         the frame has labels that allow several classes but not all)."""
-        support = (self.frame.weight_rows > 0).sum(axis=1)
-        ambiguous = np.any((support > 1) & (support < self.frame.n_classes))
-        return self.config.resplit_labels and bool(ambiguous)
+        return self.config.resplit_labels and self.frame.has_ambiguous_labels
 
     @property
     def likelihood_in_use(self) -> str:

@@ -27,7 +27,8 @@ u = T K d, u' = T K' d, v = T K d² and w = T K n d:
 * history: the signals and every task's label weights (capacity doubling from 64: 1.5
   capacities at the doubling), per fold and task the class counts and sums (J u), and for
   the per-class-scatter decoders (Student-t, Gaussian) and the Bhattacharyya likelihood the
-  class scatter matrices (J v), each with one step's increment;
+  class scatter matrices (J v), each with one step's increment; guidance's label re-split:
+  the frame's labels (T K per capacity), 4 T n K and the rebuilt F u (and F v);
 * fit (per step): pooled LDA (and categorical) 3 J u + 4 J u' (the pooled statistics'
   sums, their projection, its scaled copy, the small solve's result, the coefficients
   twice) and 4 J T d (the shrunk eigenvalues per task, the unlabelled signals' sums);
@@ -159,12 +160,21 @@ def estimate(world: World, learner: LearnerConfig, steps: int, n_features: int) 
     while capacity < n:
         capacity *= 2
     growing = capacity + capacity // 2  # old and new arrays while doubling
+    # Guidance's ambiguous labels split again (any guidance world: the frame's tables are
+    # not built at the config): the frame labels kept, and per step the probabilities and
+    # split weights of the signals since the last target and the rebuilt fold statistics.
+    resplit = guidance and learner.resplit_labels
+    resplit_history = (
+        growing * tasks * classes + 4 * n * tasks * classes
+        + folds * (tasks * classes + u) + (folds * v if scatters else 0)
+    )
     history = _FLOAT * (
         growing * (d + tasks * classes) + 3 * n * classes  # signals, label weights
         + sets * tasks * classes + (sets + 1) * u + folds * (d * d + d)  # fold statistics
         + ((sets + 1) * v if scatters else 0)  # class scatters, and one step's increment
         + (n * tasks * classes if learner.likelihood == "batch" else 0)  # expected labels
         + 3 * tasks * classes + tasks + states  # power sums, log-likelihoods, visits
+        + (resplit_history if resplit else 0)
     )
 
     if per_class:  # means, precisions (+ the whole history's training statistics)
