@@ -20,6 +20,12 @@ PLANNING_WEIGHTS: tuple[str, ...] = ("posterior", "confidence")
 DEFAULT_NOVELTY_BONUS: dict[str, float] = {"feedback": 1.0, "guidance": 3.0}
 
 
+#: Settings added after recordings began to hold every learner setting, each with the value
+#: that reproduces the learner from before it existed: a recording that lacks one ran
+#: without it (:func:`wire.messages.recorded_config` fills them in when a recording is read).
+SETTINGS_BEFORE_THEY_EXISTED: dict[str, Any] = {"goal_pull": 0.0, "resplit_labels": False}
+
+
 @dataclass(frozen=True)
 class LearnerConfig:
     """Settings of the calibration-free learner (and of the calibrated baseline).

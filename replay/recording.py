@@ -63,6 +63,7 @@ from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 
 from calibration_free.world import GridWorld, World
+from wire.messages import recorded_config
 
 _MAGIC = b"\x89MCAP0\r\n"
 #: Metadata record holding ``{"session": name, "config": JSON of the configuration}``.
@@ -640,7 +641,7 @@ def read_recording(path: str | os.PathLike[str]) -> Recording:
     first = messages.get("/config") or [(0, {"session": "", "config": {}})]
     return Recording(
         session=first[0][1]["session"],
-        config=first[0][1]["config"],
+        config=recorded_config(first[0][1]["config"]),
         messages=messages,
         truncated=warning is not None,
         end_offset=end_offset,

@@ -34,7 +34,10 @@ from replay.recording import (
 )
 
 ROOT = Path(__file__).resolve().parents[1]
-CONFIG = {"grid": 3, "frame": "feedback", "learner": {"eps": 0.1, "decoder": "lda"}}
+CONFIG = {
+    "grid": 3, "frame": "feedback",
+    "learner": {"eps": 0.1, "decoder": "lda", "goal_pull": 0.5, "resplit_labels": True},
+}
 T0 = 1_700_000_000_123_456_789  # ns
 GRID = GridWorld(3)
 
@@ -348,3 +351,21 @@ def test_a_killed_writer_loses_at_most_the_message_being_written(tmp_path: Path)
         assert [m.name for m in reader.iter_metadata()] == [CONFIG_METADATA]
     recovered = read_recording(clean)
     assert not recovered.truncated and recovered.messages == recording.messages
+
+
+def test_an_older_recording_reads_back_with_the_settings_it_ran_with(tmp_path: Path) -> None:
+    # Made before goal_pull and resplit_labels existed: its learner ran without either,
+    # whatever today's defaults say, so that it replays as it ran. A plane world's
+    # settings are not the grid learner's and are left alone.
+    from calibration_free.config import LearnerConfig
+
+    older = {"grid": 3, "frame": "guidance", "learner": {"eps": 0.1}}
+    with SessionRecorder(tmp_path / "old.mcap", "old", older):
+        pass
+    learner = read_recording(tmp_path / "old.mcap").config["learner"]
+    assert learner == {"eps": 0.1, "goal_pull": 0.0, "resplit_labels": False}
+    assert LearnerConfig().resplit_labels  # the default today differs
+    plane = {"world": "continuous", "frame": "cardinal", "learner": {"hypotheses": 50}}
+    with SessionRecorder(tmp_path / "plane.mcap", "plane", plane):
+        pass
+    assert read_recording(tmp_path / "plane.mcap").config == plane

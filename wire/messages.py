@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from calibration_free.config import LearnerConfig
+from calibration_free.config import SETTINGS_BEFORE_THEY_EXISTED, LearnerConfig
 from calibration_free.learner import CalibrationFreeLearner, Proposal
 from calibration_free.session import session_streams
 from calibration_free.world import GridWorld, TransitionDraws, World
@@ -78,6 +78,17 @@ def learner_settings(values: dict[str, Any], frame: str) -> LearnerConfig:
             f"learner frame {values['frame']!r} differs from the config's frame {frame!r}"
         )
     return LearnerConfig.from_dict({**values, "frame": frame})
+
+
+def recorded_config(config: dict[str, Any]) -> dict[str, Any]:
+    """A config as a recording holds it, with the learner settings the recording lacks
+    because they did not exist yet set to the values that reproduce the learner of that
+    time (:data:`calibration_free.config.SETTINGS_BEFORE_THEY_EXISTED`), so that an older
+    recording replays and resumes as it ran. Plane worlds' configs and configs without a
+    ``learner`` object are returned as they are."""
+    if "learner" not in config or is_plane(config):
+        return config
+    return {**config, "learner": {**SETTINGS_BEFORE_THEY_EXISTED, **config["learner"]}}
 
 
 def resolved_config(config: dict[str, Any]) -> dict[str, Any]:
