@@ -115,7 +115,8 @@ class LearnerConfig:
         out-of-fold class probabilities (one EM step on the user's choice,
         :meth:`~calibration_free.task_decoders.TaskHistory.resplit_own_labels`), for the
         signals since the last target; False keeps the split made when each signal
-        arrived. No effect in the feedback frame.
+        arrived. No effect in the feedback frame, nor with a likelihood that does not
+        cross-validate ("simple", "batch": the split needs out-of-fold probabilities).
     n_planning_signals : int, default 20
         Past signals sampled per step by the uncertainty planner.
     discount : float, default 0.9

@@ -331,9 +331,16 @@ class CalibrationFreeLearner(TaskLearner):
 
     @property
     def _resplits_labels(self) -> bool:
-        """Whether ambiguous labels are split again at every signal (the setting, where
-        the frame has labels that allow several classes but not all)."""
-        return self.config.resplit_labels and self.frame.has_ambiguous_labels
+        """Whether ambiguous labels are split again at every signal: the setting, where the
+        frame has labels that allow several classes but not all and the likelihood
+        cross-validates (the split needs out-of-fold probabilities: a decoder's own
+        probabilities of the signals it was fitted on confirm its errors, and batch
+        matching then locked a pick-and-place speech session onto a wrong task)."""
+        return (
+            self.config.resplit_labels
+            and self.frame.has_ambiguous_labels
+            and self._likelihood.corrects_confusion
+        )
 
     @property
     def likelihood_in_use(self) -> str:
@@ -388,7 +395,7 @@ class CalibrationFreeLearner(TaskLearner):
         predicted = None
         if models is not None:
             if self._resplits_labels:
-                self._history.resplit_own_labels(self._past_signal_proba(models))
+                self._history.resplit_own_labels(models.held_out_proba())
             predicted = self._likelihood.predict(models, x[None])[:, 0]
             weights = resolve_ambiguous_labels(weights, predicted)
             expected = expect_the_chosen_label(expected, frame_weights, weights)
@@ -402,15 +409,6 @@ class CalibrationFreeLearner(TaskLearner):
         if target is not None:
             self._switch_task(target)
         self._likelihood.after_signal(self._history, self._current_models)
-
-    def _past_signal_proba(self, models: TaskModels) -> np.ndarray:
-        """Every task's class probabilities of the history's signals (n_tasks, n_signals,
-        K): out-of-fold where the likelihood cross-validates, else the full decoders' own
-        (whatever fits an analysis may have cached, e.g. :meth:`balanced_accuracy`'s)."""
-        assert self._history is not None
-        if self._likelihood.corrects_confusion:
-            return models.held_out_proba()
-        return models.proba(self._history.signals)
 
     def _current_models(self) -> TaskModels | None:
         """Every task's decoders on the history so far (fitted on first use after each

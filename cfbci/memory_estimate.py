@@ -163,7 +163,7 @@ def estimate(world: World, learner: LearnerConfig, steps: int, n_features: int) 
     # Guidance's ambiguous labels split again (any guidance world: the frame's tables are
     # not built at the config): the frame labels kept, and per step the probabilities and
     # split weights of the signals since the last target and the rebuilt fold statistics.
-    resplit = guidance and learner.resplit_labels
+    resplit = guidance and learner.resplit_labels and learner.likelihood == "matching"
     resplit_history = (
         growing * tasks * classes + 4 * n * tasks * classes
         + folds * (tasks * classes + u) + (folds * v if scatters else 0)

@@ -232,3 +232,22 @@ def test_cfbci_session_runs_a_line_world_session(tmp_path: Path) -> None:
     assert [(m["from_state"], m["action"], m["to_state"]) for m in moves] == [
         (r.state, r.action, r.next_state) for r in trace
     ]
+
+
+def test_a_live_grid_guidance_session_with_resplit_labels_equals_its_simulation(
+    tmp_path: Path,
+) -> None:
+    # The default learner (matching) splits ambiguous guidance labels again at every
+    # signal from out-of-fold probabilities: the live service, its replay and the offline
+    # session make the same decisions.
+    steps = 60
+    settings = SourceSettings(
+        "grid-guidance", data=DataSpec(synthetic="gaussian", dims=2), seed=3, steps=steps,
+        frame="guidance",
+    )
+    records, trace, result = live_and_simulated(tmp_path, settings)
+    assert records == trace
+    assert result.correct_targets + result.wrong_targets >= 1  # a switch is covered too
+    recording = read_recording(tmp_path / "grid-guidance.mcap")
+    assert recording.config["learner"]["resplit_labels"] is True
+    assert replay_check(tmp_path / "grid-guidance.mcap").divergence is None
