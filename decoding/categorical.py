@@ -19,10 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from decoding.statistics import BatchedDecoders
-
-#: Weight below which a class counts as empty.
-_EMPTY = 1e-9
+from decoding.statistics import EMPTY_WEIGHT, BatchedDecoders
 
 
 @dataclass(frozen=True)
@@ -65,7 +62,7 @@ def fit_categorical(counts: np.ndarray, sums: np.ndarray) -> CategoricalDecoders
     sums : ndarray, shape (*B, n_classes, n_symbols)
         Each class's weighted sum of the (one-hot) signals: its button counts.
     """
-    present = counts > _EMPTY
+    present = counts > EMPTY_WEIGHT
     frequencies = sums / np.where(present, counts, 1.0)[..., None]
     return CategoricalDecoders(
         frequencies=np.where(present[..., None], frequencies, 0.0), present=present

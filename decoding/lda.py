@@ -25,7 +25,13 @@ from dataclasses import dataclass
 import numpy as np
 
 from decoding.estimator import StatisticsClassifier
-from decoding.statistics import BatchedDecoders, ClassStatistics, PooledStatistics, log_softmax
+from decoding.statistics import (
+    EMPTY_WEIGHT,
+    BatchedDecoders,
+    ClassStatistics,
+    PooledStatistics,
+    log_softmax,
+)
 from decoding.validation import check_option
 
 DEFAULT_SHRINKAGE = 0.5
@@ -33,8 +39,6 @@ DEFAULT_SHRINKAGE = 0.5
 SHRINKAGE_RULES: tuple[str, ...] = ("oas",)
 #: A class needs this much (weighted) data before a decoder that uses it is informative.
 MIN_CLASS_COUNT = 2.0
-#: Weight below which a class (or the unlabelled rest of the signals) counts as empty.
-_EMPTY = 1e-9
 #: Relative size of the smallest eigenvalue of ``Sigma``'s diagonal part below which a
 #: decoder is solved by least squares instead (no shrinkage and fewer signals than
 #: features), as scikit-learn's ``lsqr`` solver does.
@@ -133,11 +137,11 @@ def fit_pooled_lda(
     n_signals = statistics.per_task(np.asarray(statistics.n_signals, dtype=float), 0)
     counts, sums = statistics.counts, statistics.sums
     unlabelled = n_signals - counts.sum(axis=-1)
-    if np.any(unlabelled > _EMPTY):
+    if np.any(unlabelled > EMPTY_WEIGHT):
         rest = statistics.per_task(statistics.signal_sum, 1) - sums.sum(axis=-2)
         counts = np.concatenate([counts, unlabelled[..., None]], axis=-1)
         sums = np.concatenate([sums, rest[..., None, :]], axis=-2)
-    filled = counts > _EMPTY
+    filled = counts > EMPTY_WEIGHT
     scale = np.where(filled, 1.0 / np.sqrt(np.where(filled, counts, 1.0)), 0.0)
     eigenvalues, basis = np.linalg.eigh(statistics.scatter)  # (*J, d), (*J, d, d)
     # u_k = V^T s_k / sqrt(n_k): W = S - sum_k (V u_k)(V u_k)^T.

@@ -12,6 +12,11 @@ from typing import Self
 
 import numpy as np
 
+#: Weight below which a class (or the unlabelled rest of the signals) counts as empty: a
+#: held-out fold's count of a class whose weight is all in that fold is the difference of
+#: two sums, and may be a rounding residue of either sign.
+EMPTY_WEIGHT = 1e-9
+
 
 @dataclass(frozen=True)
 class ClassStatistics:
@@ -45,15 +50,16 @@ class ClassStatistics:
     def class_moments(self) -> tuple[np.ndarray, np.ndarray]:
         """Class means (*B, K, d) and biased class covariances (*B, K, d, d).
 
-        Classes with a zero count get zero mean and covariance (their decoder is marked
-        uninformative by the caller).
+        Classes with no weight (at most :data:`EMPTY_WEIGHT`, a rounding residue) get zero
+        mean and covariance (their decoder is marked uninformative by the caller).
         """
-        counts = np.maximum(self.counts, np.finfo(float).tiny)
-        means = self.sums / counts[..., None]
+        filled = self.counts > EMPTY_WEIGHT
+        counts = np.where(filled, self.counts, 1.0)
+        means = np.where(filled[..., None], self.sums / counts[..., None], 0.0)
         covariances = self.scatters / counts[..., None, None] - (
             means[..., :, None] * means[..., None, :]
         )
-        return means, covariances
+        return means, np.where(filled[..., None, None], covariances, 0.0)
 
 
 @dataclass(frozen=True)

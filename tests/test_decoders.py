@@ -136,3 +136,24 @@ def test_a_class_without_data_gets_probability_zero():
     assert np.all(proba[:, 2] == 0) and np.allclose(proba.sum(axis=1), 1.0)
     reference = ShrinkageLDA().fit(X, y).predict_proba(X)
     np.testing.assert_allclose(proba[:, :2], reference, atol=1e-12)
+
+
+@pytest.mark.parametrize("fit", [fit_gaussian, fit_student_t])
+def test_a_rounding_residue_of_a_class_count_is_an_empty_class(fit):
+    # A held-out fold's count of a class whose weight is all in that fold is a difference
+    # of sums: it can be -1e-17 with a sum of 1e-16. Divided through, that was a mean of
+    # 1e291, an overflow and a NaN covariance that stopped the fit (eigh did not converge).
+    rng = np.random.default_rng(0)
+    X = rng.normal(size=(40, 3))
+    statistics = ClassStatistics.from_signals(X, one_hot(np.arange(40) % 2, 3))
+    counts = statistics.counts.copy()
+    counts[2] = -1e-17
+    sums, scatters = statistics.sums.copy(), statistics.scatters.copy()
+    sums[2], scatters[2] = 1e-16, 1e-16
+    residue = ClassStatistics(counts, sums, scatters)
+    means, covariances = residue.class_moments()
+    assert np.all(means[2] == 0.0) and np.all(covariances[2] == 0.0)
+    decoders = fit(residue, 0.5)
+    proba = decoders.proba(X)
+    assert np.all(np.isfinite(proba)) and np.all(proba[:, 2] == 0.0)
+    np.testing.assert_allclose(proba, fit(statistics, 0.5).proba(X), rtol=0, atol=1e-12)
