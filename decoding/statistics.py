@@ -53,13 +53,14 @@ class ClassStatistics:
         Classes with no weight (at most :data:`EMPTY_WEIGHT`, a rounding residue) get zero
         mean and covariance (their decoder is marked uninformative by the caller).
         """
-        filled = self.counts > EMPTY_WEIGHT
-        counts = np.where(filled, self.counts, 1.0)
-        means = np.where(filled[..., None], self.sums / counts[..., None], 0.0)
-        covariances = self.scatters / counts[..., None, None] - (
-            means[..., :, None] * means[..., None, :]
-        )
-        return means, np.where(filled[..., None, None], covariances, 0.0)
+        empty = self.counts <= EMPTY_WEIGHT
+        counts = np.where(empty, 1.0, self.counts)
+        means = self.sums / counts[..., None]
+        means[empty] = 0.0
+        covariances = self.scatters / counts[..., None, None]
+        covariances -= means[..., :, None] * means[..., None, :]
+        covariances[empty] = 0.0
+        return means, covariances
 
 
 @dataclass(frozen=True)
