@@ -75,7 +75,9 @@ PRESETS: dict[str, Preset] = {
             "thesis §7.2 (method-extensions §7.2): 2-D Gaussian signals of accuracy 0.95, "
             "simple matching, normalised likelihood > 0.9, Gaussian decoder with shrinkage "
             "0.5, eps 0.01, 10 initial random steps, uncertainty planning; 50 runs of 100 "
-            "steps; choose the world with --world/--grid (5 x 5, 25 x 25, pick-and-place)",
+            "steps; choose the world with --world/--grid (5 x 5, 25 x 25, pick-and-place); "
+            "--set goal_pull=1 adds the progress toward the likely goals that the study "
+            "recommends",
             {"synthetic": "gaussian", "dims": 2, "synthetic_accuracy": 0.95, "seeds": 50,
              "steps": 100, "frame": "feedback", "planner": "uncertainty"},
             {"likelihood": "simple", "confidence": "normalised", "beta": 0.9,
