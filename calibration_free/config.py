@@ -153,6 +153,10 @@ class LearnerConfig:
     declare_targets: bool = True
 
     def __post_init__(self) -> None:
+        for field in fields(self):
+            value = getattr(self, field.name)
+            if field.type == "bool" and not isinstance(value, bool):
+                raise ValueError(f"{field.name} must be true or false; got {value!r}")
         check_option("frame", self.frame, FRAMES)
         check_option("likelihood", self.likelihood, LIKELIHOODS)
         check_option("confidence", self.confidence, tuple(CONFIDENCES))

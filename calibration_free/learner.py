@@ -395,7 +395,8 @@ class CalibrationFreeLearner(TaskLearner):
         predicted = None
         if models is not None:
             if self._resplits_labels:
-                self._history.resplit_own_labels(models.held_out_proba())
+                history = self._history
+                history.resplit_own_labels(models.held_out_proba(history.n_adopted))
             predicted = self._likelihood.predict(models, x[None])[:, 0]
             weights = resolve_ambiguous_labels(weights, predicted)
             expected = expect_the_chosen_label(expected, frame_weights, weights)

@@ -157,6 +157,11 @@ class TaskHistory:
         return np.concatenate([shared, self._own_weights[:, : self._n_own]], axis=1)
 
     @property
+    def n_adopted(self) -> int:
+        """Signals before the last target switch, whose labels every task adopted."""
+        return self._n_shared
+
+    @property
     def _n_own(self) -> int:
         return self.n_signals - self._n_shared
 
@@ -211,8 +216,9 @@ class TaskHistory:
         """Split again every ambiguous label since the last switch by ``proba``.
 
         A frame label that allows several classes but not all (guidance: two optimal
-        directions) is shared among them in proportion to ``proba`` (n_tasks, n_signals,
-        K), each task's latest out-of-fold class probabilities of the signals: one EM step
+        directions) is shared among them in proportion to ``proba`` (n_tasks, n_signals -
+        n_adopted, K), each task's latest out-of-fold class probabilities of the signals
+        since the switch (:meth:`TaskModels.held_out_proba` from :attr:`n_adopted`): one EM step
         on which of the allowed classes the user chose, where the split made when each
         signal arrived used the decoder of that time. The tasks' statistics since the
         switch are rebuilt from the new weights. Needs ``keeps_frame_labels``.
@@ -225,7 +231,12 @@ class TaskHistory:
         ambiguous = (support > 1) & (support < self.n_classes)
         if not np.any(ambiguous):
             return
-        shared = frame * proba[:, self._n_shared :]
+        if proba.shape != frame.shape:
+            raise ValueError(
+                f"proba must have shape {frame.shape} (tasks, signals since the switch, "
+                f"classes); got {proba.shape}"
+            )
+        shared = frame * proba
         total = shared.sum(axis=-1, keepdims=True)
         resplit = np.where(total > 0, shared / np.where(total > 0, total, 1.0), frame)
         weights = np.where(ambiguous, resplit, frame)
@@ -314,8 +325,7 @@ class TaskHistory:
         counts = np.matmul(shared, flat).sum(axis=0)  # (K, T * K)
         counts = counts.reshape(n_classes, n_tasks, n_classes).transpose(1, 0, 2)
         if self._n_own:
-            own = np.arange(n_shared, self.n_signals)
-            predicted = by_fold[own % n_folds, own // n_folds]  # (n_own, T, K)
+            predicted = signals_from(by_fold, n_shared, self.n_signals)  # (n_own, T, K)
             counts = counts + np.einsum(
                 "tik,itl->tkl", self._own_weights[:, : self._n_own], predicted
             )
@@ -344,6 +354,14 @@ class TaskHistory:
 def _doubled(rows: np.ndarray) -> np.ndarray:
     """``rows`` (n_tasks, capacity, K) with twice the capacity (the new rows unset)."""
     return np.concatenate([rows, np.empty_like(rows)], axis=1)
+
+
+def signals_from(by_fold: np.ndarray, first: int, n_signals: int) -> np.ndarray:
+    """Probabilities by fold (:meth:`TaskHistory.cross_validated_proba`) of signals
+    ``first`` to ``n_signals - 1``, in signal order: (n, n_tasks, K) (a copy)."""
+    index = np.arange(first, n_signals)
+    n_folds = by_fold.shape[0]
+    return by_fold[index % n_folds, index // n_folds]
 
 
 def in_signal_order(by_fold: np.ndarray, n_signals: int, task: int | None = None) -> np.ndarray:
@@ -532,13 +550,14 @@ class TaskModels:
         with unknown classes treated as in :meth:`corrected_proba`."""
         return self._share_unknown_classes(self.decoders.proba(signals))
 
-    def held_out_proba(self) -> np.ndarray:
-        """Every task's out-of-fold class probabilities of the signals it was fitted on,
-        (n_tasks, n_signals, K), unknown classes treated as in :meth:`corrected_proba`;
-        needs the cross-validation."""
+    def held_out_proba(self, first: int = 0) -> np.ndarray:
+        """Every task's out-of-fold class probabilities of the signals it was fitted on
+        from signal ``first`` on, (n_tasks, n_signals - first, K), unknown classes treated
+        as in :meth:`corrected_proba`; needs the cross-validation."""
         if self.cv_by_fold is None:
             raise RuntimeError("these models were fitted without cross-validation")
-        return self._share_unknown_classes(in_signal_order(self.cv_by_fold, self.n_signals))
+        rows = signals_from(self.cv_by_fold, first, self.n_signals)
+        return self._share_unknown_classes(rows.swapaxes(0, 1))
 
     def _share_unknown_classes(self, q: np.ndarray) -> np.ndarray:
         n_classes = q.shape[-1]

@@ -193,3 +193,51 @@ def test_the_goal_pull_is_a_setting_off_by_default_and_recorded():
     assert LearnerConfig.from_dict(LearnerConfig(goal_pull=1.5).to_dict()).goal_pull == 1.5
     with pytest.raises(ValueError, match="goal_pull"):
         LearnerConfig(goal_pull=-0.5)
+
+
+@pytest.mark.parametrize("name", ["resplit_labels", "declare_targets", "power_prior"])
+def test_a_switch_setting_that_is_not_true_or_false_is_refused(name):
+    # `cfbci simulate --set resplit_labels=yes` gave the string "yes", taken as true.
+    with pytest.raises(ValueError, match=f"{name} must be true or false; got 'yes'"):
+        LearnerConfig.from_dict({name: "yes"})
+    assert getattr(LearnerConfig.from_dict({name: False}), name) is False
+
+
+def test_the_goal_pull_walks_the_exploring_learner_toward_its_leading_task():
+    # Forty random moves answered with well-separated feedback signals for target 24; the
+    # learner is not confident yet (beta close to 1) and leads with a task of the far
+    # corner. From the two farthest rows, with the pull its planner always moves toward the
+    # leading task; without it, it explores elsewhere too.
+    world = GridWorld(5)
+    rng = np.random.default_rng(3)
+    target, state, steps = 24, 12, []
+    for _ in range(40):
+        action = int(rng.integers(world.n_actions))
+        correct = bool(world.optimal[target, state, action])
+        signal = rng.normal(size=3) + (0.0 if correct else 4.0)
+        steps.append((state, action, signal.astype(np.float32)))
+        state = world.step(state, action)
+
+    def first_moves(pull: float) -> tuple[set[tuple[int, int]], set[tuple[int, int]]]:
+        moves, toward = set(), set()
+        for seed in range(8):
+            config = LearnerConfig(
+                planner="uncertainty", novelty_bonus=0.0, warmup_steps=0, beta=0.999999,
+                goal_pull=pull,
+            )
+            learner = CalibrationFreeLearner(world, config, rng=seed)
+            for step in steps:
+                learner.observe(*step)
+            beliefs = learner.beliefs()
+            assert not beliefs.confident and beliefs.best_task in (18, 19, 23, 24)
+            for start in range(10):  # the two rows farthest from it
+                action = learner.propose(start).action
+                moves.add((start, action))
+                if world.optimal[beliefs.best_task, start, action]:
+                    toward.add((start, action))
+        return moves, toward
+
+    pulled, toward = first_moves(50.0)
+    assert pulled == toward
+    free, toward = first_moves(0.0)
+    assert free != toward

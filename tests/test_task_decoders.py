@@ -406,7 +406,10 @@ def test_splitting_ambiguous_labels_again_equals_a_history_built_with_the_new_sp
         if i + 1 == switch:
             tasks.relabel(1)
     proba = rng.dirichlet(np.ones(n_classes), size=(n_tasks, n_signals))
-    tasks.resplit_own_labels(proba)
+    with pytest.raises(ValueError, match="signals since the switch"):
+        tasks.resplit_own_labels(proba)  # every signal's, not those since the switch
+    assert tasks.n_adopted == switch
+    tasks.resplit_own_labels(proba[:, tasks.n_adopted :])
     expected = arrival.copy()
     expected[:, :switch] = arrival[1, :switch]
     expected[:, switch:] = resolve_ambiguous(frame[:, switch:], proba[:, switch:])
@@ -418,6 +421,10 @@ def test_splitting_ambiguous_labels_again_equals_a_history_built_with_the_new_sp
     )
     np.testing.assert_allclose(fast.cv_proba, slow.cv_proba, rtol=0, atol=1e-10)
     np.testing.assert_allclose(fast.confusion, slow.confusion, rtol=0, atol=1e-10)
+    # The out-of-fold probabilities the learner splits by, from the switch on: the
+    # cross-validated ones in signal order (every class of these decoders is known).
+    assert fast.decoders.present.all()
+    np.testing.assert_array_equal(fast.held_out_proba(switch), fast.cv_proba[:, switch:])
 
 
 def resolve_ambiguous(frame, proba):
