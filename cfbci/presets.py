@@ -66,8 +66,8 @@ PRESETS: dict[str, Preset] = {
             "initial steps",
             {"world": "line", "frame": "hypotheses", "seeds": 200, "steps": 200,
              "planner": "random"},
-            {"decoder": "student_t", "student_t_counts": "total", "eps": 0.01,
-             "warmup_steps": 12},
+            {"decoder": "student_t", "student_t_counts": "total", "shrinkage": 0.5,
+             "eps": 0.01, "warmup_steps": 12},
             dataset="move_finger.mat (../shared/datasets/finger-moves/)",
         ),
         Preset(

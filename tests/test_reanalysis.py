@@ -17,6 +17,7 @@ import pytest
 from live import TIMEOUT, rewrite, service_process
 
 from acquisition.replay_source import SourceSettings, run_source
+from calibration_free.config import LearnerConfig
 from cfbci.cli import main
 from cfbci.reanalysis import (
     OWN,
@@ -30,6 +31,9 @@ from replay.recording import Recording, decode_array, read_recording
 from replay.rerun import replay_check
 from wire.messages import learner_settings
 from wire.zenoh_config import free_tcp_endpoint
+
+#: The learner's defaults, which the recording below runs with.
+DEFAULT = LearnerConfig()
 
 STEPS, GRID, SEED = 60, 3, 38  # seed 38: 1 correct and 1 wrong target
 
@@ -98,19 +102,20 @@ def test_alternative_settings_rescore_the_same_history_differently(
     out = tmp_path / "reanalysis.json"
     code = main([
         "replay", str(recorded), "--option", "eps=0.2", "--option", "shrinkage=0.3",
-        "--compare", "balanced_confusion=false", "--compare", "eps=0.1, decoder=lda",
+        "--compare", "balanced_confusion=false", "--compare", f"eps={DEFAULT.eps}, decoder=lda",
         "--per-step", "--json", str(out),
     ])
     assert code == 0
     text = capsys.readouterr().out
-    assert "A: eps=0.2, shrinkage=0.3 — differs from the recording's settings in eps 0.1 → " \
-        "0.2, shrinkage 0.5 → 0.3" in text
-    assert "C: eps=0.1, decoder=lda — no setting differs from the recording's" in text
+    assert "A: eps=0.2, shrinkage=0.3 — differs from the recording's settings in eps " \
+        f"{DEFAULT.eps} → 0.2, shrinkage {DEFAULT.shrinkage} → 0.3" in text
+    assert f"C: eps={DEFAULT.eps}, decoder=lda — no setting differs from the recording's" in text
     report = json.loads(out.read_text())
     own, changed, unbalanced, same = report["settings"]
     assert own["name"] == OWN and own["identical_to_recording"] and own["differs"] == {}
     assert changed["differs"] == {
-        "eps": {"recorded": 0.1, "this": 0.2}, "shrinkage": {"recorded": 0.5, "this": 0.3},
+        "eps": {"recorded": DEFAULT.eps, "this": 0.2},
+        "shrinkage": {"recorded": DEFAULT.shrinkage, "this": 0.3},
     }
     assert unbalanced["differs"] == {"balanced_confusion": {"recorded": True, "this": False}}
     for other in (changed, unbalanced):
