@@ -18,7 +18,7 @@ import numpy as np
 from calibration_free.config import LearnerConfig
 from calibration_free.learner import Proposal, TaskLearner
 from calibration_free.likelihood import match
-from calibration_free.task_decoders import TaskHistory, TaskModels
+from calibration_free.task_decoders import DecoderFit, TaskHistory, TaskModels
 from calibration_free.world import World
 from decoding.validation import check_range
 
@@ -61,6 +61,12 @@ class CalibratedBaseline(TaskLearner):
         self.log_likelihood = np.zeros(world.n_tasks)
         self._history: TaskHistory | None = None
         self._models: TaskModels | None = None
+
+    @property
+    def _fit(self) -> DecoderFit:
+        """The calibrated decoder's fit: with ``shrinkage``, as its calibration labels are
+        known, not guessed (``first_target_shrinkage`` is the learner's)."""
+        return self._fits[1]
 
     @property
     def calibrating(self) -> bool:

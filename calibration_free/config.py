@@ -20,9 +20,18 @@ PLANNING_WEIGHTS: tuple[str, ...] = ("posterior", "confidence")
 DEFAULT_NOVELTY_BONUS: dict[str, float] = {"feedback": 1.0, "guidance": 3.0}
 
 
+#: The decoders' covariance shrinkage until the first target is reached, per frame (tuned on
+#: synthetic data, seeds 100-199: the README's "Issue 13's levers"): while no task's labels
+#: have been confirmed by a target, every decoder is fitted on few signals, many of them
+#: mislabelled, and heavy shrinkage (towards the nearest-mean classifier) is what they can
+#: afford. Guidance has none of its own (``shrinkage`` throughout): its tuning showed no gain.
+DEFAULT_FIRST_TARGET_SHRINKAGE: dict[str, float] = {"feedback": 0.9}
+
+
 #: Settings added after recordings began to hold every learner setting, each with the value
 #: that reproduces the learner from before it existed: a recording that lacks one ran
-#: without it (:func:`wire.messages.recorded_config` fills them in when a recording is read).
+#: without it (:func:`wire.messages.recorded_config` fills them in when a recording is read;
+#: a missing ``first_target_shrinkage`` becomes the recording's own ``shrinkage``).
 SETTINGS_BEFORE_THEY_EXISTED: dict[str, Any] = {"goal_pull": 0.0, "resplit_labels": False}
 
 
@@ -58,7 +67,15 @@ class LearnerConfig:
     shrinkage : float or "oas", default 0.5
         Covariance shrinkage towards the scaled identity, in [0, 1]; or, with the "lda"
         decoder, "oas": each task and training set's Oracle Approximating Shrinkage
-        intensity, from its pooled covariance (:func:`decoding.lda.oas_shrinkage`).
+        intensity, from its pooled covariance (:func:`decoding.lda.oas_shrinkage`). From
+        the first target on; before it, ``first_target_shrinkage``.
+    first_target_shrinkage : float, "oas" or None, default the frame's
+        The decoders' shrinkage until the first target is reached, as ``shrinkage``; None:
+        the frame's default (:data:`DEFAULT_FIRST_TARGET_SHRINKAGE`: 0.9 for feedback),
+        else ``shrinkage`` (guidance). Set it equal to ``shrinkage`` for one shrinkage
+        throughout (the thesis's). The decoders only: the Bhattacharyya overlap, a distance
+        between the classes rather than a decoder, and the calibrated baseline, which has
+        no such phase, use ``shrinkage``.
     student_t_counts : {"class", "total"}, default "class"
         With ``decoder="student_t"``: the count in each class's predictive, the class's own
         weight or the training set's total (the thesis code's, which lets a rarely labelled
@@ -135,6 +152,7 @@ class LearnerConfig:
     confidence: str = "pairwise"
     decoder: str = "lda"
     shrinkage: float | str = DEFAULT_SHRINKAGE
+    first_target_shrinkage: float | str | None = None
     student_t_counts: str = "class"
     n_folds: int = DEFAULT_FOLDS
     confusion_smoothing: float = DEFAULT_CONFUSION_SMOOTHING
@@ -170,16 +188,9 @@ class LearnerConfig:
         check_option("planning_weights", self.planning_weights, PLANNING_WEIGHTS)
         check_range("eps", self.eps, 0.0, 0.5)
         check_range("epsilon", self.epsilon, 0.0, 1.0)
-        if isinstance(self.shrinkage, str):
-            check_option("shrinkage", self.shrinkage, SHRINKAGE_RULES)
-            if self.decoder != "lda" or self.likelihood == "bhattacharyya":
-                raise ValueError(
-                    f"shrinkage {self.shrinkage!r} is chosen from the pooled covariance: it "
-                    f"needs decoder 'lda' and a likelihood other than 'bhattacharyya'; got "
-                    f"decoder {self.decoder!r}, likelihood {self.likelihood!r}"
-                )
-        else:
-            check_range("shrinkage", self.shrinkage, 0.0, 1.0)
+        self._check_shrinkage("shrinkage", self.shrinkage)
+        if self.first_target_shrinkage is not None:
+            self._check_shrinkage("first_target_shrinkage", self.first_target_shrinkage)
         check_option("student_t_counts", self.student_t_counts, STUDENT_T_COUNTS)
         check_range("beta", self.beta, 0.5, 1.0, inclusive=False)
         check_range("discount", self.discount, 0.0, 1.0, inclusive=False)
@@ -191,6 +202,26 @@ class LearnerConfig:
         check_range("n_planning_signals", self.n_planning_signals, 1, 10_000)
         check_range("warmup_steps", self.warmup_steps, 0, 1_000_000)
 
+    def _check_shrinkage(self, name: str, value: float | str) -> None:
+        if not isinstance(value, str):
+            check_range(name, value, 0.0, 1.0)
+            return
+        check_option(name, value, SHRINKAGE_RULES)
+        if self.decoder != "lda" or self.likelihood == "bhattacharyya":
+            raise ValueError(
+                f"{name} {value!r} is chosen from the pooled covariance: it needs decoder "
+                f"'lda' and a likelihood other than 'bhattacharyya'; got decoder "
+                f"{self.decoder!r}, likelihood {self.likelihood!r}"
+            )
+
+    @property
+    def shrinkage_before_first_target(self) -> float | str:
+        """The decoders' shrinkage until the first target: the given one, else the frame's
+        default, else ``shrinkage`` (unresolved in the field, as ``frame_novelty_bonus``)."""
+        if self.first_target_shrinkage is not None:
+            return self.first_target_shrinkage
+        return DEFAULT_FIRST_TARGET_SHRINKAGE.get(self.frame, self.shrinkage)
+
     @property
     def frame_novelty_bonus(self) -> float:
         """The novelty bonus in force: the given one, or the frame's default (unresolved in
@@ -200,9 +231,13 @@ class LearnerConfig:
         return self.novelty_bonus
 
     def to_dict(self) -> dict[str, Any]:
-        """Plain JSON-able dictionary of every setting, the novelty bonus in force included
-        (a recording replays with the bonus it ran with, whatever later defaults say)."""
-        return asdict(self) | {"novelty_bonus": self.frame_novelty_bonus}
+        """Plain JSON-able dictionary of every setting, the novelty bonus and first-target
+        shrinkage in force included (a recording replays with the values it ran with,
+        whatever later defaults say)."""
+        return asdict(self) | {
+            "novelty_bonus": self.frame_novelty_bonus,
+            "first_target_shrinkage": self.shrinkage_before_first_target,
+        }
 
     @classmethod
     def from_dict(cls, values: dict[str, Any]) -> LearnerConfig:

@@ -22,7 +22,7 @@ from calibration_free.config import LearnerConfig
 from calibration_free.frames import Frame
 from calibration_free.likelihood import CONFIDENCES, normalised_likelihood, power_log_ratio
 from calibration_free.planning import PlanningInputs, greedy_action, make_planner, random_action
-from calibration_free.task_decoders import TaskHistory, TaskModels, decoder_fit
+from calibration_free.task_decoders import DecoderFit, TaskHistory, TaskModels, decoder_fit
 from calibration_free.task_likelihoods import make_likelihood
 from calibration_free.world import World
 from decoding.validation import check_array
@@ -105,8 +105,9 @@ class TaskLearner:
         self._n_features: int | None = None
         self._pending_target: int | None = None
         self._visits = np.zeros(world.n_states)
-        self._fit = decoder_fit(
-            self.config.decoder, self.config.shrinkage, self.config.student_t_counts
+        self._fits = tuple(
+            decoder_fit(self.config.decoder, shrinkage, self.config.student_t_counts)
+            for shrinkage in (self.config.shrinkage_before_first_target, self.config.shrinkage)
         )
         self._planner = make_planner(
             self.config.planner, self.frame, self.config.discount, self.config.epsilon
@@ -115,6 +116,12 @@ class TaskLearner:
     def observe(self, state: int, action: int, signal: np.ndarray) -> None:
         """Take in the signal the user produced after ``action`` was taken in ``state``."""
         raise NotImplementedError
+
+    @property
+    def _fit(self) -> DecoderFit:
+        """How the decoders are fitted now: with ``first_target_shrinkage`` until the first
+        target is reached, then with ``shrinkage``."""
+        return self._fits[min(self.n_targets, 1)]
 
     def _scores(self) -> np.ndarray:
         """Log scores of the tasks, shape (n_tasks,)."""

@@ -54,6 +54,9 @@ class Preset:
 #: The thesis's own choices shared by the experiments of chapters 4-7: no ErrP power prior
 #: (the signals are not ErrPs), none of the project's novelty bonus, planning discount 0.95.
 _THESIS = {"power_prior": False, "novelty_bonus": 0.0, "discount": 0.95}
+#: The thesis's shrinkage, 0.5, throughout: none of the project's heavier one before the first
+#: target (``first_target_shrinkage``).
+_THESIS_SHRINKAGE = {"shrinkage": 0.5, "first_target_shrinkage": 0.5}
 
 PRESETS: dict[str, Preset] = {
     preset.name: preset
@@ -66,7 +69,7 @@ PRESETS: dict[str, Preset] = {
             "initial steps",
             {"world": "line", "frame": "hypotheses", "seeds": 200, "steps": 200,
              "planner": "random"},
-            {"decoder": "student_t", "student_t_counts": "total", "shrinkage": 0.5,
+            {"decoder": "student_t", "student_t_counts": "total", **_THESIS_SHRINKAGE,
              "eps": 0.01, "warmup_steps": 12},
             dataset="move_finger.mat (../shared/datasets/finger-moves/)",
         ),
@@ -81,7 +84,7 @@ PRESETS: dict[str, Preset] = {
             {"synthetic": "gaussian", "dims": 2, "synthetic_accuracy": 0.95, "seeds": 50,
              "steps": 100, "frame": "feedback", "planner": "uncertainty"},
             {"likelihood": "simple", "confidence": "normalised", "beta": 0.9,
-             "decoder": "gaussian", "shrinkage": 0.5, "eps": 0.01, "warmup_steps": 10,
+             "decoder": "gaussian", **_THESIS_SHRINKAGE, "eps": 0.01, "warmup_steps": 10,
              **_THESIS},
         ),
         Preset(
@@ -92,7 +95,7 @@ PRESETS: dict[str, Preset] = {
             "steps; simple matching (--set likelihood=matching for the other arm)",
             {"synthetic": "gaussian", "dims": 2, "synthetic_accuracy": 0.65, "seeds": 100,
              "steps": 500, "grid": 5, "frame": "feedback", "planner": "uncertainty"},
-            {"likelihood": "simple", "decoder": "student_t", "shrinkage": 0.5, "eps": 0.1,
+            {"likelihood": "simple", "decoder": "student_t", **_THESIS_SHRINKAGE, "eps": 0.1,
              "confidence": "pairwise", "beta": 0.9, "warmup_steps": 12, **_THESIS},
         ),
         Preset(
@@ -104,7 +107,7 @@ PRESETS: dict[str, Preset] = {
             "likelihood); 20 runs of 200 steps",
             {"world": "pick-and-place", "frame": "feedback", "seeds": 20, "steps": 200,
              "planner": "epsilon-greedy"},
-            {"epsilon": 0.1, "likelihood": "batch", "decoder": "gaussian", "shrinkage": 0.5,
+            {"epsilon": 0.1, "likelihood": "batch", "decoder": "gaussian", **_THESIS_SHRINKAGE,
              "confidence": "normalised", "beta": 0.9, "eps": 0.1, "warmup_steps": 0,
              "declare_targets": False, **_THESIS},
             dataset="FILE.npz from `cfbci datasets speech --out FILE.npz`",

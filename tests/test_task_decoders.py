@@ -145,6 +145,7 @@ def test_learner_updates_equal_the_reference_along_a_session():
             reference = reference_log_match(
                 history, labels[ok], signal.astype(np.float64),
                 frame.label_distribution[ok, state, action],
+                shrinkage=config.shrinkage_before_first_target,  # no target is declared
             )
             np.testing.assert_allclose(increment[ok], reference, rtol=0, atol=1e-8)
             checked += int(np.sum(ok))

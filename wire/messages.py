@@ -83,12 +83,16 @@ def learner_settings(values: dict[str, Any], frame: str) -> LearnerConfig:
 def recorded_config(config: dict[str, Any]) -> dict[str, Any]:
     """A config as a recording holds it, with the learner settings the recording lacks
     because they did not exist yet set to the values that reproduce the learner of that
-    time (:data:`calibration_free.config.SETTINGS_BEFORE_THEY_EXISTED`), so that an older
+    time (:data:`calibration_free.config.SETTINGS_BEFORE_THEY_EXISTED`; a missing
+    ``first_target_shrinkage``, the recording's own ``shrinkage``), so that an older
     recording replays and resumes as it ran. Plane worlds' configs and configs without a
     ``learner`` object are returned as they are."""
     if "learner" not in config or is_plane(config):
         return config
-    return {**config, "learner": {**SETTINGS_BEFORE_THEY_EXISTED, **config["learner"]}}
+    learner = {**SETTINGS_BEFORE_THEY_EXISTED, **config["learner"]}
+    if "shrinkage" in learner:  # one shrinkage throughout, before the setting existed
+        learner.setdefault("first_target_shrinkage", learner["shrinkage"])
+    return {**config, "learner": learner}
 
 
 def resolved_config(config: dict[str, Any]) -> dict[str, Any]:
