@@ -3,8 +3,14 @@
 from __future__ import annotations
 
 import pytest
+from test_learner import WORLD, run
 
-from calibration_free.config import DEFAULT_NOVELTY_BONUS, LearnerConfig
+from calibration_free.config import (
+    DEFAULT_FIRST_TARGET_SHRINKAGE,
+    DEFAULT_NOVELTY_BONUS,
+    LearnerConfig,
+)
+from calibration_free.learner import CalibrationFreeLearner
 from wire.messages import learner_settings
 
 
@@ -39,3 +45,28 @@ def test_a_string_shrinkage_and_a_null_novelty_bonus_are_settings() -> None:
 def test_a_wrong_kind_is_refused_naming_the_setting(values: dict, message: str) -> None:
     with pytest.raises(ValueError, match=message.replace("[", r"\[").replace("]", r"\]")):
         learner_settings(values, "feedback")
+
+
+def test_the_first_target_shrinkage_is_the_frames_and_is_recorded_resolved() -> None:
+    feedback, guidance = LearnerConfig(), LearnerConfig(frame="guidance", shrinkage=0.3)
+    assert feedback.shrinkage_before_first_target == DEFAULT_FIRST_TARGET_SHRINKAGE["feedback"]
+    assert guidance.shrinkage_before_first_target == 0.3  # guidance: shrinkage throughout
+    assert LearnerConfig(first_target_shrinkage=0.7).shrinkage_before_first_target == 0.7
+    # Recorded as in force, so that a later change of the frame's default cannot move it.
+    assert feedback.to_dict()["first_target_shrinkage"] == feedback.shrinkage_before_first_target
+    assert guidance.to_dict()["first_target_shrinkage"] == 0.3
+    with pytest.raises(ValueError, match="first_target_shrinkage"):
+        LearnerConfig(first_target_shrinkage=1.5)
+    with pytest.raises(ValueError, match=r"first_target_shrinkage 'oas' .* needs decoder 'lda'"):
+        LearnerConfig(first_target_shrinkage="oas", decoder="gaussian")
+
+
+def test_the_decoders_take_the_shrinkage_after_the_first_target() -> None:
+    config = LearnerConfig(planner="random", first_target_shrinkage=0.8, shrinkage=0.3)
+    learner = CalibrationFreeLearner(WORLD, config, rng=0)
+    fits = []
+    run(learner, target=5, steps=120, seed=1, on_step=lambda *_: fits.append(
+        (learner.n_targets, learner._fit.shrinkage)))
+    assert learner.n_targets >= 1, "the session must reach a target for the switch to show"
+    assert {shrinkage for n, shrinkage in fits if n == 0} == {0.8}
+    assert {shrinkage for n, shrinkage in fits if n >= 1} == {0.3}

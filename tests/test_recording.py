@@ -354,17 +354,26 @@ def test_a_killed_writer_loses_at_most_the_message_being_written(tmp_path: Path)
 
 
 def test_an_older_recording_reads_back_with_the_settings_it_ran_with(tmp_path: Path) -> None:
-    # Made before goal_pull and resplit_labels existed: its learner ran without either,
-    # whatever today's defaults say, so that it replays as it ran. A plane world's
-    # settings are not the grid learner's and are left alone.
+    # Made before goal_pull, resplit_labels and first_target_shrinkage existed: its learner
+    # ran without any, whatever today's defaults say, so that it replays as it ran (one
+    # shrinkage throughout: its own, or the default of the time). A plane world's settings
+    # are not the grid learner's and are left alone.
     from calibration_free.config import LearnerConfig
 
-    older = {"grid": 3, "frame": "guidance", "learner": {"eps": 0.1}}
+    older = {"grid": 3, "frame": "feedback", "learner": {"eps": 0.1}}
     with SessionRecorder(tmp_path / "old.mcap", "old", older):
         pass
     learner = read_recording(tmp_path / "old.mcap").config["learner"]
-    assert learner == {"eps": 0.1, "goal_pull": 0.0, "resplit_labels": False}
-    assert LearnerConfig().resplit_labels  # the default today differs
+    assert learner == {
+        "eps": 0.1, "goal_pull": 0.0, "resplit_labels": False, "first_target_shrinkage": 0.5,
+    }
+    assert LearnerConfig().resplit_labels  # the defaults today differ
+    assert LearnerConfig().shrinkage_before_first_target != 0.5
+    oas = {"grid": 3, "frame": "feedback", "learner": {"shrinkage": "oas"}}
+    with SessionRecorder(tmp_path / "oas.mcap", "oas", oas):
+        pass
+    assert read_recording(tmp_path / "oas.mcap").config["learner"]["first_target_shrinkage"] \
+        == "oas"
     plane = {"world": "continuous", "frame": "cardinal", "learner": {"hypotheses": 50}}
     with SessionRecorder(tmp_path / "plane.mcap", "plane", plane):
         pass

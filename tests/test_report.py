@@ -115,13 +115,15 @@ def write_real(path: Path, seed: int = REAL_SEED, steps: int = REAL_STEPS,
     data = synthetic_epochs(DEFAULT_SYNTHETIC_ACCURACY, data_rng)
     world = GridWorld(grid)
     user = SimulatedUser(world, "feedback", data.labels, user_rng)
-    learner = CalibrationFreeLearner(world, learner_settings({}, "feedback"), learner_rng)
+    settings = learner_settings({}, "feedback")
+    learner = CalibrationFreeLearner(world, settings, learner_rng)
     state = start_cell(seed, world.n_states)
     assert state == user.start_state
     draws = transition_draws(seed)
     config = {
         "seq": 0, "t_ns": 0, "seed": seed, "grid": grid, "frame": "feedback", "steps": steps,
-        "learner": {}, "dataset": {"description": "synthetic"}, "signal": "epochs",
+        "learner": settings.to_dict(),  # every setting, as the service records them
+        "dataset": {"description": "synthetic"}, "signal": "epochs",
         "sfreq": float(data.sfreq), "tmin": float(data.tmin), "ch_names": list(data.ch_names),
     }
     extractor = ErrPFeatures(data.sfreq, data.tmin, data.ch_names)

@@ -19,6 +19,7 @@ from calibration_free.learner import CalibrationFreeLearner, Proposal
 from calibration_free.session import session_streams
 from calibration_free.world import GridWorld, TransitionDraws, World
 from calibration_free.worlds import make_world
+from decoding.lda import DEFAULT_SHRINKAGE
 from wire.plane import is_plane, plane_settings
 from wire.settings import check_setting_kinds
 
@@ -90,8 +91,8 @@ def recorded_config(config: dict[str, Any]) -> dict[str, Any]:
     if "learner" not in config or is_plane(config):
         return config
     learner = {**SETTINGS_BEFORE_THEY_EXISTED, **config["learner"]}
-    if "shrinkage" in learner:  # one shrinkage throughout, before the setting existed
-        learner.setdefault("first_target_shrinkage", learner["shrinkage"])
+    # One shrinkage throughout, before the setting existed.
+    learner.setdefault("first_target_shrinkage", learner.get("shrinkage", DEFAULT_SHRINKAGE))
     return {**config, "learner": learner}
 
 
