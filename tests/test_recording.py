@@ -36,7 +36,8 @@ from replay.recording import (
 ROOT = Path(__file__).resolve().parents[1]
 CONFIG = {
     "grid": 3, "frame": "feedback",
-    "learner": {"eps": 0.1, "decoder": "lda", "goal_pull": 0.5, "resplit_labels": True},
+    "learner": {"eps": 0.1, "decoder": "lda", "goal_pull": 0.5, "resplit_labels": True,
+                "first_target_shrinkage": 0.9},
 }
 T0 = 1_700_000_000_123_456_789  # ns
 GRID = GridWorld(3)
