@@ -3,7 +3,9 @@
 A preset gives defaults to ``cfbci simulate``'s options and learner settings (``--set``),
 with the settings ``../shared/docs/method-extensions.md`` gives for that experiment;
 options given explicitly on the command line override it (a ``--set key=value`` overrides
-the preset's value of that key). ``cfbci simulate --list-presets`` lists them.
+the preset's value of that key). ``cfbci simulate --list-presets`` lists them. A preset's
+shrinkage is two settings, ``shrinkage`` and ``first_target_shrinkage``: ``--set`` both to
+change it throughout.
 """
 
 from __future__ import annotations

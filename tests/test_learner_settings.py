@@ -34,6 +34,9 @@ def test_a_string_shrinkage_and_a_null_novelty_bonus_are_settings() -> None:
         ({"shrinkage": [0.5]}, "'shrinkage' must be a number or a string; got [0.5]"),
         ({"shrinkage": True}, "'shrinkage' must be a number or a string; got True"),
         ({"novelty_bonus": "1"}, "'novelty_bonus' must be a number or null; got '1'"),
+        ({"first_target_shrinkage": [0.9]},
+         "'first_target_shrinkage' must be a number or a string or null; got [0.9]"),
+        ({"first_target_shrinkage": "ledoit"}, "first_target_shrinkage"),  # not a rule
         ({"eps": None}, "'eps' must be a number; got None"),
         ({"n_folds": 2.0}, "'n_folds' must be an integer; got 2.0"),
         ({"power_prior": 1}, "'power_prior' must be a boolean; got 1"),
