@@ -25,6 +25,7 @@ from calibration_free.planning import PlanningInputs, greedy_action, make_planne
 from calibration_free.task_decoders import DecoderFit, TaskHistory, TaskModels, decoder_fit
 from calibration_free.task_likelihoods import make_likelihood
 from calibration_free.world import World
+from decoding.scatter_eigen import refresh_period
 from decoding.validation import check_array
 
 
@@ -395,6 +396,11 @@ class CalibrationFreeLearner(TaskLearner):
                 self.world.n_tasks, self.frame.n_classes, x.shape[0], self.config.n_folds,
                 class_scatters=self._fit.class_scatters or self._likelihood.needs_class_scatters,
                 keeps_frame_labels=self._resplits_labels,
+                eigen_period=(
+                    refresh_period(self.world.n_tasks, x.shape[0])
+                    if all(fit.rolling_eigen for fit in self._fits)
+                    else None
+                ),
             )
         expected = self.frame.distribution_at(state, action)
         frame_weights = weights = self.frame.weights_at(state, action)

@@ -35,6 +35,7 @@ from calibration_free.likelihood import confusion_matrices, corrected_proba
 from decoding.categorical import fit_categorical
 from decoding.gaussian import fit_gaussian
 from decoding.lda import fit_pooled_lda
+from decoding.scatter_eigen import RollingScatterEigen
 from decoding.statistics import BatchedDecoders, ClassStatistics, PooledStatistics
 from decoding.student_t import STUDENT_T_COUNTS, fit_student_t
 from decoding.validation import check_option
@@ -100,6 +101,11 @@ class TaskHistory:
     keeps_frame_labels : bool, default False
         Also keep every task's frame label weights of the signals since the last switch,
         before any ambiguous label was split (:meth:`resplit_own_labels` needs them).
+    eigen_period : int or None, default None
+        Also keep the training sets' scatters decomposed, each decomposed again every
+        ``eigen_period`` signals in turn (:mod:`decoding.scatter_eigen`;
+        :func:`~decoding.scatter_eigen.refresh_period` balances the cost), for the pooled
+        LDA with a fixed shrinkage; None: the decoders decompose the scatters.
     """
 
     def __init__(
@@ -110,6 +116,7 @@ class TaskHistory:
         n_folds: int = DEFAULT_FOLDS,
         class_scatters: bool = False,
         keeps_frame_labels: bool = False,
+        eigen_period: int | None = None,
     ) -> None:
         if n_folds < 2:
             raise ValueError(f"n_folds must be >= 2; got {n_folds}")
@@ -134,6 +141,11 @@ class TaskHistory:
         self._scatters = (
             FoldSums(n_tasks, n_folds, (n_classes, n_features, n_features))
             if class_scatters
+            else None
+        )
+        self._eigen = (
+            RollingScatterEigen(n_folds + 1, n_features, eigen_period)
+            if eigen_period is not None
             else None
         )
 
@@ -188,6 +200,9 @@ class TaskHistory:
         self._scatter[fold] += np.outer(signal, signal)
         self._signal_sum[fold] += signal
         self._fold_size[fold] += 1
+        if self._eigen is not None:
+            members = np.arange(self.n_folds + 1) != fold
+            self._eigen.add(signal, members, self._training_sets(self._scatter))
         self._counts.add(fold, weights)
         self._sums.add(fold, weights[:, :, None] * signal)
         if self._scatters is not None:
@@ -271,16 +286,28 @@ class TaskHistory:
             return np.concatenate([held_out(), whole[None]])
 
         def shared(per_fold: np.ndarray) -> np.ndarray:
-            total = per_fold.sum(axis=0)
-            return training_sets(lambda: total - per_fold, total)
+            return self._training_sets(per_fold) if with_folds else per_fold.sum(axis=0)[None]
 
+        eigen = None
+        if self._eigen is not None:
+            eigen = self._eigen.current()
+            if not with_folds:
+                eigen = eigen.select(slice(-1, None))
         return PooledStatistics(
             scatter=shared(self._scatter),
             n_signals=shared(self._fold_size),
             signal_sum=shared(self._signal_sum),
             counts=training_sets(self._counts.held_out, self._counts.total()),
             sums=training_sets(self._sums.held_out, self._sums.total()),
+            eigen=eigen,
         )
+
+    @staticmethod
+    def _training_sets(per_fold: np.ndarray) -> np.ndarray:
+        """A shared per-fold statistic (n_folds, ...) summed over every fold's training
+        set, then over the whole history: (n_folds + 1, ...)."""
+        total = per_fold.sum(axis=0)
+        return np.concatenate([total - per_fold, total[None]])
 
     def class_statistics(
         self, with_folds: bool = True
@@ -408,6 +435,13 @@ class DecoderFit:
     def class_scatters(self) -> bool:
         """Whether the history must keep per-class scatter matrices."""
         return self.kind in ("student_t", "gaussian")
+
+    @property
+    def rolling_eigen(self) -> bool:
+        """Whether the decoders use decomposed scatters refreshed in turn (the pooled LDA
+        with a fixed positive shrinkage)."""
+        shrinkage = self.shrinkage
+        return self.kind == "lda" and not isinstance(shrinkage, str) and shrinkage > 0
 
     def __call__(
         self, history: TaskHistory, with_folds: bool = True

@@ -20,11 +20,12 @@ training set, and every task's scores are then one matrix product.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from decoding.estimator import StatisticsClassifier
+from decoding.scatter_eigen import ScatterEigen
 from decoding.statistics import (
     EMPTY_WEIGHT,
     BatchedDecoders,
@@ -130,7 +131,27 @@ def fit_pooled_lda(
     unlabelled signals around their own mean, make up the pooled covariance.
     ``shrinkage``: a fixed intensity in [0, 1], or ``"oas"`` for each training set and
     labelling's own (:func:`oas_shrinkage`).
+
+    With ``statistics.eigen`` and a positive fixed shrinkage, the scatters are not
+    decomposed here: the signals added since their last decomposition join the Woodbury
+    solve (``S = V diag(e) V^T + Y^T Y``), with the class sums.
     """
+    eigen = statistics.eigen
+    if eigen is None or isinstance(shrinkage, str) or not shrinkage > 0:
+        eigenvalues, basis = np.linalg.eigh(statistics.scatter)  # (*J, d), (*J, d, d)
+        eigen = ScatterEigen(basis, eigenvalues, np.zeros((*eigenvalues.shape[:-1], 0, 0)))
+    decoders = _fit_in_basis(statistics, eigen, shrinkage)
+    if decoders is None:  # singular with pending signals: decompose the whole scatter
+        return fit_pooled_lda(replace(statistics, eigen=None), shrinkage)
+    return decoders
+
+
+def _fit_in_basis(
+    statistics: PooledStatistics, eigen: ScatterEigen, shrinkage: float | str
+) -> PooledLinearDecoders | None:
+    """:func:`fit_pooled_lda` in the basis of ``eigen``; None if a decoder's diagonal
+    part is singular while signals are pending (only the least-squares path, which needs
+    the whole scatter decomposed, can solve it)."""
     n_sets = statistics.n_signals.ndim
     n_features = statistics.scatter.shape[-1]
     n_classes = statistics.counts.shape[-1]
@@ -143,7 +164,8 @@ def fit_pooled_lda(
         sums = np.concatenate([sums, rest[..., None, :]], axis=-2)
     filled = counts > EMPTY_WEIGHT
     scale = np.where(filled, 1.0 / np.sqrt(np.where(filled, counts, 1.0)), 0.0)
-    eigenvalues, basis = np.linalg.eigh(statistics.scatter)  # (*J, d), (*J, d, d)
+    basis, eigenvalues = eigen.basis, statistics.per_task(eigen.eigenvalues, 1)
+    n_pending = eigen.pending.shape[-2]
     # u_k = V^T s_k / sqrt(n_k): W = S - sum_k (V u_k)(V u_k)^T.
     flat_sums = sums.reshape(*sums.shape[:n_sets], -1, n_features)
     projected = (flat_sums @ basis).reshape(sums.shape)
@@ -153,32 +175,43 @@ def fit_pooled_lda(
     size = np.maximum(n_signals, 1.0)
     if isinstance(shrinkage, str):
         check_option("shrinkage", shrinkage, SHRINKAGE_RULES)
-        shrinkage = oas_shrinkage(
-            statistics.per_task(eigenvalues, 1), projected, within_trace, size
-        )
+        shrinkage = oas_shrinkage(eigenvalues, projected, within_trace, size)
     c = (1.0 - shrinkage) / size
     nu = shrinkage * within_trace / (size * n_features)
-    # Sigma in the basis: diag(a) - c U U^T, a = c e + nu.
-    diagonal = c[..., None] * statistics.per_task(eigenvalues, 1) + nu[..., None]
+    # Sigma in the basis: diag(a) + c L diag(sign) L^T, a = c e + nu, L = [Y V, U]: the
+    # pending signals with sign +1, the classes with -1.
+    diagonal = c[..., None] * eigenvalues + nu[..., None]
     singular = diagonal.min(axis=-1) <= _SINGULAR * np.abs(diagonal).max(axis=-1)
+    if n_pending and np.any(singular):
+        return None
     safe_diagonal = np.where(singular[..., None], 1.0, diagonal)
     scaled = projected / safe_diagonal[..., None, :]  # U^T A^-1
-    gram = _pairwise_dots(scaled, projected)  # H = U^T A^-1 U
+    gram = _pairwise_dots(scaled, projected)  # H = L^T A^-1 L
+    signs = -np.ones(n_pending + counts.shape[-1])
+    if n_pending:
+        pending = statistics.per_task(eigen.pending @ basis, 2)  # (*J, 1.., r, d)
+        gram = _with_pending(gram, pending, scaled, safe_diagonal)
+        signs[:n_pending] = 1.0
     present = statistics.counts >= MIN_CLASS_COUNT
     n_present = present.sum(axis=-1, keepdims=True)
     # An uninformative decoder is never used: its system, which may be exactly singular
     # (every class one signal: no within-class spread), is not solved.
     unsolved = singular | (n_present[..., 0] < 2)
-    identity = np.eye(counts.shape[-1])
-    system = np.where(unsolved[..., None, None], identity, identity - c[..., None, None] * gram)
-    # Sigma^-1 U = A^-1 U (I - c H)^-1, so V^T Sigma^-1 mu_k = sum_l M_kl (A^-1 u_l) with
-    # M = diag(scale) (I - c H)^-1 (H is symmetric), rows of absent classes zeroed: only
-    # K x K matrices per decoder, then one combination of the rows of U^T A^-1.
-    mixing = _inverse_small(system)[..., :n_classes, :]
+    identity = np.eye(len(signs))
+    system = np.where(
+        unsolved[..., None, None], identity, identity + (c[..., None] * signs)[..., None] * gram
+    )
+    # Sigma^-1 L = A^-1 L (I + c diag(sign) H)^-1 =: A^-1 L X, so V^T Sigma^-1 mu_k =
+    # scale_k sum_l X_l,k (A^-1 L)_l with M_kl = scale_k X_lk, rows of absent classes
+    # zeroed: only small matrices per decoder, then one combination of the rows of L^T A^-1.
+    classes = slice(n_pending, n_pending + n_classes)
+    mixing = np.swapaxes(_inverse_small(system), -1, -2)[..., classes, :]
     mixing *= (scale[..., :n_classes] * present)[..., None]
-    coef = mixing @ scaled  # (*J, *T, C, d)
+    coef = mixing[..., n_pending:] @ scaled  # (*J, *T, C, d)
+    if n_pending:
+        coef += (mixing[..., :n_pending] @ pending) / safe_diagonal[..., None, :]
     # mu_k Sigma^-1 mu_k = scale_k (M H)_kk.
-    quadratic = np.einsum("...kl,...lk->...k", mixing, gram[..., :, :n_classes])
+    quadratic = np.einsum("...kl,...lk->...k", mixing, gram[..., :, classes])
     quadratic *= scale[..., :n_classes]
     singular &= n_present[..., 0] >= 2  # an uninformative decoder is never used
     if np.any(singular):
@@ -193,6 +226,22 @@ def fit_pooled_lda(
         intercept=-0.5 * np.where(present, quadratic, 0.0) + log_priors,
         present=present,
     )
+
+
+def _with_pending(
+    gram: np.ndarray, pending: np.ndarray, scaled: np.ndarray, diagonal: np.ndarray
+) -> np.ndarray:
+    """``H = L^T A^-1 L`` for ``L = [Y V, U]`` from the classes' block ``gram`` (*J, *T,
+    K', K'), the pending signals in the basis ``pending`` (*J, 1.., r, d), ``scaled = U^T
+    A^-1`` and ``diagonal = a`` (*J, *T, d): (*J, *T, r + K', r + K')."""
+    r = pending.shape[-2]
+    outer = pending[..., :, None, :] * pending[..., None, :, :]  # (*J, 1.., r, r, d)
+    flat = outer.reshape(*outer.shape[:-3], r * r, outer.shape[-1])
+    pending_block = ((1.0 / diagonal)[..., None, :] @ np.swapaxes(flat, -1, -2)).reshape(
+        *diagonal.shape[:-1], r, r
+    )
+    cross = scaled @ np.swapaxes(pending, -1, -2)  # (*J, *T, K', r)
+    return np.block([[pending_block, np.swapaxes(cross, -1, -2)], [cross, gram]])
 
 
 def oas_shrinkage(

@@ -12,6 +12,8 @@ from typing import Self
 
 import numpy as np
 
+from decoding.scatter_eigen import ScatterEigen
+
 #: Weight below which a class (or the unlabelled rest of the signals) counts as empty: a
 #: held-out fold's count of a class whose weight is all in that fold is the difference of
 #: two sums, and may be a rounding residue of either sign.
@@ -88,6 +90,9 @@ class PooledStatistics:
         Per training set and labelling, the class weights summed over the signals.
     sums : ndarray, shape (*J, *T, n_classes, n_features)
         Per training set and labelling, the class-weighted sums of the signals.
+    eigen : ScatterEigen or None
+        ``scatter`` as an earlier eigendecomposition plus the signals added since
+        (:mod:`decoding.scatter_eigen`), or None: the decoders decompose ``scatter``.
     """
 
     scatter: np.ndarray
@@ -95,6 +100,7 @@ class PooledStatistics:
     signal_sum: np.ndarray
     counts: np.ndarray
     sums: np.ndarray
+    eigen: ScatterEigen | None = None
 
     @classmethod
     def from_class_statistics(cls, statistics: ClassStatistics) -> PooledStatistics:

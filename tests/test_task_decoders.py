@@ -58,12 +58,17 @@ def history_of(signals, weights, **kwargs):
     [(0, 60, 4, 2, 0.5), (1, 83, 7, 2, 0.2), (2, 120, 5, 3, 0.5), (3, 97, 12, 2, 0.9),
      (4, 75, 6, 2, 0.0)],
 )
+@pytest.mark.parametrize("eigen_period", [None, 1, 4, 7])
 def test_batched_update_equals_sklearn_lda_with_kfold(
-    seed, n_signals, n_features, n_classes, shrinkage
+    seed, n_signals, n_features, n_classes, shrinkage, eigen_period
 ):
+    """Scatters decomposed by the decoders, or kept decomposed with up to ``eigen_period -
+    1`` signals pending (shrinkage 0 decomposes them anyway)."""
     rng = np.random.default_rng(seed)
     history, labels, signal, expected = random_problem(rng, n_signals, n_features, 5, n_classes)
-    tasks = history_of(history, one_hot(labels, n_classes))
+    tasks = history_of(history, one_hot(labels, n_classes), eigen_period=eigen_period)
+    if eigen_period is not None:  # some training set has signals pending, or none may
+        assert (tasks.pooled_statistics().eigen.pending.shape[-2] > 0) == (eigen_period > 1)
     for balanced in (True, False):
         models = TaskModels.fit(tasks, decoder_fit("lda", shrinkage), 1.0, balanced)
         fast = np.log(match(expected, models.corrected_proba(signal[None])[:, 0]))
@@ -77,17 +82,21 @@ def test_batched_update_equals_sklearn_lda_with_kfold(
 @pytest.mark.parametrize(
     ("seed", "n_classes", "shrinkage"), [(0, 4, 0.5), (1, 2, 0.3), (2, 4, 0.8)]
 )
+@pytest.mark.parametrize("eigen_period", [None, 5])
 def test_soft_and_unlabelled_weights_equal_the_weighted_numpy_reference(
-    seed, n_classes, shrinkage
+    seed, n_classes, shrinkage, eigen_period
 ):
-    """Full decoders, fold decoders (out-of-fold predictions) and log-likelihood updates."""
+    """Full decoders, fold decoders (out-of-fold predictions) and log-likelihood updates,
+    with the scatters decomposed by the decoders or kept decomposed with signals pending."""
     rng = np.random.default_rng(seed)
     n_signals, n_features, n_tasks = 90, 5, 4
     signals = rng.normal(size=(n_signals, n_features)) + rng.normal(size=n_features)
     weights = soft_weights(rng, n_tasks, n_signals, n_classes)
     weights[0] = one_hot(np.arange(n_signals) % n_classes, n_classes)  # one hard task
     new = rng.normal(size=(3, n_features))
-    models = TaskModels.fit(history_of(signals, weights), decoder_fit("lda", shrinkage), 1.0)
+    tasks = history_of(signals, weights, eigen_period=eigen_period)
+    assert eigen_period is None or tasks.pooled_statistics().eigen.pending.shape[-2] > 0
+    models = TaskModels.fit(tasks, decoder_fit("lda", shrinkage), 1.0)
     expected = rng.dirichlet(np.ones(n_classes), size=n_tasks)
     for task in range(n_tasks):
         full = weighted_lda_log_proba(signals, weights[task], shrinkage, new)
