@@ -22,7 +22,7 @@ from scipy.special import xlogy
 
 from calibration_free.frames import Frame
 from calibration_free.signal_space import signal_space_uncertainty
-from calibration_free.world import World, value_iteration
+from calibration_free.world import World, optimal_action_values
 from decoding.validation import check_option, check_range
 
 PLANNERS: tuple[str, ...] = (
@@ -157,7 +157,7 @@ class RewardPlanner(Planner):
         if inputs.state_bonus is not None:
             scale = max(reward.max(), np.finfo(float).tiny)
             reward = reward / scale + inputs.state_bonus[:, None]
-        q = value_iteration(reward, self.world.transitions, discount=self.discount)[state]
+        q = optimal_action_values(reward, self.world.transitions, self.discount)[state]
         best = np.flatnonzero(q >= q.max() - 1e-12 * max(1.0, abs(q.max())))
         return int(rng.choice(best))
 

@@ -360,6 +360,72 @@ class GridWorld(World):
         return divmod(int(state), self.size)
 
 
+#: Largest state space :func:`optimal_action_values` solves by policy iteration (a dense
+#: S x S solve per policy, S^3; value iteration's sweeps grow as S).
+POLICY_ITERATION_STATES = 100
+
+
+def optimal_action_values(
+    reward: np.ndarray, transitions: Transitions, discount: float
+) -> np.ndarray:
+    """Action values ``q`` (n_states, n_actions) of one MDP: exact by
+    :func:`policy_iteration` up to ``POLICY_ITERATION_STATES`` states, by
+    :func:`value_iteration` (to its tolerance) beyond."""
+    if reward.shape[0] <= POLICY_ITERATION_STATES:
+        return policy_iteration(reward, transitions, discount=discount)
+    return value_iteration(reward, transitions, discount=discount)
+
+
+def policy_iteration(
+    reward: np.ndarray,
+    transitions: Transitions,
+    *,
+    discount: float = 0.9,
+    max_iterations: int = 1000,
+) -> np.ndarray:
+    """Action values of one MDP by policy iteration: the exact fixed point of
+    ``q[s, a] = reward[s, a] + discount * E[max_a' q[s', a']]``, up to rounding.
+
+    Each policy's values solve ``(I - discount P) v = r`` (one dense solve); the policy
+    then moves, in the states where some action is better by more than a relative
+    1e-12, to the best one, until none is.
+
+    Parameters
+    ----------
+    reward : ndarray, shape (n_states, n_actions)
+    transitions : Transitions
+    discount : float
+        In [0, 1).
+    max_iterations : int
+        Upper bound on policies evaluated.
+
+    Returns
+    -------
+    q : ndarray, shape (n_states, n_actions)
+    """
+    check_range("discount", discount, 0.0, 1.0)
+    if discount >= 1.0:
+        raise ValueError("discount must be < 1 for policy iteration to converge")
+    n_states = reward.shape[0]
+    states = np.arange(n_states)
+    policy = reward.argmax(axis=1)
+    for _ in range(max_iterations):
+        outcomes = transitions.next_states[states, policy]  # (S, O)
+        weights = transitions.probabilities[states, policy] * discount
+        system = np.eye(n_states).ravel()
+        system -= np.bincount(
+            (states[:, None] * n_states + outcomes).ravel(), weights.ravel(), n_states**2
+        )
+        values = np.linalg.solve(system.reshape(n_states, n_states), reward[states, policy])
+        q = reward + discount * transitions.expected(values)
+        best = q.max(axis=1)
+        better = best > q[states, policy] + 1e-12 * np.maximum(1.0, np.abs(best))
+        if not better.any():
+            break
+        policy = np.where(better, q.argmax(axis=1), policy)
+    return q
+
+
 #: Value-iteration sweeps between two stopping tests (see :func:`value_iteration`), and
 #: the state values kept for them at most (many MDPs at once test after every sweep).
 _SWEEPS_PER_BLOCK = 32

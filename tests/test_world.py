@@ -11,7 +11,9 @@ from calibration_free.world import (
     GOAL,
     GridWorld,
     Transitions,
+    optimal_action_values,
     optimal_actions,
+    policy_iteration,
     transition_draws,
     value_iteration,
 )
@@ -100,6 +102,34 @@ def test_value_iteration_in_blocks_equals_testing_after_every_sweep_bit_for_bit(
                        initial_values=reward.max(axis=-1) / 0.1)
     expected = _value_iteration_testing_every_sweep(reward, transitions, **options)
     assert np.array_equal(value_iteration(reward, transitions, **options), expected)
+
+
+@pytest.mark.parametrize("stochastic", [False, True])
+def test_policy_iteration_is_the_fixed_point_value_iteration_approaches(stochastic):
+    """Policy iteration's q satisfies the Bellman equation to rounding, value iteration at
+    a tight tolerance lands on it, and the planners' solver uses it on small worlds only."""
+    rng = np.random.default_rng(4)
+    transitions = GridWorld(5).transitions
+    if stochastic:
+        probabilities = rng.random((25, 5, 3))
+        transitions = Transitions(
+            rng.integers(0, 25, (25, 5, 3)), probabilities / probabilities.sum(-1, keepdims=True)
+        )
+    for _ in range(20):
+        reward = rng.random((25, 5)) ** 3
+        q = policy_iteration(reward, transitions, discount=0.9)
+        bellman = reward + 0.9 * transitions.expected(q.max(axis=1))
+        np.testing.assert_allclose(q, bellman, rtol=0, atol=1e-12)
+        slow = value_iteration(reward, transitions, discount=0.9, tolerance=1e-14,
+                               max_iterations=100_000)
+        np.testing.assert_allclose(q, slow, rtol=0, atol=1e-11)
+        assert np.array_equal(optimal_action_values(reward, transitions, 0.9), q)
+    big = GridWorld(11)  # 121 states: value iteration
+    reward = rng.random((121, 5))
+    assert np.array_equal(
+        optimal_action_values(reward, big.transitions, 0.9),
+        value_iteration(reward, big.transitions, discount=0.9),
+    )
 
 
 def test_value_iteration_rejects_a_discount_of_one():
