@@ -202,7 +202,7 @@ class TaskHistory:
         self._fold_size[fold] += 1
         if self._eigen is not None:
             members = np.arange(self.n_folds + 1) != fold
-            self._eigen.add(signal, members, self._training_sets(self._scatter))
+            self._eigen.add(signal, members, self._training_scatters)
         self._counts.add(fold, weights)
         self._sums.add(fold, weights[:, :, None] * signal)
         if self._scatters is not None:
@@ -300,6 +300,14 @@ class TaskHistory:
             counts=training_sets(self._counts.held_out, self._counts.total()),
             sums=training_sets(self._sums.held_out, self._sums.total()),
             eigen=eigen,
+        )
+
+    def _training_scatters(self, sets: np.ndarray) -> np.ndarray:
+        """The scatters of the training sets a mask (n_folds + 1,) selects (as
+        :meth:`_training_sets` orders them): (n_selected, d, d)."""
+        total = self._scatter.sum(axis=0)
+        return np.concatenate(
+            [total - self._scatter[sets[:-1]], total[None][sets[-1:]]]
         )
 
     @staticmethod

@@ -234,14 +234,18 @@ def _with_pending(
     """``H = L^T A^-1 L`` for ``L = [Y V, U]`` from the classes' block ``gram`` (*J, *T,
     K', K'), the pending signals in the basis ``pending`` (*J, 1.., r, d), ``scaled = U^T
     A^-1`` and ``diagonal = a`` (*J, *T, d): (*J, *T, r + K', r + K')."""
-    r = pending.shape[-2]
+    r, k = pending.shape[-2], gram.shape[-1]
     outer = pending[..., :, None, :] * pending[..., None, :, :]  # (*J, 1.., r, r, d)
     flat = outer.reshape(*outer.shape[:-3], r * r, outer.shape[-1])
-    pending_block = ((1.0 / diagonal)[..., None, :] @ np.swapaxes(flat, -1, -2)).reshape(
+    full = np.empty((*gram.shape[:-2], r + k, r + k))
+    full[..., :r, :r] = ((1.0 / diagonal)[..., None, :] @ np.swapaxes(flat, -1, -2)).reshape(
         *diagonal.shape[:-1], r, r
     )
     cross = scaled @ np.swapaxes(pending, -1, -2)  # (*J, *T, K', r)
-    return np.block([[pending_block, np.swapaxes(cross, -1, -2)], [cross, gram]])
+    full[..., r:, :r] = cross
+    full[..., :r, r:] = np.swapaxes(cross, -1, -2)
+    full[..., r:, r:] = gram
+    return full
 
 
 def oas_shrinkage(
