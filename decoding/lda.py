@@ -186,32 +186,38 @@ def _fit_in_basis(
         return None
     safe_diagonal = np.where(singular[..., None], 1.0, diagonal)
     scaled = projected / safe_diagonal[..., None, :]  # U^T A^-1
-    gram = _pairwise_dots(scaled, projected)  # H = L^T A^-1 L
-    signs = -np.ones(n_pending + counts.shape[-1])
-    if n_pending:
-        pending = statistics.per_task(eigen.pending @ basis, 2)  # (*J, 1.., r, d)
-        gram = _with_pending(gram, pending, scaled, safe_diagonal)
-        signs[:n_pending] = 1.0
+    gram = _pairwise_dots(scaled, projected)  # H = U^T A^-1 U
     present = statistics.counts >= MIN_CLASS_COUNT
     n_present = present.sum(axis=-1, keepdims=True)
     # An uninformative decoder is never used: its system, which may be exactly singular
     # (every class one signal: no within-class spread), is not solved.
     unsolved = singular | (n_present[..., 0] < 2)
-    identity = np.eye(len(signs))
-    system = np.where(
-        unsolved[..., None, None], identity, identity + (c[..., None] * signs)[..., None] * gram
-    )
-    # Sigma^-1 L = A^-1 L (I + c diag(sign) H)^-1 =: A^-1 L X, so V^T Sigma^-1 mu_k =
-    # scale_k sum_l X_l,k (A^-1 L)_l with M_kl = scale_k X_lk, rows of absent classes
-    # zeroed: only small matrices per decoder, then one combination of the rows of L^T A^-1.
-    classes = slice(n_pending, n_pending + n_classes)
-    mixing = np.swapaxes(_inverse_small(system), -1, -2)[..., classes, :]
-    mixing *= (scale[..., :n_classes] * present)[..., None]
-    coef = mixing[..., n_pending:] @ scaled  # (*J, *T, C, d)
+    identity = np.eye(counts.shape[-1])
+    system = np.where(unsolved[..., None, None], identity, identity - c[..., None, None] * gram)
     if n_pending:
-        coef += (mixing[..., :n_pending] @ pending) / safe_diagonal[..., None, :]
+        # Sigma = A + c Z^T Z - c U U^T (Z: the pending signals in the basis): eliminate Z
+        # first, Z's own r x r system being positive definite; (I - c H) becomes its
+        # Schur complement (I - c H) + c (U^T A^-1 Z^T) E.
+        pending = statistics.per_task(eigen.pending @ basis, 2)  # (*J, 1.., r, d)
+        pending_gram, cross = _pending_blocks(pending, scaled, safe_diagonal)
+        cc = c[..., None, None]
+        eliminated = np.linalg.solve(  # E = (I + c Z A^-1 Z^T)^-1 c Z A^-1 U
+            np.eye(n_pending) + cc * pending_gram, cc * np.swapaxes(cross, -1, -2)
+        )
+        system += np.where(unsolved[..., None, None], 0.0, cc * (cross @ eliminated))
+    # Sigma^-1 U = A^-1 U (I - c H)^-1 (with pending signals, A^-1 (U - Z^T E) times the
+    # Schur complement's inverse), so V^T Sigma^-1 mu_k = sum_l M_kl (A^-1 u_l) with M =
+    # diag(scale) (I - c H)^-1 (symmetric), rows of absent classes zeroed: only small
+    # matrices per decoder, then one combination of the rows of U^T A^-1 (and of Z A^-1).
+    mixing = _inverse_small(system)[..., :n_classes, :]
+    mixing *= (scale[..., :n_classes] * present)[..., None]
+    coef = mixing @ scaled  # (*J, *T, C, d)
     # mu_k Sigma^-1 mu_k = scale_k (M H)_kk.
-    quadratic = np.einsum("...kl,...lk->...k", mixing, gram[..., :, classes])
+    quadratic = np.einsum("...kl,...lk->...k", mixing, gram[..., :, :n_classes])
+    if n_pending:
+        pending_mixing = -(mixing @ np.swapaxes(eliminated, -1, -2))  # (*J, *T, C, r)
+        coef += (pending_mixing @ pending) / safe_diagonal[..., None, :]
+        quadratic += np.einsum("...kl,...kl->...k", pending_mixing, cross[..., :n_classes, :])
     quadratic *= scale[..., :n_classes]
     singular &= n_present[..., 0] >= 2  # an uninformative decoder is never used
     if np.any(singular):
@@ -228,24 +234,19 @@ def _fit_in_basis(
     )
 
 
-def _with_pending(
-    gram: np.ndarray, pending: np.ndarray, scaled: np.ndarray, diagonal: np.ndarray
-) -> np.ndarray:
-    """``H = L^T A^-1 L`` for ``L = [Y V, U]`` from the classes' block ``gram`` (*J, *T,
-    K', K'), the pending signals in the basis ``pending`` (*J, 1.., r, d), ``scaled = U^T
-    A^-1`` and ``diagonal = a`` (*J, *T, d): (*J, *T, r + K', r + K')."""
-    r, k = pending.shape[-2], gram.shape[-1]
+def _pending_blocks(
+    pending: np.ndarray, scaled: np.ndarray, diagonal: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """``Z A^-1 Z^T`` (*J, *T, r, r) and ``U^T A^-1 Z^T`` (*J, *T, K', r) from the pending
+    signals in the basis ``Z`` (*J, 1.., r, d), ``scaled = U^T A^-1`` (*J, *T, K', d) and
+    ``diagonal = a`` (*J, *T, d)."""
+    r = pending.shape[-2]
     outer = pending[..., :, None, :] * pending[..., None, :, :]  # (*J, 1.., r, r, d)
     flat = outer.reshape(*outer.shape[:-3], r * r, outer.shape[-1])
-    full = np.empty((*gram.shape[:-2], r + k, r + k))
-    full[..., :r, :r] = ((1.0 / diagonal)[..., None, :] @ np.swapaxes(flat, -1, -2)).reshape(
+    pending_gram = ((1.0 / diagonal)[..., None, :] @ np.swapaxes(flat, -1, -2)).reshape(
         *diagonal.shape[:-1], r, r
     )
-    cross = scaled @ np.swapaxes(pending, -1, -2)  # (*J, *T, K', r)
-    full[..., r:, :r] = cross
-    full[..., :r, r:] = np.swapaxes(cross, -1, -2)
-    full[..., r:, r:] = gram
-    return full
+    return pending_gram, scaled @ np.swapaxes(pending, -1, -2)
 
 
 def oas_shrinkage(
