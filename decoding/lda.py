@@ -181,10 +181,13 @@ def _fit_in_basis(
     # Sigma in the basis: diag(a) + c L diag(sign) L^T, a = c e + nu, L = [Y V, U]: the
     # pending signals with sign +1, the classes with -1.
     diagonal = c[..., None] * eigenvalues + nu[..., None]
-    singular = diagonal.min(axis=-1) <= _SINGULAR * np.abs(diagonal).max(axis=-1)
-    if n_pending and np.any(singular):
+    # c >= 0 and the eigenvalues ascend: the diagonal's extremes are at its ends.
+    smallest, largest = diagonal[..., 0], diagonal[..., -1]
+    singular = smallest <= _SINGULAR * np.maximum(np.abs(smallest), np.abs(largest))
+    any_singular = bool(singular.any())
+    if n_pending and any_singular:
         return None
-    safe_diagonal = np.where(singular[..., None], 1.0, diagonal)
+    safe_diagonal = np.where(singular[..., None], 1.0, diagonal) if any_singular else diagonal
     scaled = projected / safe_diagonal[..., None, :]  # U^T A^-1
     gram = _pairwise_dots(scaled, projected)  # H = U^T A^-1 U
     present = statistics.counts >= MIN_CLASS_COUNT
@@ -211,16 +214,19 @@ def _fit_in_basis(
     # matrices per decoder, then one combination of the rows of U^T A^-1 (and of Z A^-1).
     mixing = _inverse_small(system)[..., :n_classes, :]
     mixing *= (scale[..., :n_classes] * present)[..., None]
-    coef = mixing @ scaled  # (*J, *T, C, d)
     # mu_k Sigma^-1 mu_k = scale_k (M H)_kk.
     quadratic = np.einsum("...kl,...lk->...k", mixing, gram[..., :, :n_classes])
     if n_pending:
         pending_mixing = -(mixing @ np.swapaxes(eliminated, -1, -2))  # (*J, *T, C, r)
-        coef += (pending_mixing @ pending) / safe_diagonal[..., None, :]
+        coef = mixing @ projected  # (*J, *T, C, d), times A^-1 below
+        coef += pending_mixing @ pending
+        coef /= safe_diagonal[..., None, :]
         quadratic += np.einsum("...kl,...kl->...k", pending_mixing, cross[..., :n_classes, :])
+    else:
+        coef = mixing @ scaled
     quadratic *= scale[..., :n_classes]
     singular &= n_present[..., 0] >= 2  # an uninformative decoder is never used
-    if np.any(singular):
+    if any_singular and np.any(singular):
         _least_squares_decoders(
             singular, diagonal, projected, c, scale[..., :n_classes] * present, coef, quadratic
         )
