@@ -37,10 +37,13 @@ def test_the_decompositions_follow_the_signals_not_the_reads():
     signals = rng.normal(size=(30, 4))
     read, unread = RollingScatterEigen(3, 4, 4), RollingScatterEigen(3, 4, 4)
     scatters = np.zeros((3, 4, 4))
+    def scatters_of(due):
+        return scatters[due]
+
     for signal in signals:
         scatters += np.outer(signal, signal)
         for eigen in (read, unread):
-            eigen.add(signal, np.ones(3, bool), lambda due: scatters[due])
+            eigen.add(signal, np.ones(3, bool), scatters_of)
         read.current()
     first, second = read.current(), unread.current()
     for field in ("basis", "eigenvalues", "pending"):
