@@ -5,7 +5,8 @@ keeps, per fold, the signals' uncentred scatter matrix, sum and count, shared by
 task, and per task, fold and class only the weighted count and sum of the signals, each
 updated in one step per new signal. Every task's full decoder and its k-fold decoders
 (trained on all folds but one) are functions of these (totals minus one fold): one
-eigendecomposition per training set and a K x K solve per task
+eigendecomposition per training set (kept, and refreshed every few signals in turn, by the
+learner: ``eigen_period``) and a K x K solve per task
 (:func:`~decoding.lda.fit_pooled_lda`); no task is ever refitted from its raw history.
 Fold ``f`` holds the signals ``i`` with ``i % n_folds == f`` (0-based arrival order), so
 folds never move as the history grows.

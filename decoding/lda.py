@@ -15,7 +15,9 @@ shared ``S`` minus a rank-K correction per task. One eigendecomposition ``S = V 
 V^T`` per training set makes ``c S + nu I`` (``c = (1 - lambda) / N``, ``nu`` a scalar
 per task) diagonal for every task, and the rank-K correction is a K x K solve per task
 (Woodbury identity). Decoders are kept in the basis ``V``: signals are projected once per
-training set, and every task's scores are then one matrix product.
+training set, and every task's scores are then one matrix product. A decomposition may
+also be an earlier one plus the signals added since (:mod:`decoding.scatter_eigen`): those
+join the Woodbury step, eliminated first.
 """
 
 from __future__ import annotations
