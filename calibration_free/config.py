@@ -72,7 +72,8 @@ class LearnerConfig:
     first_target_shrinkage : float, "oas" or None, default the frame's
         The decoders' shrinkage until the first target is reached, as ``shrinkage``; None:
         the frame's default (:data:`DEFAULT_FIRST_TARGET_SHRINKAGE`: 0.9 for feedback),
-        else ``shrinkage`` (guidance). Set it equal to ``shrinkage`` for one shrinkage
+        else ``shrinkage`` (guidance, and sessions without ``declare_targets``, which
+        never reach a first target). Set it equal to ``shrinkage`` for one shrinkage
         throughout (the thesis's). The decoders only: the Bhattacharyya overlap, a distance
         between the classes rather than a decoder, and the calibrated baseline, which has
         no such phase, use ``shrinkage``.
@@ -217,9 +218,13 @@ class LearnerConfig:
     @property
     def shrinkage_before_first_target(self) -> float | str:
         """The decoders' shrinkage until the first target: the given one, else the frame's
-        default, else ``shrinkage`` (unresolved in the field, as ``frame_novelty_bonus``)."""
+        default, else ``shrinkage`` (unresolved in the field, as ``frame_novelty_bonus``).
+        A session that declares no targets has no first phase: the default is then
+        ``shrinkage`` throughout."""
         if self.first_target_shrinkage is not None:
             return self.first_target_shrinkage
+        if not self.declare_targets:
+            return self.shrinkage
         return DEFAULT_FIRST_TARGET_SHRINKAGE.get(self.frame, self.shrinkage)
 
     @property

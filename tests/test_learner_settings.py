@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import pytest
 from test_learner import WORLD, run
 
@@ -55,6 +57,11 @@ def test_the_first_target_shrinkage_is_the_frames_and_is_recorded_resolved() -> 
     assert feedback.shrinkage_before_first_target == DEFAULT_FIRST_TARGET_SHRINKAGE["feedback"]
     assert guidance.shrinkage_before_first_target == 0.3  # guidance: shrinkage throughout
     assert LearnerConfig(first_target_shrinkage=0.7).shrinkage_before_first_target == 0.7
+    # Without declarations there is no first target: one shrinkage, unless one is given.
+    silent = LearnerConfig(declare_targets=False, shrinkage=0.4)
+    assert silent.shrinkage_before_first_target == 0.4
+    assert silent.to_dict()["first_target_shrinkage"] == 0.4
+    assert replace(silent, first_target_shrinkage=0.9).shrinkage_before_first_target == 0.9
     # Recorded as in force, so that a later change of the frame's default cannot move it.
     assert feedback.to_dict()["first_target_shrinkage"] == feedback.shrinkage_before_first_target
     assert guidance.to_dict()["first_target_shrinkage"] == 0.3
