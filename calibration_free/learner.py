@@ -396,9 +396,12 @@ class CalibrationFreeLearner(TaskLearner):
                 self.world.n_tasks, self.frame.n_classes, x.shape[0], self.config.n_folds,
                 class_scatters=self._fit.class_scatters or self._likelihood.needs_class_scatters,
                 keeps_frame_labels=self._resplits_labels,
+                # Only where every step fits the folds' decoders too (the likelihoods that
+                # correct by the confusion); the others fit the whole history alone.
                 eigen_period=(
                     refresh_period(self.world.n_tasks, x.shape[0])
-                    if all(fit.rolling_eigen for fit in self._fits)
+                    if self._likelihood.corrects_confusion
+                    and all(fit.rolling_eigen for fit in self._fits)
                     else None
                 ),
             )

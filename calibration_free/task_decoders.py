@@ -135,6 +135,7 @@ class TaskHistory:
         self._own_frame_weights = np.empty((n_tasks, 64, n_classes)) if keeps_frame_labels else None
         self._n_shared = 0
         self._scatter = np.zeros((n_folds, n_features, n_features))
+        self._set_scatters: np.ndarray | None = None  # cache of _training_scatters()
         self._signal_sum = np.zeros((n_folds, n_features))
         self._fold_size = np.zeros(n_folds)
         self._counts = FoldSums(n_tasks, n_folds, (n_classes,))
@@ -199,11 +200,12 @@ class TaskHistory:
             )
         fold = index % self.n_folds
         self._scatter[fold] += np.outer(signal, signal)
+        self._set_scatters = None
         self._signal_sum[fold] += signal
         self._fold_size[fold] += 1
         if self._eigen is not None:
             members = np.arange(self.n_folds + 1) != fold
-            self._eigen.add(signal, members, self._training_scatters)
+            self._eigen.add(signal, members, self._training_scatters())
         self._counts.add(fold, weights)
         self._sums.add(fold, weights[:, :, None] * signal)
         if self._scatters is not None:
@@ -289,13 +291,14 @@ class TaskHistory:
         def shared(per_fold: np.ndarray) -> np.ndarray:
             return self._training_sets(per_fold) if with_folds else per_fold.sum(axis=0)[None]
 
+        scatter = self._training_scatters() if with_folds else shared(self._scatter)
         eigen = None
         if self._eigen is not None:
             eigen = self._eigen.current()
             if not with_folds:
                 eigen = eigen.select(slice(-1, None))
         return PooledStatistics(
-            scatter=shared(self._scatter),
+            scatter=scatter,
             n_signals=shared(self._fold_size),
             signal_sum=shared(self._signal_sum),
             counts=training_sets(self._counts.held_out, self._counts.total()),
@@ -303,13 +306,12 @@ class TaskHistory:
             eigen=eigen,
         )
 
-    def _training_scatters(self, sets: np.ndarray) -> np.ndarray:
-        """The scatters of the training sets a mask (n_folds + 1,) selects (as
-        :meth:`_training_sets` orders them): (n_selected, d, d)."""
-        total = self._scatter.sum(axis=0)
-        return np.concatenate(
-            [total - self._scatter[sets[:-1]], total[None][sets[-1:]]]
-        )
+    def _training_scatters(self) -> np.ndarray:
+        """Every training set's scatter, (n_folds + 1, d, d), summed once per signal (the
+        rolling eigendecompositions and the decoders' fit share it)."""
+        if self._set_scatters is None:
+            self._set_scatters = self._training_sets(self._scatter)
+        return self._set_scatters
 
     @staticmethod
     def _training_sets(per_fold: np.ndarray) -> np.ndarray:

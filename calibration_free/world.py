@@ -403,9 +403,7 @@ def policy_iteration(
     -------
     q : ndarray, shape (n_states, n_actions)
     """
-    check_range("discount", discount, 0.0, 1.0)
-    if discount >= 1.0:
-        raise ValueError("discount must be < 1 for policy iteration to converge")
+    _check_discount(discount, max_iterations)
     n_states = reward.shape[0]
     states = np.arange(n_states)
     policy = reward.argmax(axis=1)
@@ -424,6 +422,14 @@ def policy_iteration(
             break
         policy = np.where(better, q.argmax(axis=1), policy)
     return q
+
+
+def _check_discount(discount: float, max_iterations: int) -> None:
+    """Value and policy iteration converge only with a discount below 1."""
+    check_range("discount", discount, 0.0, 1.0)
+    if discount >= 1.0:
+        raise ValueError("discount must be < 1 for value or policy iteration to converge")
+    check_range("max_iterations", max_iterations, 1, np.inf)
 
 
 #: Value-iteration sweeps between two stopping tests (see :func:`value_iteration`), and
@@ -464,10 +470,7 @@ def value_iteration(
     q : ndarray, shape (..., n_states, n_actions)
         ``q[s, a] = reward[s, a] + discount * E[max_a' q[s', a']]`` over the next states.
     """
-    check_range("discount", discount, 0.0, 1.0)
-    if discount >= 1.0:
-        raise ValueError("discount must be < 1 for value iteration to converge")
-    check_range("max_iterations", max_iterations, 1, np.inf)
+    _check_discount(discount, max_iterations)
     if not isinstance(next_state, Transitions):
         next_state = Transitions.deterministic(np.asarray(next_state))
     # Sweeps work on (..., n_actions, n_states) arrays, so that the best action of every

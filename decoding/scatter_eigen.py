@@ -17,7 +17,6 @@ decoders are fitted: a session replayed signal by signal reaches the same number
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -79,22 +78,17 @@ class RollingScatterEigen:
         self._n_pending = np.zeros(n_sets, dtype=int)
         self._n_added = 0
 
-    def add(
-        self,
-        signal: np.ndarray,
-        members: np.ndarray,
-        scatters: Callable[[np.ndarray], np.ndarray],
-    ) -> None:
+    def add(self, signal: np.ndarray, members: np.ndarray, scatters: np.ndarray) -> None:
         """Add ``signal`` (n_features,) to the sets where ``members`` (n_sets,) is true;
-        ``scatters(due)``: the scatters, with the signal, of the sets a boolean mask
-        (n_sets,) selects (n_due, d, d), of which the sets due are decomposed."""
+        ``scatters`` (n_sets, d, d): every set's scatter with the signal, of which the
+        sets due are decomposed."""
         due = self._phase == self._n_added % self.period
         self._n_added += 1
         growing = members & ~due
         self._pending[growing, self._n_pending[growing]] = signal
         self._n_pending[growing] += 1
         if np.any(due):
-            self._eigenvalues[due], self._basis[due] = np.linalg.eigh(scatters(due))
+            self._eigenvalues[due], self._basis[due] = np.linalg.eigh(scatters[due])
             self._pending[due] = 0.0
             self._n_pending[due] = 0
 

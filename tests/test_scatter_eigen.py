@@ -18,7 +18,7 @@ def test_every_set_is_its_decomposition_plus_its_pending_signals(period):
         signal = rng.normal(size=d)
         members = rng.random(n_sets) < 0.8
         scatters[members] += np.outer(signal, signal)
-        eigen.add(signal, members, lambda due: scatters[due])
+        eigen.add(signal, members, scatters)
         now = eigen.current()
         assert now.pending.shape[-2] < period
         rebuilt = (now.basis * now.eigenvalues[:, None, :]) @ np.swapaxes(now.basis, 1, 2)
@@ -37,13 +37,10 @@ def test_the_decompositions_follow_the_signals_not_the_reads():
     signals = rng.normal(size=(30, 4))
     read, unread = RollingScatterEigen(3, 4, 4), RollingScatterEigen(3, 4, 4)
     scatters = np.zeros((3, 4, 4))
-    def scatters_of(due):
-        return scatters[due]
-
     for signal in signals:
         scatters += np.outer(signal, signal)
         for eigen in (read, unread):
-            eigen.add(signal, np.ones(3, bool), scatters_of)
+            eigen.add(signal, np.ones(3, bool), scatters)
         read.current()
     first, second = read.current(), unread.current()
     for field in ("basis", "eigenvalues", "pending"):

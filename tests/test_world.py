@@ -138,6 +138,10 @@ def test_value_iteration_rejects_a_discount_of_one():
         value_iteration(np.zeros((9, 5)), world.next_state, discount=1.0)
     with pytest.raises(ValueError, match="max_iterations"):
         value_iteration(np.zeros((9, 5)), world.next_state, max_iterations=0)
+    with pytest.raises(ValueError, match="discount must be < 1"):
+        policy_iteration(np.zeros((9, 5)), world.transitions, discount=1.0)
+    with pytest.raises(ValueError, match="max_iterations"):
+        policy_iteration(np.zeros((9, 5)), world.transitions, max_iterations=0)
 
 
 def test_grid_rejects_bad_sizes():
