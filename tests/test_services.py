@@ -179,34 +179,43 @@ def test_a_session_whose_start_fails_leaves_no_claim(tmp_path: Path) -> None:
 
 
 def test_of_two_services_claiming_one_session_the_smaller_id_keeps_it(tmp_path: Path) -> None:
-    # svc-m runs "x"; then claims of "x" appear as if other services had claimed it at the
-    # same moment as svc-m. svc-z's (a larger id) first: svc-m keeps "x". svc-z also claims
-    # "y", and svc-m refusing a config for "y" shows it has heard svc-z's claims (delivered
-    # in order) without giving "x" up. Then svc-a's (a smaller id): svc-m gives "x" up,
-    # naming svc-a, and withdraws its own claim.
+    # svc-m runs "x" and "w"; then claims appear as if other services had claimed them at
+    # the same moment as svc-m. svc-z's (a larger id) on "x" and "y", then svc-a's (a
+    # smaller id) on "w": svc-m gives "w" up, naming svc-a. A service hears one peer's
+    # claims in the order they were declared, so by then it has heard svc-z's too (a
+    # config travels apart from the claims and may overtake them: it cannot be the
+    # probe). svc-m keeps "x", and refuses a config for "y", claimed by svc-z. Then svc-a
+    # claims "x": svc-m gives "x" up, naming svc-a, and withdraws its own claim.
     endpoint, client_endpoint = free_tcp_endpoint(), free_tcp_endpoint()
     service = (serve, ([endpoint], [client_endpoint], tmp_path), {"service_id": "svc-m"})
     config = {"seed": 0, "world": "grid", "grid": GRID, "frame": "feedback", "steps": STEPS,
               "learner": {}, "dataset": {}, "signal": "features", "service": "svc-m"}
-    inbox: queue.SimpleQueue[Received] = queue.SimpleQueue()
+    inboxes: dict[str, queue.SimpleQueue[Received]] = {sid: queue.SimpleQueue() for sid in "xyw"}
     with zenoh.open(peer_config([client_endpoint], ())) as client, processes(service):
         outbox = Outbox(client)
-        pumps = [Pump(client, protocol.key(sid, "event"), "event", inbox) for sid in "xy"]
+        pumps = [Pump(client, protocol.key(sid, "event"), "event", inboxes[sid])
+                 for sid in "xyw"]
         tokens = []
         try:
             assert wait_for_subscribers(outbox.publisher(protocol.key("x", "config")), TIMEOUT)
             sent = outbox.send("config", "x", config)
-            assert next_message(inbox).fields["event"] == "session_started"
+            assert next_message(inboxes["x"]).fields["event"] == "session_started"
+            outbox.send("config", "w", config)
+            assert next_message(inboxes["w"]).fields["event"] == "session_started"
             tokens += [client.liveliness().declare_token(claim_key(sid, "svc-z"))
                        for sid in "xy"]
+            tokens.append(client.liveliness().declare_token(claim_key("w", "svc-a")))
+            probe = next_message(inboxes["w"])
+            assert probe.fields["event"] == "session_rejected"
+            assert "also claimed by service 'svc-a'" in probe.fields["message"]
             outbox.send("config", "y", config)
-            refused = next_message(inbox)
-            assert (refused.session, refused.fields["event"]) == ("y", "session_rejected")
+            refused = next_message(inboxes["y"])
+            assert refused.fields["event"] == "session_rejected"
             assert "already served by service 'svc-z'" in refused.fields["message"]
             assert claims_of(client, "x") == ["svc-m", "svc-z"]  # svc-m keeps "x"
             tokens.append(client.liveliness().declare_token(claim_key("x", "svc-a")))
-            rejected = next_message(inbox)
-            assert (rejected.session, rejected.fields["event"]) == ("x", "session_rejected")
+            rejected = next_message(inboxes["x"])
+            assert rejected.fields["event"] == "session_rejected"
             assert rejected.fields["config_t_ns"] == sent.t_ns
             assert "also claimed by service 'svc-a'" in rejected.fields["message"]
             assert claims_of(client, "x") == ["svc-a", "svc-z"]  # svc-m's is withdrawn
