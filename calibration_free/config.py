@@ -8,6 +8,7 @@ from typing import Any
 from calibration_free.frames import FRAMES
 from calibration_free.likelihood import CONFIDENCES, DEFAULT_CONFUSION_SMOOTHING
 from calibration_free.planning import DEFAULT_DISCOUNT, DEFAULT_EPSILON, PLANNERS
+from calibration_free.shrinkage_choice import CHOSEN_SHRINKAGE
 from calibration_free.task_decoders import DECODERS, DEFAULT_FOLDS
 from calibration_free.task_likelihoods import LIKELIHOODS
 from decoding.lda import DEFAULT_SHRINKAGE, SHRINKAGE_RULES
@@ -64,11 +65,16 @@ class LearnerConfig:
         ``shrinkage``, equal priors, :mod:`decoding.gaussian`); or, for symbolic signals
         (a one-hot vector of the button pressed), per-class button frequencies
         (:mod:`decoding.categorical`).
-    shrinkage : float or "oas", default 0.5
+    shrinkage : float, "oas" or "cv", default 0.5
         Covariance shrinkage towards the scaled identity, in [0, 1]; or, with the "lda"
         decoder, "oas": each task and training set's Oracle Approximating Shrinkage
-        intensity, from its pooled covariance (:func:`decoding.lda.oas_shrinkage`). From
-        the first target on; before it, ``first_target_shrinkage``.
+        intensity, from its pooled covariance (:func:`decoding.lda.oas_shrinkage`); or,
+        with the "lda" decoder and the "matching" likelihood, "cv": chosen at every target
+        (the calibrated baseline: at the end of its calibration) among
+        :data:`~calibration_free.shrinkage_choice.SHRINKAGE_GRID`, the one whose
+        cross-validated matching evidence on the adopted labels is the most discriminating
+        (:mod:`calibration_free.shrinkage_choice`). From the first target on; before it,
+        ``first_target_shrinkage``.
     first_target_shrinkage : float, "oas" or None, default the frame's
         The decoders' shrinkage until the first target is reached, as ``shrinkage``; None:
         the frame's default (:data:`DEFAULT_FIRST_TARGET_SHRINKAGE`: 0.9 for feedback),
@@ -207,13 +213,36 @@ class LearnerConfig:
         if not isinstance(value, str):
             check_range(name, value, 0.0, 1.0)
             return
-        check_option(name, value, SHRINKAGE_RULES)
+        if value == CHOSEN_SHRINKAGE:
+            self._check_chosen_shrinkage(name)
+            return
+        check_option(name, value, SHRINKAGE_RULES + (CHOSEN_SHRINKAGE,))
         if self.decoder != "lda" or self.likelihood == "bhattacharyya":
             raise ValueError(
                 f"{name} {value!r} is chosen from the pooled covariance: it needs decoder "
                 f"'lda' and a likelihood other than 'bhattacharyya'; got decoder "
                 f"{self.decoder!r}, likelihood {self.likelihood!r}"
             )
+
+    def _check_chosen_shrinkage(self, name: str) -> None:
+        """``name = "cv"`` is chosen at targets, from the LDA's matching evidence."""
+        if name != "shrinkage" or not self.declare_targets:
+            raise ValueError(
+                f"{name} {CHOSEN_SHRINKAGE!r} is chosen at every target: only 'shrinkage' "
+                "can be, and only with declare_targets (before the first target, "
+                "first_target_shrinkage is used)"
+            )
+        if self.decoder != "lda" or self.likelihood != "matching":
+            raise ValueError(
+                f"shrinkage {CHOSEN_SHRINKAGE!r} measures the LDA's confusion-corrected "
+                f"evidence: it needs decoder 'lda' and likelihood 'matching'; got decoder "
+                f"{self.decoder!r}, likelihood {self.likelihood!r}"
+            )
+
+    @property
+    def chooses_shrinkage(self) -> bool:
+        """Whether ``shrinkage`` is chosen from the data at every target."""
+        return self.shrinkage == CHOSEN_SHRINKAGE
 
     @property
     def shrinkage_before_first_target(self) -> float | str:
@@ -225,7 +254,9 @@ class LearnerConfig:
             return self.first_target_shrinkage
         if not self.declare_targets:
             return self.shrinkage
-        return DEFAULT_FIRST_TARGET_SHRINKAGE.get(self.frame, self.shrinkage)
+        # "cv" needs adopted labels: until the first target, the fixed default.
+        after = DEFAULT_SHRINKAGE if self.chooses_shrinkage else self.shrinkage
+        return DEFAULT_FIRST_TARGET_SHRINKAGE.get(self.frame, after)
 
     @property
     def frame_novelty_bonus(self) -> float:

@@ -22,6 +22,7 @@ from calibration_free.config import LearnerConfig
 from calibration_free.frames import Frame
 from calibration_free.likelihood import CONFIDENCES, normalised_likelihood, power_log_ratio
 from calibration_free.planning import PlanningInputs, greedy_action, make_planner, random_action
+from calibration_free.shrinkage_choice import choose_shrinkage
 from calibration_free.task_decoders import DecoderFit, TaskHistory, TaskModels, decoder_fit
 from calibration_free.task_likelihoods import make_likelihood
 from calibration_free.world import World
@@ -106,9 +107,12 @@ class TaskLearner:
         self._n_features: int | None = None
         self._pending_target: int | None = None
         self._visits = np.zeros(world.n_states)
+        first = self.config.shrinkage_before_first_target
+        # A chosen shrinkage starts as the first phase's, until labels are adopted.
+        after = first if self.config.chooses_shrinkage else self.config.shrinkage
         self._fits = tuple(
             decoder_fit(self.config.decoder, shrinkage, self.config.student_t_counts)
-            for shrinkage in (self.config.shrinkage_before_first_target, self.config.shrinkage)
+            for shrinkage in (first, after)
         )
         self._planner = make_planner(
             self.config.planner, self.frame, self.config.discount, self.config.epsilon
@@ -123,6 +127,29 @@ class TaskLearner:
         """How the decoders are fitted now: with ``first_target_shrinkage`` until the first
         target is reached, then with ``shrinkage``."""
         return self._fits[min(self.n_targets, 1)]
+
+    @property
+    def shrinkage_in_use(self) -> float | str:
+        """The decoders' shrinkage now (with ``shrinkage="cv"``, the latest choice)."""
+        return self._fit.shrinkage
+
+    def _choose_shrinkage(self, signals: np.ndarray, weights: np.ndarray) -> None:
+        """With ``shrinkage="cv"``, choose the shrinkage from now on from ``signals``
+        (n, d) and their trusted class weights (n, K); a choice that cannot be measured (a
+        class too rare) keeps the current one."""
+        if not self.config.chooses_shrinkage:
+            return
+        chosen = choose_shrinkage(
+            signals,
+            weights,
+            eps=self.config.eps,
+            n_folds=self.config.n_folds,
+            smoothing=self.config.confusion_smoothing,
+            balanced=self.config.balanced_confusion,
+        )
+        if chosen is not None:
+            fit = decoder_fit(self.config.decoder, chosen, self.config.student_t_counts)
+            self._fits = (self._fits[0], fit)
 
     def _scores(self) -> np.ndarray:
         """Log scores of the tasks, shape (n_tasks,)."""
@@ -451,6 +478,7 @@ class CalibrationFreeLearner(TaskLearner):
         """Adopt ``task``'s labels for the whole history and start the next task afresh."""
         assert self._history is not None
         self._history.relabel(task)
+        self._choose_shrinkage(self._history.signals, self._history.adopted_label_weights)
         self._power_sums[:] = self._power_sums[task]
         self._power_weights[:] = self._power_weights[task]
         self._likelihood.restart()

@@ -1,0 +1,157 @@
+"""The decoders' shrinkage chosen from the data (``LearnerConfig.shrinkage="cv"``).
+
+The learner tells tasks apart by the matching evidence its decoders give: per signal, the
+log match of the label a task expects against that of the other labels
+(:mod:`calibration_free.likelihood`). How fast and how safely a task's score pulls away
+from the others depends on how large that evidence is *relative to its spread*: a
+threshold on the scores is crossed sooner by a consistent increment than by a large
+erratic one. So the shrinkage that serves the learner is the one whose decoders give the
+most discriminating evidence, measured as the learner would compute it: out-of-fold
+(signal ``i`` in fold ``i % n_folds``), confusion-corrected, tempered by the user error
+rate ``eps``, on labels the learner trusts (the history it adopted at its targets).
+
+:func:`evidence_discriminability` measures it for a grid of shrinkages,
+:func:`choose_shrinkage` picks the best. It is not the decoder's accuracy: on synthetic
+ErrP data the most accurate shrinkage (0.2-0.3 at 300 signals) is not the learner's best
+(0.5), and on real ErrP features (``s4.mat``) little shrinkage is both (README, "Issue 13's
+levers").
+"""
+
+from __future__ import annotations
+
+from dataclasses import fields, replace
+
+import numpy as np
+
+from calibration_free.likelihood import confusion_matrices, corrected_proba, log_match
+from decoding.lda import MIN_CLASS_COUNT, fit_pooled_lda
+from decoding.scatter_eigen import ScatterEigen
+from decoding.statistics import PooledStatistics
+
+#: The setting's value that asks for the choice.
+CHOSEN_SHRINKAGE = "cv"
+#: The shrinkages the choice is made among.
+SHRINKAGE_GRID: tuple[float, ...] = (0.05, 0.1, 0.2, 0.3, 0.5, 0.7, 0.9)
+
+
+def evidence_discriminability(
+    signals: np.ndarray,
+    weights: np.ndarray,
+    shrinkages: tuple[float, ...],
+    *,
+    eps: float,
+    n_folds: int,
+    smoothing: float,
+    balanced: bool = True,
+) -> np.ndarray:
+    """The cross-validated matching evidence's mean over its spread, per shrinkage.
+
+    For every signal ``i`` of true class ``k`` (weight ``w_ik``) and every other class
+    ``l``, the increment ``log m_k(i) - log m_l(i)``: ``m_c = sum_j E_cj q_j`` is the match
+    of the label ``c`` expected with certainty ``1 - eps`` (``eps`` spread over the other
+    classes) against the out-of-fold, confusion-corrected prediction ``q`` of the pooled
+    LDA at that shrinkage. The result is the increments' mean over the classes (each
+    class's weighted mean, then their average) divided by their pooled within-class
+    standard deviation.
+
+    Parameters
+    ----------
+    signals : ndarray, shape (n_signals, n_features)
+    weights : ndarray, shape (n_signals, n_classes)
+        Class weights of the signals (rows summing to 1).
+    shrinkages : tuple of float
+        Fixed intensities in (0, 1].
+    eps, n_folds, smoothing, balanced
+        The learner's user error rate, folds, confusion smoothing and balancing.
+
+    Returns
+    -------
+    ndarray, shape (len(shrinkages),)
+        NaN for every shrinkage when a class has less than ``MIN_CLASS_COUNT`` weight in
+        some fold's training set (no decoder knows it) or the increments do not vary.
+    """
+    signals = np.asarray(signals, dtype=float)
+    n_signals, n_features = signals.shape
+    n_classes = weights.shape[1]
+    statistics = _training_statistics(signals, weights, n_folds)
+    if np.any(statistics.counts < MIN_CLASS_COUNT):
+        return np.full(len(shrinkages), np.nan)
+    eigenvalues, basis = np.linalg.eigh(statistics.scatter)
+    eigen = ScatterEigen(basis, eigenvalues, np.zeros((n_folds + 1, 0, n_features)))
+    statistics = replace(statistics, eigen=eigen)
+    per_fold = -(-n_signals // n_folds)
+    padded = np.zeros((per_fold * n_folds, n_features))
+    padded[:n_signals] = signals
+    by_fold = padded.reshape(per_fold, n_folds, n_features).swapaxes(0, 1)
+    expected = (1.0 - eps) * np.eye(n_classes) + eps / (n_classes - 1) * (
+        1.0 - np.eye(n_classes)
+    )
+    present = np.ones((1, n_classes), dtype=bool)
+    result = np.full(len(shrinkages), np.nan)
+    for index, shrinkage in enumerate(shrinkages):
+        folds = fit_pooled_lda(statistics, shrinkage).select(slice(0, -1))
+        proba = folds.proba(by_fold)  # (n_folds, per_fold, K)
+        proba = proba.swapaxes(0, 1).reshape(-1, n_classes)[:n_signals]
+        confusion = confusion_matrices((weights.T @ proba)[None], present, smoothing, balanced)
+        corrected = corrected_proba(confusion, proba[None])[0]
+        log_matches = log_match(expected[None], corrected[:, None])  # (n, K): label c
+        result[index] = _mean_over_spread(log_matches, weights)
+    return result
+
+
+def choose_shrinkage(
+    signals: np.ndarray,
+    weights: np.ndarray,
+    *,
+    eps: float,
+    n_folds: int,
+    smoothing: float,
+    balanced: bool = True,
+    grid: tuple[float, ...] = SHRINKAGE_GRID,
+) -> float | None:
+    """The grid's shrinkage of most discriminating evidence
+    (:func:`evidence_discriminability`; the smallest on a tie), or None when it cannot be
+    measured (a class too rare)."""
+    scores = evidence_discriminability(
+        signals, weights, grid, eps=eps, n_folds=n_folds, smoothing=smoothing, balanced=balanced
+    )
+    if np.all(np.isnan(scores)):
+        return None
+    return grid[int(np.nanargmax(scores))]
+
+
+def _training_statistics(
+    signals: np.ndarray, weights: np.ndarray, n_folds: int
+) -> PooledStatistics:
+    """Pooled statistics of every fold's training set, then of all the signals: batch
+    (n_folds + 1,), one labelling."""
+    in_fold = [slice(fold, None, n_folds) for fold in range(n_folds)]
+    per_fold = PooledStatistics(
+        scatter=np.stack([signals[rows].T @ signals[rows] for rows in in_fold]),
+        n_signals=np.array([len(signals[rows]) for rows in in_fold], dtype=float),
+        signal_sum=np.stack([signals[rows].sum(axis=0) for rows in in_fold]),
+        counts=np.stack([weights[rows].sum(axis=0) for rows in in_fold]),
+        sums=np.stack([weights[rows].T @ signals[rows] for rows in in_fold]),
+    )
+    parts = {}
+    for field in fields(PooledStatistics):
+        value = getattr(per_fold, field.name)
+        if value is not None:
+            total = value.sum(axis=0)
+            parts[field.name] = np.concatenate([total - value, total[None]])
+    return PooledStatistics(**parts)
+
+
+def _mean_over_spread(log_matches: np.ndarray, weights: np.ndarray) -> float:
+    """Increments ``log m_k - log m_l`` (true class ``k``, ``l != k``) of signals with class
+    weights ``weights`` (n, K): class-balanced mean over pooled within-class SD."""
+    n_classes = weights.shape[1]
+    means, variances = [], []
+    for k in range(n_classes):
+        increments = log_matches[:, k : k + 1] - np.delete(log_matches, k, axis=1)
+        w = np.repeat(weights[:, k : k + 1], n_classes - 1, axis=1)
+        mean = np.sum(w * increments) / np.sum(w)
+        means.append(mean)
+        variances.append(np.sum(w * (increments - mean) ** 2) / np.sum(w))
+    spread = np.sqrt(np.mean(variances))
+    return float(np.mean(means) / spread) if spread > 0 else float("nan")

@@ -1,0 +1,137 @@
+"""The shrinkage chosen from the data (``shrinkage="cv"``): its measure against a plain
+reference, which shrinkage it picks where the answer is known, and the learner's use."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from test_learner import WORLD, run
+
+from calibration_free.baseline import CalibratedBaseline
+from calibration_free.config import LearnerConfig
+from calibration_free.learner import CalibrationFreeLearner
+from calibration_free.shrinkage_choice import (
+    SHRINKAGE_GRID,
+    choose_shrinkage,
+    evidence_discriminability,
+)
+from decoding.lda import ShrinkageLDA
+
+
+def reference_discriminability(X, y, shrinkage, eps=0.1, n_folds=10, smoothing=1.0):
+    """The measure for hard labels of two classes, written out plainly: the project's
+    (scikit-learn-checked) LDA estimator per fold, then numpy."""
+    n = len(y)
+    proba = np.empty((n, 2))
+    for fold in range(n_folds):
+        test = np.arange(n) % n_folds == fold
+        model = ShrinkageLDA(shrinkage).fit(X[~test], y[~test])
+        proba[test] = model.predict_proba(X[test])
+    counts = np.array([proba[y == k].sum(axis=0) for k in (0, 1)]) + smoothing
+    counts /= counts.sum(axis=1, keepdims=True)  # every true class weighs the same
+    confusion = counts / counts.sum(axis=0, keepdims=True)  # p(true | predicted)
+    corrected = proba @ confusion.T
+    true = corrected[np.arange(n), y]
+    increments = np.log(((1 - eps) * true + eps * (1 - true)) / ((1 - eps) * (1 - true) + eps * true))
+    means = [increments[y == k].mean() for k in (0, 1)]
+    variances = [increments[y == k].var() for k in (0, 1)]
+    return np.mean(means) / np.sqrt(np.mean(variances))
+
+
+def correlated_pair(n, rng):
+    """Two strongly correlated features plus noise features; the classes differ along the
+    pair's small-variance direction (1, -1): shrinkage towards the identity hides it."""
+    shared = rng.normal(size=(n, 1)) * 3.0
+    y = rng.integers(0, 2, size=n)
+    pair = shared + 0.3 * rng.normal(size=(n, 2)) + 0.5 * np.c_[y, -y]
+    return np.c_[pair, rng.normal(size=(n, 4))], y
+
+
+def isotropic_many(n, rng, d=40):
+    """Isotropic noise in many dimensions, the class difference spread over all of them,
+    few signals: only heavy shrinkage keeps the decoder from fitting the noise."""
+    y = rng.integers(0, 2, size=n)
+    return rng.normal(size=(n, d)) + 0.25 * y[:, None], y
+
+
+@pytest.mark.parametrize("n", [37, 120])
+def test_the_measure_equals_a_plain_reference(n: int) -> None:
+    X, y = correlated_pair(n, np.random.default_rng(n))
+    measured = evidence_discriminability(
+        X, np.eye(2)[y], (0.1, 0.5, 0.9), eps=0.1, n_folds=10, smoothing=1.0
+    )
+    expected = [reference_discriminability(X, y, s) for s in (0.1, 0.5, 0.9)]
+    np.testing.assert_allclose(measured, expected, rtol=1e-8)
+
+
+def test_it_picks_little_shrinkage_where_the_correlation_carries_the_classes() -> None:
+    X, y = correlated_pair(400, np.random.default_rng(0))
+    chosen = choose_shrinkage(X, np.eye(2)[y], eps=0.1, n_folds=10, smoothing=1.0)
+    assert chosen is not None and chosen <= 0.1
+
+
+def test_it_picks_heavy_shrinkage_for_few_signals_in_many_dimensions() -> None:
+    X, y = isotropic_many(80, np.random.default_rng(0))
+    chosen = choose_shrinkage(X, np.eye(2)[y], eps=0.1, n_folds=10, smoothing=1.0)
+    assert chosen is not None and chosen >= 0.7
+
+
+def test_a_class_too_rare_to_measure_gives_no_choice() -> None:
+    X, y = correlated_pair(60, np.random.default_rng(1))
+    y[:] = 0
+    y[:2] = 1  # fold 0's training set holds one of them: no decoder knows the class
+    weights = np.eye(2)[y]
+    assert np.all(np.isnan(evidence_discriminability(
+        X, weights, SHRINKAGE_GRID, eps=0.1, n_folds=10, smoothing=1.0)))
+    assert choose_shrinkage(X, weights, eps=0.1, n_folds=10, smoothing=1.0) is None
+
+
+def test_the_learner_chooses_at_every_target_from_the_adopted_labels() -> None:
+    config = LearnerConfig(planner="random", shrinkage="cv", first_target_shrinkage=0.8)
+    learner = CalibrationFreeLearner(WORLD, config, rng=0)
+    chosen = []
+
+    def at_step(*_):
+        if learner.n_targets > len(chosen):  # a target was just reached
+            history = learner.history
+            chosen.append((learner.shrinkage_in_use, choose_shrinkage(
+                history.signals[: history.n_adopted], history.adopted_label_weights,
+                eps=config.eps, n_folds=config.n_folds,
+                smoothing=config.confusion_smoothing)))
+
+    run(learner, target=5, steps=150, seed=1, on_step=at_step)
+    assert len(chosen) >= 2, "the session must reach targets for the choice to show"
+    previous = config.shrinkage_before_first_target
+    for in_use, expected in chosen:  # a choice that cannot be measured keeps the last
+        assert in_use == (previous if expected is None else expected)
+        previous = in_use
+    assert previous in SHRINKAGE_GRID, "some target must have been measurable"
+
+
+def test_the_baseline_chooses_at_the_end_of_its_calibration() -> None:
+    config = LearnerConfig(shrinkage="cv")
+    baseline = CalibratedBaseline(WORLD, 3, n_calibration=60, config=config, rng=0)
+    assert baseline.shrinkage_in_use == config.shrinkage_before_first_target
+    run(baseline, target=5, steps=61, seed=2)
+    assert baseline.shrinkage_in_use in SHRINKAGE_GRID
+
+
+@pytest.mark.parametrize(
+    ("values", "message"),
+    [
+        ({"first_target_shrinkage": "cv"}, "only 'shrinkage' can be"),
+        ({"shrinkage": "cv", "declare_targets": False}, "only with declare_targets"),
+        ({"shrinkage": "cv", "decoder": "gaussian"}, "needs decoder 'lda' and likelihood"),
+        ({"shrinkage": "cv", "likelihood": "simple"}, "needs decoder 'lda' and likelihood"),
+    ],
+)
+def test_a_choice_that_cannot_be_made_is_refused(values: dict, message: str) -> None:
+    with pytest.raises(ValueError, match=message):
+        LearnerConfig(**values)
+
+
+def test_until_the_first_target_a_fixed_shrinkage_is_used() -> None:
+    assert LearnerConfig(shrinkage="cv").shrinkage_before_first_target == 0.9
+    guidance = LearnerConfig(frame="guidance", shrinkage="cv")
+    assert guidance.shrinkage_before_first_target == 0.5
+    assert guidance.to_dict()["shrinkage"] == "cv"
