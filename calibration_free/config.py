@@ -216,7 +216,7 @@ class LearnerConfig:
         if value == CHOSEN_SHRINKAGE:
             self._check_chosen_shrinkage(name)
             return
-        check_option(name, value, SHRINKAGE_RULES + (CHOSEN_SHRINKAGE,))
+        check_option(name, value, (*SHRINKAGE_RULES, CHOSEN_SHRINKAGE))
         if self.decoder != "lda" or self.likelihood == "bhattacharyya":
             raise ValueError(
                 f"{name} {value!r} is chosen from the pooled covariance: it needs decoder "

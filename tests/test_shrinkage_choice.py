@@ -32,7 +32,9 @@ def reference_discriminability(X, y, shrinkage, eps=0.1, n_folds=10, smoothing=1
     confusion = counts / counts.sum(axis=0, keepdims=True)  # p(true | predicted)
     corrected = proba @ confusion.T
     true = corrected[np.arange(n), y]
-    increments = np.log(((1 - eps) * true + eps * (1 - true)) / ((1 - eps) * (1 - true) + eps * true))
+    match_true = (1 - eps) * true + eps * (1 - true)
+    match_other = (1 - eps) * (1 - true) + eps * true
+    increments = np.log(match_true / match_other)
     means = [increments[y == k].mean() for k in (0, 1)]
     variances = [increments[y == k].var() for k in (0, 1)]
     return np.mean(means) / np.sqrt(np.mean(variances))
