@@ -8,6 +8,16 @@ chosen so that the *Bayes-optimal* classifier (known means, equal priors) has th
 balanced accuracy; a decoder learned from few signals does worse. The accuracy of a given
 ``delta`` is measured by Monte Carlo with a fixed internal seed and bisected, so the mapping
 from accuracy to ``delta`` is deterministic.
+
+With a ``mixing_decay`` gamma > 0 the signals are then seen through a fixed linear mixing,
+as EEG features are through volume conduction and a shared reference: ``x -> A x`` with
+``A = U diag(sqrt(lambda)) V^T`` (``U``, ``V`` random rotations drawn from a fixed seed for
+the dimension, ``lambda_j`` proportional to ``j^-gamma``, mean 1). The noise becomes
+correlated with a decaying spectrum, and the class differences, rotated by ``V`` off the
+axes, spread over all its directions, the weak ones included. A linear map changes no
+Bayes-optimal accuracy, so the nominal accuracy holds; a covariance shrunk towards the
+identity, which cannot undo the mixing, loses some of it (gamma = 0: a plain rotation,
+which changes nothing for such a decoder either).
 """
 
 from __future__ import annotations
@@ -22,6 +32,8 @@ from decoding.validation import check_range
 #: Monte Carlo signals per class when measuring the accuracy of a spacing.
 _CALIBRATION_SIGNALS = 20_000
 _CALIBRATION_SEED = 20141
+#: Seed of the mixing's rotations (one mixing per dimension and decay, whatever the session).
+_MIXING_SEED = 20142
 
 
 def class_directions(n_classes: int, n_dims: int) -> np.ndarray:
@@ -76,12 +88,24 @@ def class_spacing(accuracy: float, n_classes: int, n_dims: int) -> float:
     return (low + high) / 2
 
 
+def mixing_matrix(n_dims: int, decay: float) -> np.ndarray:
+    """The fixed linear mixing ``A`` (n_dims, n_dims) of ``decay`` gamma (module docstring):
+    eigenvalues of ``A A^T`` proportional to ``j^-gamma``, mean 1."""
+    check_range("mixing decay", decay, 0.0, 10.0)
+    rng = np.random.default_rng([_MIXING_SEED, n_dims])
+    rotations = [np.linalg.qr(rng.standard_normal((n_dims, n_dims)))[0] for _ in range(2)]
+    spectrum = np.arange(1, n_dims + 1, dtype=float) ** -decay
+    spectrum /= spectrum.mean()
+    return (rotations[0] * np.sqrt(spectrum)) @ rotations[1].T
+
+
 def generate_gaussian_features(
     n_per_class: int,
     n_classes: int,
     n_dims: int,
     accuracy: float,
     seed: int | np.random.Generator,
+    mixing_decay: float = 0.0,
 ) -> LabelledFeatures:
     """``n_per_class`` signals of each class, class by class.
 
@@ -96,6 +120,8 @@ def generate_gaussian_features(
         Nominal (Bayes-optimal) balanced accuracy, in (1/n_classes, 1).
     seed : int or Generator
         Draws the signals (standard normal noise, class by class).
+    mixing_decay : float, default 0
+        gamma of the fixed linear mixing (module docstring); 0: none.
 
     Returns
     -------
@@ -106,9 +132,13 @@ def generate_gaussian_features(
     means = class_spacing(accuracy, n_classes, n_dims) * class_directions(n_classes, n_dims)
     labels = np.repeat(np.arange(n_classes), n_per_class)
     features = means[labels] + rng.standard_normal((labels.size, n_dims))
+    mixed = ""
+    if mixing_decay:
+        features = features @ mixing_matrix(n_dims, mixing_decay).T
+        mixed = f", mixed with decay {mixing_decay:g}"
     return LabelledFeatures(
         features=features,
         labels=labels,
         n_classes=n_classes,
-        source=f"gaussian (nominal balanced accuracy {accuracy:g}, {n_dims}-D)",
+        source=f"gaussian (nominal balanced accuracy {accuracy:g}, {n_dims}-D{mixed})",
     )

@@ -50,17 +50,23 @@ class DataSpec:
         (:mod:`acquisition.gaussian`).
     dims : int
         Dimensions of a Gaussian signal.
+    mixing_decay : float
+        The Gaussian signals' fixed linear mixing, gamma of
+        :func:`acquisition.gaussian.mixing_matrix` (0: none).
     """
 
     path: Path | None = None
     synthetic_accuracy: float = DEFAULT_SYNTHETIC_ACCURACY
     synthetic: str = "errp"
     dims: int = 2
+    mixing_decay: float = 0.0
 
     def describe(self) -> str:
         if self.path is not None:
             return str(self.path)
         kind = "" if self.synthetic == "errp" else f" {self.dims}-D Gaussian"
+        if self.synthetic == "gaussian" and self.mixing_decay:
+            kind += f" mixed with decay {self.mixing_decay:g}"
         return f"synthetic{kind} (nominal balanced accuracy {self.synthetic_accuracy:g})"
 
     def resolve(self, frame: str) -> LabelledFeatures | DataFactory:
@@ -69,9 +75,9 @@ class DataSpec:
             return load_labelled(self.path, frame=frame)
         accuracy = self.synthetic_accuracy
         if self.synthetic == "gaussian":
-            n_classes, dims = N_CLASSES[frame], self.dims
+            n_classes, dims, decay = N_CLASSES[frame], self.dims, self.mixing_decay
             return lambda rng: generate_gaussian_features(
-                SYNTHETIC_EPOCHS_PER_CLASS, n_classes, dims, accuracy, rng
+                SYNTHETIC_EPOCHS_PER_CLASS, n_classes, dims, accuracy, rng, decay
             )
         if frame != "feedback":
             raise ValueError(

@@ -80,6 +80,11 @@ def _add_data_options(p: argparse.ArgumentParser) -> None:
         "classes as the frame needs (default errp)",
     )
     p.add_argument("--dims", type=int, default=2, help="dimensions of a Gaussian signal")
+    p.add_argument(
+        "--mixing-decay", type=float, default=0.0,
+        help="Gaussian signals seen through a fixed linear mixing whose spectrum decays as "
+        "j^-GAMMA (correlated features, as EEG's; the nominal accuracy holds; default 0: none)",
+    )
 
 
 def _add_likelihood_option(p: argparse.ArgumentParser) -> None:
@@ -99,7 +104,9 @@ def _learner_settings(args: argparse.Namespace, **defaults: Any) -> dict[str, An
 
 def data_spec(args: argparse.Namespace) -> DataSpec:
     """The :class:`DataSpec` of the options of :func:`_add_data_options`."""
-    return DataSpec(args.dataset, args.synthetic_accuracy, args.synthetic, args.dims)
+    return DataSpec(
+        args.dataset, args.synthetic_accuracy, args.synthetic, args.dims, args.mixing_decay
+    )
 
 
 def _add_simulate(commands: argparse._SubParsersAction, chosen: Preset | None) -> None:

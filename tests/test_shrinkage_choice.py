@@ -72,10 +72,24 @@ def test_it_picks_little_shrinkage_where_the_correlation_carries_the_classes() -
     assert chosen is not None and chosen <= 0.1
 
 
-def test_it_picks_heavy_shrinkage_for_few_signals_in_many_dimensions() -> None:
+def test_it_keeps_the_heaviest_for_few_signals_in_many_dimensions() -> None:
     X, y = isotropic_many(80, np.random.default_rng(0))
-    chosen = choose_shrinkage(X, np.eye(2)[y], eps=0.1, n_folds=10, smoothing=1.0)
-    assert chosen is not None and chosen >= 0.7
+    weights = np.eye(2)[y]
+    scores = evidence_discriminability(
+        X, weights, SHRINKAGE_GRID, eps=0.1, n_folds=10, smoothing=1.0)
+    assert np.argmax(scores) == len(SHRINKAGE_GRID) - 1  # less shrinkage fits the noise
+    chosen = choose_shrinkage(X, weights, eps=0.1, n_folds=10, smoothing=1.0)
+    assert chosen == max(SHRINKAGE_GRID)
+
+
+def test_a_gain_within_one_standard_error_keeps_the_heaviest() -> None:
+    X, y = correlated_pair(400, np.random.default_rng(0))
+    weights = np.eye(2)[y]
+    grid = (0.05, 0.06)  # close neighbours: their evidence differs by less than its error
+    scores = evidence_discriminability(X, weights, grid, eps=0.1, n_folds=10, smoothing=1.0)
+    error = np.sqrt((1 + np.max(scores) ** 2 / 2) / len(X))
+    assert np.argmax(scores) == 0 and scores[0] - scores[1] < error
+    assert choose_shrinkage(X, weights, eps=0.1, n_folds=10, smoothing=1.0, grid=grid) == 0.06
 
 
 def test_a_class_too_rare_to_measure_gives_no_choice() -> None:
