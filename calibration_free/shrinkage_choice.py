@@ -2,19 +2,20 @@
 
 The learner tells tasks apart by the matching evidence its decoders give: per signal, the
 log match of the label a task expects against that of the other labels
-(:mod:`calibration_free.likelihood`). How fast and how safely a task's score pulls away
-from the others depends on how large that evidence is *relative to its spread*: a
-threshold on the scores is crossed sooner by a consistent increment than by a large
-erratic one. So the shrinkage that serves the learner is the one whose decoders give the
-most discriminating evidence, measured as the learner would compute it: out-of-fold
-(signal ``i`` in fold ``i % n_folds``), confusion-corrected, tempered by the user error
-rate ``eps``, on labels the learner trusts (the history it adopted at its targets).
+(:mod:`calibration_free.likelihood`). A task's score pulls away from the others sooner
+when that evidence is large *relative to its spread*. So the shrinkage that serves the
+learner is the one whose decoders give the most discriminating evidence, measured as the
+learner computes it: out-of-fold (signal ``i`` in fold ``i % n_folds``),
+confusion-corrected, tempered by the user error rate ``eps``, on labels the learner trusts
+(the history it adopted at its targets).
 
-:func:`evidence_discriminability` measures it for a grid of shrinkages,
-:func:`choose_shrinkage` picks the heaviest that is not clearly worse than the best. It is not the decoder's accuracy: on synthetic
-ErrP data the most accurate shrinkage (0.2-0.3 at 300 signals) is not the learner's best
-(0.5), and on real ErrP features (``s4.mat``) little shrinkage is both (README, "Issue 13's
-levers").
+:func:`evidence_discriminability` measures it for a grid of shrinkages;
+:func:`choose_shrinkage` picks the heaviest that is not clearly worse than the best. The
+grid stops at the fixed default, 0.5: where the data show no clear gain from less
+shrinkage (the synthetic ErrP data) the learner keeps its tuned default, and where they
+do (correlated features whose class difference is spread over weak directions: the mixed
+Gaussian signals of :mod:`acquisition.gaussian`, and the real ErrP features of
+``s4.mat``) it takes less. README: "Issue 13's levers".
 """
 
 from __future__ import annotations
