@@ -5,8 +5,14 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from acquisition.gaussian import class_directions, class_spacing, generate_gaussian_features
+from acquisition.gaussian import (
+    class_directions,
+    class_spacing,
+    generate_gaussian_features,
+    mixing_matrix,
+)
 from acquisition.sources import DataSpec
+from decoding.lda import ShrinkageLDA
 
 
 @pytest.mark.parametrize(("n_classes", "n_dims"), [(2, 1), (2, 2), (3, 2), (4, 2), (6, 20)])
@@ -43,3 +49,47 @@ def test_a_gaussian_data_spec_gives_as_many_classes_as_the_frame_needs() -> None
         drawn = data(np.random.default_rng(0))
         assert drawn.n_classes == n_classes and drawn.features.shape[1] == 3
         assert sorted(set(drawn.labels.tolist())) == list(range(n_classes))
+
+
+@pytest.mark.parametrize("decay", [0.0, 1.0, 2.5])
+def test_the_mixing_has_the_decaying_spectrum_and_is_fixed(decay: float) -> None:
+    mixing = mixing_matrix(12, decay)
+    spectrum = np.sort(np.linalg.eigvalsh(mixing @ mixing.T))[::-1]
+    expected = np.arange(1, 13, dtype=float) ** -decay
+    np.testing.assert_allclose(spectrum, expected / expected.mean(), rtol=1e-10)
+    np.testing.assert_array_equal(mixing, mixing_matrix(12, decay))  # whatever the session
+
+
+def test_mixed_signals_keep_the_nominal_accuracy_and_penalise_shrinkage() -> None:
+    accuracy, n_dims, decay = 0.8, 20, 2.0
+    plain = generate_gaussian_features(4000, 2, n_dims, accuracy, seed=5)
+    mixed = generate_gaussian_features(4000, 2, n_dims, accuracy, seed=5, mixing_decay=decay)
+    mixing = mixing_matrix(n_dims, decay)
+    np.testing.assert_allclose(mixed.features, plain.features @ mixing.T, atol=1e-12)
+    assert "mixed with decay 2" in mixed.source
+    # The Bayes classifier of the mixed signals (known means, covariance A A^T).
+    means = class_spacing(accuracy, 2, n_dims) * class_directions(2, n_dims) @ mixing.T
+    weights = np.linalg.solve(mixing @ mixing.T, means[1] - means[0])
+    decision = (mixed.features - means.mean(axis=0)) @ weights > 0
+    bayes = np.mean([np.mean(decision[mixed.labels == k] == k) for k in (0, 1)])
+    assert bayes == pytest.approx(accuracy, abs=0.015)
+    # A shrunk LDA learned from 300 signals loses accuracy to the mixing: heavy shrinkage
+    # cannot undo it (unmixed, it costs nothing).
+    train = np.random.default_rng(0).choice(len(mixed.labels), 300, replace=False)
+    test = np.setdiff1d(np.arange(len(mixed.labels)), train)
+
+    def shrunk_accuracy(data, shrinkage):
+        model = ShrinkageLDA(shrinkage).fit(data.features[train], data.labels[train])
+        predicted = model.predict(data.features[test])
+        return np.mean([np.mean(predicted[data.labels[test] == k] == k) for k in (0, 1)])
+
+    assert shrunk_accuracy(mixed, 0.05) > shrunk_accuracy(mixed, 0.5) + 0.04
+    assert abs(shrunk_accuracy(plain, 0.05) - shrunk_accuracy(plain, 0.5)) < 0.02
+
+
+def test_a_mixing_decay_reaches_the_gaussian_data_spec() -> None:
+    spec = DataSpec(synthetic="gaussian", dims=6, mixing_decay=1.5)
+    data = spec.resolve("feedback")(np.random.default_rng(2))
+    plain = DataSpec(synthetic="gaussian", dims=6).resolve("feedback")(np.random.default_rng(2))
+    np.testing.assert_allclose(data.features, plain.features @ mixing_matrix(6, 1.5).T)
+    assert "mixed with decay 1.5" in spec.describe()
