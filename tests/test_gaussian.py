@@ -83,8 +83,8 @@ def test_mixed_signals_keep_the_nominal_accuracy_and_penalise_shrinkage() -> Non
         predicted = model.predict(data.features[test])
         return np.mean([np.mean(predicted[data.labels[test] == k] == k) for k in (0, 1)])
 
-    assert shrunk_accuracy(mixed, 0.05) > shrunk_accuracy(mixed, 0.5) + 0.04
-    assert abs(shrunk_accuracy(plain, 0.05) - shrunk_accuracy(plain, 0.5)) < 0.02
+    assert shrunk_accuracy(mixed, 0.05) > shrunk_accuracy(mixed, 0.5) + 0.03  # 0.044
+    assert abs(shrunk_accuracy(plain, 0.05) - shrunk_accuracy(plain, 0.5)) < 0.02  # 0.003
 
 
 def test_a_mixing_decay_reaches_the_gaussian_data_spec() -> None:
