@@ -65,16 +65,18 @@ class LearnerConfig:
         ``shrinkage``, equal priors, :mod:`decoding.gaussian`); or, for symbolic signals
         (a one-hot vector of the button pressed), per-class button frequencies
         (:mod:`decoding.categorical`).
-    shrinkage : float, "oas" or "cv", default 0.5
+    shrinkage : float, "oas", "cv" or None, default "cv" where it can be chosen, else 0.5
         Covariance shrinkage towards the scaled identity, in [0, 1]; or, with the "lda"
         decoder, "oas": each task and training set's Oracle Approximating Shrinkage
         intensity, from its pooled covariance (:func:`decoding.lda.oas_shrinkage`); or,
-        with the "lda" decoder and the "matching" likelihood, "cv": chosen at every target
-        (the calibrated baseline: at the end of its calibration) among
-        :data:`~calibration_free.shrinkage_choice.SHRINKAGE_GRID`, the one whose
-        cross-validated matching evidence on the adopted labels is the most discriminating
-        (:mod:`calibration_free.shrinkage_choice`). From the first target on; before it,
-        ``first_target_shrinkage``.
+        with the "lda" decoder, the "matching" likelihood and ``declare_targets``, "cv":
+        chosen at every target (the calibrated baseline: at the end of its calibration)
+        from the cross-validated matching evidence on the adopted labels, the heaviest of
+        :data:`~calibration_free.shrinkage_choice.SHRINKAGE_GRID` (0.05 to 0.5) not clearly
+        less discriminating than the best (:mod:`calibration_free.shrinkage_choice`; tuned
+        on synthetic data: the README's "Issue 13's levers"). None: "cv" where it can be
+        chosen, else 0.5 (:attr:`resolved_shrinkage`). From the first target on; before
+        it, ``first_target_shrinkage``.
     first_target_shrinkage : float, "oas" or None, default the frame's
         The decoders' shrinkage until the first target is reached, as ``shrinkage``; None:
         the frame's default (:data:`DEFAULT_FIRST_TARGET_SHRINKAGE`: 0.9 for feedback),
@@ -158,7 +160,7 @@ class LearnerConfig:
     likelihood: str = "matching"
     confidence: str = "pairwise"
     decoder: str = "lda"
-    shrinkage: float | str = DEFAULT_SHRINKAGE
+    shrinkage: float | str | None = None
     first_target_shrinkage: float | str | None = None
     student_t_counts: str = "class"
     n_folds: int = DEFAULT_FOLDS
@@ -195,7 +197,8 @@ class LearnerConfig:
         check_option("planning_weights", self.planning_weights, PLANNING_WEIGHTS)
         check_range("eps", self.eps, 0.0, 0.5)
         check_range("epsilon", self.epsilon, 0.0, 1.0)
-        self._check_shrinkage("shrinkage", self.shrinkage)
+        if self.shrinkage is not None:
+            self._check_shrinkage("shrinkage", self.shrinkage)
         if self.first_target_shrinkage is not None:
             self._check_shrinkage("first_target_shrinkage", self.first_target_shrinkage)
         check_option("student_t_counts", self.student_t_counts, STUDENT_T_COUNTS)
@@ -240,9 +243,20 @@ class LearnerConfig:
             )
 
     @property
+    def resolved_shrinkage(self) -> float | str:
+        """The shrinkage in force from the first target on: the given one, else "cv" where
+        it can be chosen (decoder "lda", likelihood "matching", declared targets), else
+        :data:`~decoding.lda.DEFAULT_SHRINKAGE` (unresolved in the field, as
+        :attr:`frame_novelty_bonus`)."""
+        if self.shrinkage is not None:
+            return self.shrinkage
+        choosable = self.decoder == "lda" and self.likelihood == "matching"
+        return CHOSEN_SHRINKAGE if choosable and self.declare_targets else DEFAULT_SHRINKAGE
+
+    @property
     def chooses_shrinkage(self) -> bool:
-        """Whether ``shrinkage`` is chosen from the data at every target."""
-        return self.shrinkage == CHOSEN_SHRINKAGE
+        """Whether the shrinkage is chosen from the data at every target."""
+        return self.resolved_shrinkage == CHOSEN_SHRINKAGE
 
     @property
     def shrinkage_before_first_target(self) -> float | str:
@@ -253,9 +267,9 @@ class LearnerConfig:
         if self.first_target_shrinkage is not None:
             return self.first_target_shrinkage
         if not self.declare_targets:
-            return self.shrinkage
+            return self.resolved_shrinkage
         # "cv" needs adopted labels: until the first target, the fixed default.
-        after = DEFAULT_SHRINKAGE if self.chooses_shrinkage else self.shrinkage
+        after = DEFAULT_SHRINKAGE if self.chooses_shrinkage else self.resolved_shrinkage
         return DEFAULT_FIRST_TARGET_SHRINKAGE.get(self.frame, after)
 
     @property
@@ -272,6 +286,7 @@ class LearnerConfig:
         whatever later defaults say)."""
         return asdict(self) | {
             "novelty_bonus": self.frame_novelty_bonus,
+            "shrinkage": self.resolved_shrinkage,
             "first_target_shrinkage": self.shrinkage_before_first_target,
         }
 

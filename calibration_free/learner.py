@@ -109,7 +109,7 @@ class TaskLearner:
         self._visits = np.zeros(world.n_states)
         first = self.config.shrinkage_before_first_target
         # A chosen shrinkage starts as the first phase's, until labels are adopted.
-        after = first if self.config.chooses_shrinkage else self.config.shrinkage
+        after = first if self.config.chooses_shrinkage else self.config.resolved_shrinkage
         self._fits = tuple(
             decoder_fit(self.config.decoder, shrinkage, self.config.student_t_counts)
             for shrinkage in (first, after)
@@ -352,7 +352,7 @@ class CalibrationFreeLearner(TaskLearner):
     ) -> None:
         super().__init__(world, config, rng)
         self._likelihood = make_likelihood(
-            self.config.likelihood, world.n_tasks, self.config.shrinkage
+            self.config.likelihood, world.n_tasks, self.config.resolved_shrinkage
         )
         self._history: TaskHistory | None = None
         self._models: TaskModels | None = None

@@ -9,7 +9,7 @@ one per measured step). Every grid runs in a fresh process, so that its peak res
 memory (interpreter and libraries included, the world's tables too) is its own.
 
 The naive reference does per task what a straightforward implementation would:
-``LinearDiscriminantAnalysis(solver="lsqr", shrinkage=<default>, priors=<equal>)``
+``LinearDiscriminantAnalysis(solver="lsqr", shrinkage=0.5, priors=<equal>)``
 refitted on the history for the new signal's probabilities, plus
 ``cross_val_predict(..., cv=KFold(10), method="predict_proba")`` for its confusion
 matrix. It stays this whatever the project's own decoder is, so that speed-ups compare
@@ -55,6 +55,7 @@ from cfbci.bench_continuous import bench_continuous_step, print_continuous
 from cfbci.blas import single_threaded_blas
 from cfbci.memory import keep_freed_memory
 from cfbci.simulation import SessionConfig, run_session
+from decoding.lda import DEFAULT_SHRINKAGE
 
 #: Tasks the naive reference is measured on; beyond, it is extrapolated linearly in T.
 NAIVE_TASKS = 25
@@ -146,7 +147,7 @@ def bench_grid(
         measuring = [h for h in histories if h <= n_seen < h + measured_steps]
         if measuring and len(naive[measuring[0]]) < naive_repeats:
             naive[measuring[0]].append(
-                _time_naive(learner, tasks, signals[index], config.shrinkage)
+                _time_naive(learner, tasks, signals[index], DEFAULT_SHRINKAGE)
             )
         start = time.perf_counter()
         learner.observe(state, proposal.action, signals[index])

@@ -33,8 +33,8 @@ def test_a_string_shrinkage_and_a_null_novelty_bonus_are_settings() -> None:
 @pytest.mark.parametrize(
     ("values", "message"),
     [
-        ({"shrinkage": [0.5]}, "'shrinkage' must be a number or a string; got [0.5]"),
-        ({"shrinkage": True}, "'shrinkage' must be a number or a string; got True"),
+        ({"shrinkage": [0.5]}, "'shrinkage' must be a number or a string or null; got [0.5]"),
+        ({"shrinkage": True}, "'shrinkage' must be a number or a string or null; got True"),
         ({"novelty_bonus": "1"}, "'novelty_bonus' must be a number or null; got '1'"),
         ({"first_target_shrinkage": [0.9]},
          "'first_target_shrinkage' must be a number or a string or null; got [0.9]"),

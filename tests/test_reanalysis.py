@@ -108,14 +108,14 @@ def test_alternative_settings_rescore_the_same_history_differently(
     assert code == 0
     text = capsys.readouterr().out
     assert "A: eps=0.2, shrinkage=0.3 — differs from the recording's settings in eps " \
-        f"{DEFAULT.eps} → 0.2, shrinkage {DEFAULT.shrinkage} → 0.3" in text
+        f"{DEFAULT.eps} → 0.2, shrinkage {DEFAULT.resolved_shrinkage!r} → 0.3" in text
     assert f"C: eps={DEFAULT.eps}, decoder=lda — no setting differs from the recording's" in text
     report = json.loads(out.read_text())
     own, changed, unbalanced, same = report["settings"]
     assert own["name"] == OWN and own["identical_to_recording"] and own["differs"] == {}
     assert changed["differs"] == {
         "eps": {"recorded": DEFAULT.eps, "this": 0.2},
-        "shrinkage": {"recorded": DEFAULT.shrinkage, "this": 0.3},
+        "shrinkage": {"recorded": DEFAULT.resolved_shrinkage, "this": 0.3},
     }
     assert unbalanced["differs"] == {"balanced_confusion": {"recorded": True, "this": False}}
     for other in (changed, unbalanced):
