@@ -98,9 +98,7 @@ class CalibratedBaseline(TaskLearner):
             weights = self.frame.weights_at(state, action)[self.calibration_target]
             self._history.add(x, weights[None])
             if not self.calibrating:
-                self._choose_shrinkage(
-                    self._history.signals, self._history.task_label_weights(0)
-                )
+                self._choose_shrinkage(self._history, 0)
                 self._models = TaskModels.fit(
                     self._history,
                     self._fit,

@@ -14,7 +14,7 @@ proposal), with cross-validation only for a likelihood that corrects by the conf
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -133,19 +133,24 @@ class TaskLearner:
         """The decoders' shrinkage now (with ``shrinkage="cv"``, the latest choice)."""
         return self._fit.shrinkage
 
-    def _choose_shrinkage(self, signals: np.ndarray, weights: np.ndarray) -> None:
-        """With ``shrinkage="cv"``, choose the shrinkage from now on from ``signals``
-        (n, d) and their trusted class weights (n, K); a choice that cannot be measured (a
-        class too rare) keeps the current one."""
+    def _choose_shrinkage(self, history: TaskHistory, task: int) -> None:
+        """With ``shrinkage="cv"``, choose the shrinkage from now on from ``history``'s
+        signals and ``task``'s labels of them (trusted: adopted at a target, or the
+        baseline's calibration), reusing the history's pooled statistics; a choice that
+        cannot be measured (a class too rare) keeps the current one."""
         if not self.config.chooses_shrinkage:
             return
+        statistics = history.pooled_statistics()
         chosen = choose_shrinkage(
-            signals,
-            weights,
+            history.signals,
+            history.task_label_weights(task),
             eps=self.config.eps,
             n_folds=self.config.n_folds,
             smoothing=self.config.confusion_smoothing,
             balanced=self.config.balanced_confusion,
+            statistics=replace(
+                statistics, counts=statistics.counts[:, task], sums=statistics.sums[:, task]
+            ),
         )
         if chosen is not None:
             fit = decoder_fit(self.config.decoder, chosen, self.config.student_t_counts)
@@ -478,7 +483,7 @@ class CalibrationFreeLearner(TaskLearner):
         """Adopt ``task``'s labels for the whole history and start the next task afresh."""
         assert self._history is not None
         self._history.relabel(task)
-        self._choose_shrinkage(self._history.signals, self._history.adopted_label_weights)
+        self._choose_shrinkage(self._history, task)
         self._power_sums[:] = self._power_sums[task]
         self._power_weights[:] = self._power_weights[task]
         self._likelihood.restart()

@@ -46,6 +46,7 @@ def evidence_discriminability(
     n_folds: int,
     smoothing: float,
     balanced: bool = True,
+    statistics: PooledStatistics | None = None,
 ) -> np.ndarray:
     """The cross-validated matching evidence's mean over its spread, per shrinkage.
 
@@ -66,6 +67,10 @@ def evidence_discriminability(
         Fixed intensities in (0, 1].
     eps, n_folds, smoothing, balanced
         The learner's user error rate, folds, confusion smoothing and balancing.
+    statistics : PooledStatistics, optional
+        The pooled statistics of these signals and weights, batch (n_folds + 1,): every
+        fold's training set, then all the signals, when the caller keeps them (the
+        learner's history, whose scatters are already decomposed); else computed here.
 
     Returns
     -------
@@ -76,12 +81,14 @@ def evidence_discriminability(
     signals = np.asarray(signals, dtype=float)
     n_signals, n_features = signals.shape
     n_classes = weights.shape[1]
-    statistics = _training_statistics(signals, weights, n_folds)
+    if statistics is None:
+        statistics = _training_statistics(signals, weights, n_folds)
     if np.any(statistics.counts < MIN_CLASS_COUNT):
         return np.full(len(shrinkages), np.nan)
-    eigenvalues, basis = np.linalg.eigh(statistics.scatter)
-    eigen = ScatterEigen(basis, eigenvalues, np.zeros((n_folds + 1, 0, n_features)))
-    statistics = replace(statistics, eigen=eigen)
+    if statistics.eigen is None:  # decomposed once for every shrinkage
+        eigenvalues, basis = np.linalg.eigh(statistics.scatter)
+        eigen = ScatterEigen(basis, eigenvalues, np.zeros((n_folds + 1, 0, n_features)))
+        statistics = replace(statistics, eigen=eigen)
     per_fold = -(-n_signals // n_folds)
     padded = np.zeros((per_fold * n_folds, n_features))
     padded[:n_signals] = signals
@@ -111,6 +118,7 @@ def choose_shrinkage(
     smoothing: float,
     balanced: bool = True,
     grid: tuple[float, ...] = SHRINKAGE_GRID,
+    statistics: PooledStatistics | None = None,
 ) -> float | None:
     """The heaviest shrinkage of ``grid`` whose evidence is within one standard error of
     the most discriminating (:func:`evidence_discriminability`), or None when it cannot be
@@ -119,10 +127,12 @@ def choose_shrinkage(
     The one-standard-error rule of cross-validation (Hastie, Tibshirani and Friedman, *The
     Elements of Statistical Learning*, §7.10): the most regularised model that the data do
     not clearly reject. The standard error of a mean-over-spread ``r`` estimated from
-    ``n`` signals is about ``sqrt((1 + r^2 / 2) / n)``.
+    ``n`` signals is about ``sqrt((1 + r^2 / 2) / n)``. ``statistics``: as
+    :func:`evidence_discriminability`'s.
     """
     scores = evidence_discriminability(
-        signals, weights, grid, eps=eps, n_folds=n_folds, smoothing=smoothing, balanced=balanced
+        signals, weights, grid, eps=eps, n_folds=n_folds, smoothing=smoothing,
+        balanced=balanced, statistics=statistics,
     )
     if np.all(np.isnan(scores)):
         return None

@@ -171,12 +171,6 @@ class TaskHistory:
         return np.concatenate([shared, self._own_weights[:, : self._n_own]], axis=1)
 
     @property
-    def adopted_label_weights(self) -> np.ndarray:
-        """The labels every task adopted at the target switches, of the first
-        :attr:`n_adopted` signals: shape (n_adopted, n_classes) (a view)."""
-        return self._shared_weights[: self._n_shared]
-
-    @property
     def n_adopted(self) -> int:
         """Signals before the last target switch, whose labels every task adopted."""
         return self._n_shared

@@ -110,8 +110,9 @@ def test_the_learner_chooses_at_every_target_from_the_adopted_labels() -> None:
     def at_step(*_):
         if learner.n_targets > len(chosen):  # a target was just reached
             history = learner.history
+            assert history.n_adopted == history.n_signals
             chosen.append((learner.shrinkage_in_use, choose_shrinkage(
-                history.signals[: history.n_adopted], history.adopted_label_weights,
+                history.signals, history.task_label_weights(0),  # every task's, adopted
                 eps=config.eps, n_folds=config.n_folds,
                 smoothing=config.confusion_smoothing)))
 
