@@ -14,7 +14,7 @@ proposal), with cross-validation only for a likelihood that corrects by the conf
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -140,7 +140,6 @@ class TaskLearner:
         cannot be measured (a class too rare) keeps the current one."""
         if not self.config.chooses_shrinkage:
             return
-        statistics = history.pooled_statistics()
         chosen = choose_shrinkage(
             history.signals,
             history.task_label_weights(task),
@@ -148,9 +147,7 @@ class TaskLearner:
             n_folds=self.config.n_folds,
             smoothing=self.config.confusion_smoothing,
             balanced=self.config.balanced_confusion,
-            statistics=replace(
-                statistics, counts=statistics.counts[:, task], sums=statistics.sums[:, task]
-            ),
+            statistics=history.pooled_statistics(task=task),
         )
         if chosen is not None:
             fit = decoder_fit(self.config.decoder, chosen, self.config.student_t_counts)

@@ -27,7 +27,6 @@ restarts at zero.
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -81,12 +80,18 @@ class FoldSums:
         self.own[:] = own
         self.own_total[:] = own.sum(axis=0)
 
-    def total(self) -> np.ndarray:
-        """Every task's total over the folds, shape (n_tasks, *shape)."""
+    def total(self, task: int | None = None) -> np.ndarray:
+        """Every task's total over the folds, shape (n_tasks, *shape); or ``task``'s,
+        shape ``shape``."""
+        if task is not None:
+            return self.shared_total + self.own_total[task]
         return self.shared_total + self.own_total
 
-    def held_out(self) -> np.ndarray:
-        """Every task's total without each fold, shape (n_folds, n_tasks, *shape)."""
+    def held_out(self, task: int | None = None) -> np.ndarray:
+        """Every task's total without each fold, shape (n_folds, n_tasks, *shape); or
+        ``task``'s, shape (n_folds, *shape)."""
+        if task is not None:
+            return (self.shared_total - self.shared) + (self.own_total[task] - self.own[:, task])
         return (self.shared_total - self.shared)[:, None] + (self.own_total - self.own)
 
 
@@ -278,15 +283,19 @@ class TaskHistory:
         if self._scatters is not None and scatters is not None:
             self._scatters.replace_own(scatters)
 
-    def pooled_statistics(self, with_folds: bool = True) -> PooledStatistics:
+    def pooled_statistics(
+        self, with_folds: bool = True, task: int | None = None
+    ) -> PooledStatistics:
         """The pooled statistics of every fold's training set (all signals but that
         fold's), then of the whole history: batch shape (n_folds + 1, n_tasks); without
-        the folds, of the whole history only: batch shape (1, n_tasks)."""
+        the folds, of the whole history only: batch shape (1, n_tasks). With ``task``, of
+        that task's labelling only: no task axis."""
 
-        def training_sets(held_out: Callable[[], np.ndarray], whole: np.ndarray) -> np.ndarray:
+        def training_sets(sums: FoldSums) -> np.ndarray:
+            whole = sums.total(task)
             if not with_folds:
                 return whole[None]
-            return np.concatenate([held_out(), whole[None]])
+            return np.concatenate([sums.held_out(task), whole[None]])
 
         def shared(per_fold: np.ndarray) -> np.ndarray:
             return self._training_sets(per_fold) if with_folds else per_fold.sum(axis=0)[None]
@@ -301,8 +310,8 @@ class TaskHistory:
             scatter=scatter,
             n_signals=shared(self._fold_size),
             signal_sum=shared(self._signal_sum),
-            counts=training_sets(self._counts.held_out, self._counts.total()),
-            sums=training_sets(self._sums.held_out, self._sums.total()),
+            counts=training_sets(self._counts),
+            sums=training_sets(self._sums),
             eigen=eigen,
         )
 

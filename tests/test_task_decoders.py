@@ -449,3 +449,20 @@ def test_a_history_without_frame_labels_refuses_to_split_them_again():
     tasks.add(np.ones(2), np.full((2, 3), 1 / 3))
     with pytest.raises(RuntimeError, match="frame labels"):
         tasks.resplit_own_labels(np.full((2, 1, 3), 1 / 3))
+
+
+def test_one_tasks_pooled_statistics_equal_its_slice_of_every_tasks() -> None:
+    rng = np.random.default_rng(8)
+    signals = rng.normal(size=(57, 5))
+    weights = soft_weights(rng, 4, 57, 3)
+    tasks = history_of(signals[:40], weights[:, :40])
+    tasks.relabel(2)  # shared parts and own parts both non-zero below
+    for i in range(40, 57):
+        tasks.add(signals[i], weights[:, i])
+    for with_folds in (True, False):
+        every = tasks.pooled_statistics(with_folds)
+        for task in range(4):
+            one = tasks.pooled_statistics(with_folds, task=task)
+            np.testing.assert_array_equal(one.counts, every.counts[:, task])
+            np.testing.assert_array_equal(one.sums, every.sums[:, task])
+            np.testing.assert_array_equal(one.scatter, every.scatter)
