@@ -95,6 +95,9 @@ class SessionResult:
         Per confidence bin (:mod:`replay.calibration`), the steps whose best task had a
         confidence in it (before the step's action) and those where it was the user's
         target then.
+    shrinkages : list of float
+        The decoders' shrinkage from each target on (the calibrated baseline's: from the
+        end of its calibration); with ``shrinkage="cv"``, the choices the data made.
     """
 
     seed: int
@@ -107,6 +110,7 @@ class SessionResult:
     first_confident_correct: bool | None = None
     user_task_likelihood: list[float] = field(default_factory=list)
     calibration_counts: list[list[int]] = field(default_factory=list)
+    shrinkages: list[float] = field(default_factory=list)
 
 
 def make_learner(
@@ -153,6 +157,7 @@ def run_session(
     user_likelihood: list[float] = []
     best_confidence: list[float] = []
     best_is_target: list[bool] = []
+    shrinkages: list[float] = []
     for step in range(1, config.steps + 1):
         beliefs = learner.beliefs()
         best_confidence.append(float(beliefs.confidence[beliefs.best_task]))
@@ -177,6 +182,8 @@ def run_session(
         if isinstance(learner, CalibratedBaseline) and step == learner.n_calibration:
             event = "calibration_done"
             user.new_target()
+        if event in ("correct_target", "wrong_target", "calibration_done"):
+            shrinkages.append(learner.shrinkage_in_use)
         if on_step is not None:
             on_step(
                 StepRecord(
@@ -190,6 +197,7 @@ def run_session(
     return SessionResult(
         seed, config.steps, first_target, first_correct, correct, wrong, first_confident,
         confident_correct, user_likelihood, calibration_counts(best_confidence, best_is_target),
+        shrinkages,
     )
 
 

@@ -11,6 +11,7 @@ from acquisition.sources import DataSpec
 from acquisition.user import SimulatedUser
 from calibration_free.config import LearnerConfig
 from calibration_free.session import StepRecord
+from calibration_free.shrinkage_choice import SHRINKAGE_GRID
 from calibration_free.world import ACTIONS, GOAL, MOVES, GridWorld
 from cfbci.cli import main
 from cfbci.simulation import SessionConfig, SessionResult, run_session, summarise
@@ -85,6 +86,21 @@ def test_baseline_session_counts_calibration_steps():
     assert result.first_target_step is None or result.first_target_step > 60
     assert next(r.event for r in trace if r.event) == "calibration_done"
     assert result.correct_targets >= 1
+    # The shrinkage chosen at the end of the calibration holds for every target after it.
+    targets = result.correct_targets + result.wrong_targets
+    assert len(result.shrinkages) == 1 + targets
+    assert result.shrinkages[0] in SHRINKAGE_GRID and len(set(result.shrinkages)) == 1
+
+
+def test_a_session_reports_the_shrinkage_in_force_from_each_target():
+    chosen = run_session(3, SessionConfig(steps=150, grid=4), separated())
+    fixed = run_session(
+        3, SessionConfig(steps=150, grid=4, learner=LearnerConfig(shrinkage=0.3)), separated()
+    )
+    for result in (chosen, fixed):
+        assert len(result.shrinkages) == result.correct_targets + result.wrong_targets >= 3
+    assert set(chosen.shrinkages) <= set(SHRINKAGE_GRID)
+    assert set(fixed.shrinkages) == {0.3}
 
 
 def test_summary_statistics():
