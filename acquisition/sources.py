@@ -22,6 +22,7 @@ from acquisition.loaders import (
     load_recording_dataset,
 )
 from acquisition.synthetic import generate_errp_epochs
+from decoding.validation import check_range
 
 #: Epochs of each class in a synthetic session's pools (the user draws without
 #: replacement per class and reshuffles a pool when it runs out).
@@ -60,6 +61,15 @@ class DataSpec:
     synthetic: str = "errp"
     dims: int = 2
     mixing_decay: float = 0.0
+
+    def __post_init__(self) -> None:
+        if self.mixing_decay and (self.path is not None or self.synthetic != "gaussian"):
+            raise ValueError(
+                "--mixing-decay mixes the Gaussian signals: it needs --synthetic gaussian "
+                f"and no dataset; got mixing decay {self.mixing_decay:g} with "
+                f"{self.path or self.synthetic + ' signals'}"
+            )
+        check_range("mixing decay", self.mixing_decay, 0.0, 10.0)
 
     def describe(self) -> str:
         if self.path is not None:

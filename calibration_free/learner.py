@@ -136,18 +136,16 @@ class TaskLearner:
     def _choose_shrinkage(self, history: TaskHistory, task: int) -> None:
         """With ``shrinkage="cv"``, choose the shrinkage from now on from ``history``'s
         signals and ``task``'s labels of them (trusted: adopted at a target, or the
-        baseline's calibration), reusing the history's pooled statistics; a choice that
-        cannot be measured (a class too rare) keeps the current one."""
+        baseline's calibration), on the history's own statistics and decomposed scatters;
+        a choice that cannot be measured (a class too rare) keeps the current one."""
         if not self.config.chooses_shrinkage:
             return
         chosen = choose_shrinkage(
-            history.signals,
-            history.task_label_weights(task),
+            history,
+            task,
             eps=self.config.eps,
-            n_folds=self.config.n_folds,
             smoothing=self.config.confusion_smoothing,
             balanced=self.config.balanced_confusion,
-            statistics=history.pooled_statistics(task=task),
         )
         if chosen is not None:
             fit = decoder_fit(self.config.decoder, chosen, self.config.student_t_counts)

@@ -20,14 +20,14 @@ Gaussian signals of :mod:`acquisition.gaussian`, and the real ErrP features of
 
 from __future__ import annotations
 
-from dataclasses import fields, replace
+from dataclasses import replace
 
 import numpy as np
 
 from calibration_free.likelihood import confusion_matrices, corrected_proba, log_match
+from calibration_free.task_decoders import TaskHistory, in_signal_order
 from decoding.lda import MIN_CLASS_COUNT, fit_pooled_lda
 from decoding.scatter_eigen import ScatterEigen
-from decoding.statistics import PooledStatistics
 
 #: The setting's value that asks for the choice.
 CHOSEN_SHRINKAGE = "cv"
@@ -38,39 +38,34 @@ SHRINKAGE_GRID: tuple[float, ...] = (0.05, 0.1, 0.2, 0.3, 0.5)
 
 
 def evidence_discriminability(
-    signals: np.ndarray,
-    weights: np.ndarray,
+    history: TaskHistory,
+    task: int,
     shrinkages: tuple[float, ...],
     *,
     eps: float,
-    n_folds: int,
     smoothing: float,
     balanced: bool = True,
-    statistics: PooledStatistics | None = None,
 ) -> np.ndarray:
     """The cross-validated matching evidence's mean over its spread, per shrinkage.
 
-    For every signal ``i`` of true class ``k`` (weight ``w_ik``) and every other class
-    ``l``, the increment ``log m_k(i) - log m_l(i)``: ``m_c = sum_j E_cj q_j`` is the match
-    of the label ``c`` expected with certainty ``1 - eps`` (``eps`` spread over the other
-    classes) against the out-of-fold, confusion-corrected prediction ``q`` of the pooled
-    LDA at that shrinkage. The result is the increments' mean over the classes (each
-    class's weighted mean, then their average) divided by their pooled within-class
-    standard deviation.
+    For every signal ``i`` of ``history`` of true class ``k`` (``task``'s label weight
+    ``w_ik``) and every other class ``l``, the increment ``log m_k(i) - log m_l(i)``:
+    ``m_c = sum_j E_cj q_j`` is the match of the label ``c`` expected with certainty ``1 -
+    eps`` (``eps`` spread over the other classes) against the out-of-fold (the history's
+    folds), confusion-corrected prediction ``q`` of the pooled LDA at that shrinkage. The
+    result is the increments' mean over the classes (each class's weighted mean, then their
+    average) divided by their pooled within-class standard deviation. The history's
+    statistics are used as they are (its decomposed scatters too, if it keeps them).
 
     Parameters
     ----------
-    signals : ndarray, shape (n_signals, n_features)
-    weights : ndarray, shape (n_signals, n_classes)
-        Class weights of the signals (rows summing to 1).
+    history : TaskHistory
+    task : int
+        Whose labels are the truth.
     shrinkages : tuple of float
-        Fixed intensities in (0, 1].
-    eps, n_folds, smoothing, balanced
-        The learner's user error rate, folds, confusion smoothing and balancing.
-    statistics : PooledStatistics, optional
-        The pooled statistics of these signals and weights, batch (n_folds + 1,): every
-        fold's training set, then all the signals, when the caller keeps them (the
-        learner's history, whose scatters are already decomposed); else computed here.
+        Fixed intensities in [0, 1].
+    eps, smoothing, balanced
+        The learner's user error rate, confusion smoothing and balancing.
 
     Returns
     -------
@@ -78,21 +73,18 @@ def evidence_discriminability(
         NaN for every shrinkage when a class has less than ``MIN_CLASS_COUNT`` weight in
         some fold's training set (no decoder knows it) or the increments do not vary.
     """
-    signals = np.asarray(signals, dtype=float)
-    n_signals, n_features = signals.shape
-    n_classes = weights.shape[1]
-    if statistics is None:
-        statistics = _training_statistics(signals, weights, n_folds)
+    statistics = history.pooled_statistics(task=task)
     if np.any(statistics.counts < MIN_CLASS_COUNT):
         return np.full(len(shrinkages), np.nan)
     if statistics.eigen is None:  # decomposed once for every shrinkage
         eigenvalues, basis = np.linalg.eigh(statistics.scatter)
-        eigen = ScatterEigen(basis, eigenvalues, np.zeros((n_folds + 1, 0, n_features)))
-        statistics = replace(statistics, eigen=eigen)
-    per_fold = -(-n_signals // n_folds)
-    padded = np.zeros((per_fold * n_folds, n_features))
-    padded[:n_signals] = signals
-    by_fold = padded.reshape(per_fold, n_folds, n_features).swapaxes(0, 1)
+        pending = np.zeros((eigenvalues.shape[0], 0, eigenvalues.shape[1]))  # none
+        statistics = replace(statistics, eigen=ScatterEigen(basis, eigenvalues, pending))
+    # One labelling as a batch of one task, the layout of the history's fold decoders.
+    statistics = replace(statistics, counts=statistics.counts[:, None],
+                         sums=statistics.sums[:, None])
+    weights = history.task_label_weights(task)
+    n_classes = weights.shape[1]
     expected = (1.0 - eps) * np.eye(n_classes) + eps / (n_classes - 1) * (
         1.0 - np.eye(n_classes)
     )
@@ -100,8 +92,8 @@ def evidence_discriminability(
     result = np.full(len(shrinkages), np.nan)
     for index, shrinkage in enumerate(shrinkages):
         folds = fit_pooled_lda(statistics, shrinkage).select(slice(0, -1))
-        proba = folds.proba(by_fold)  # (n_folds, per_fold, K)
-        proba = proba.swapaxes(0, 1).reshape(-1, n_classes)[:n_signals]
+        by_fold = history.cross_validated_proba(folds)
+        proba = in_signal_order(by_fold, history.n_signals, task=0)  # (n, K)
         confusion = confusion_matrices((weights.T @ proba)[None], present, smoothing, balanced)
         corrected = corrected_proba(confusion, proba[None])[0]
         log_matches = log_match(expected[None], corrected[:, None])  # (n, K): label c
@@ -110,57 +102,52 @@ def evidence_discriminability(
 
 
 def choose_shrinkage(
-    signals: np.ndarray,
-    weights: np.ndarray,
+    history: TaskHistory,
+    task: int,
     *,
     eps: float,
-    n_folds: int,
     smoothing: float,
     balanced: bool = True,
     grid: tuple[float, ...] = SHRINKAGE_GRID,
-    statistics: PooledStatistics | None = None,
 ) -> float | None:
     """The heaviest shrinkage of ``grid`` whose evidence is within one standard error of
-    the most discriminating (:func:`evidence_discriminability`), or None when it cannot be
-    measured (a class too rare).
+    the most discriminating (:func:`evidence_discriminability` of ``task``'s labels of
+    ``history``), or None when it cannot be measured (a class too rare).
 
     The one-standard-error rule of cross-validation (Hastie, Tibshirani and Friedman, *The
     Elements of Statistical Learning*, §7.10): the most regularised model that the data do
     not clearly reject. The standard error of a mean-over-spread ``r`` estimated from
-    ``n`` signals is about ``sqrt((1 + r^2 / 2) / n)``. ``statistics``: as
-    :func:`evidence_discriminability`'s.
+    ``n`` labelled signals (the label weights' sum) is about ``sqrt((1 + r^2 / 2) / n)``.
     """
     scores = evidence_discriminability(
-        signals, weights, grid, eps=eps, n_folds=n_folds, smoothing=smoothing,
-        balanced=balanced, statistics=statistics,
+        history, task, grid, eps=eps, smoothing=smoothing, balanced=balanced
     )
     if np.all(np.isnan(scores)):
         return None
     best = np.nanmax(scores)
-    standard_error = np.sqrt((1.0 + best**2 / 2.0) / len(signals))
+    labelled = history.task_label_weights(task).sum()
+    standard_error = np.sqrt((1.0 + best**2 / 2.0) / labelled)
     return max(s for s, score in zip(grid, scores, strict=True) if score >= best - standard_error)
 
 
-def _training_statistics(
-    signals: np.ndarray, weights: np.ndarray, n_folds: int
-) -> PooledStatistics:
-    """Pooled statistics of every fold's training set, then of all the signals: batch
-    (n_folds + 1,), one labelling."""
-    in_fold = [slice(fold, None, n_folds) for fold in range(n_folds)]
-    per_fold = PooledStatistics(
-        scatter=np.stack([signals[rows].T @ signals[rows] for rows in in_fold]),
-        n_signals=np.array([len(signals[rows]) for rows in in_fold], dtype=float),
-        signal_sum=np.stack([signals[rows].sum(axis=0) for rows in in_fold]),
-        counts=np.stack([weights[rows].sum(axis=0) for rows in in_fold]),
-        sums=np.stack([weights[rows].T @ signals[rows] for rows in in_fold]),
-    )
-    parts = {}
-    for field in fields(PooledStatistics):
-        value = getattr(per_fold, field.name)
-        if value is not None:
-            total = value.sum(axis=0)
-            parts[field.name] = np.concatenate([total - value, total[None]])
-    return PooledStatistics(**parts)
+def labelled_history(
+    signals: np.ndarray, weights: np.ndarray, n_folds: int = 10
+) -> TaskHistory:
+    """A one-task history of ``signals`` (n, d) labelled by ``weights`` (n, K), for the
+    functions above outside a learner (analyses, tests)."""
+    signals = np.asarray(signals, dtype=float)
+    weights = np.asarray(weights, dtype=float)
+    if signals.ndim != 2 or weights.ndim != 2 or len(signals) != len(weights):
+        raise ValueError(
+            f"signals (n, d) and weights (n, K) must have the same n; got shapes "
+            f"{signals.shape} and {weights.shape}"
+        )
+    if weights.shape[1] < 2:
+        raise ValueError(f"weights need at least two classes; got shape {weights.shape}")
+    history = TaskHistory(1, weights.shape[1], signals.shape[1], n_folds)
+    for signal, row in zip(signals, weights, strict=True):
+        history.add(signal, row[None])
+    return history
 
 
 def _mean_over_spread(log_matches: np.ndarray, weights: np.ndarray) -> float:

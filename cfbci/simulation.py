@@ -95,7 +95,7 @@ class SessionResult:
         Per confidence bin (:mod:`replay.calibration`), the steps whose best task had a
         confidence in it (before the step's action) and those where it was the user's
         target then.
-    shrinkages : list of float
+    shrinkages : list of float or str
         The decoders' shrinkage from each target on (the calibrated baseline's: from the
         end of its calibration); with ``shrinkage="cv"``, the choices the data made.
     """
@@ -110,7 +110,7 @@ class SessionResult:
     first_confident_correct: bool | None = None
     user_task_likelihood: list[float] = field(default_factory=list)
     calibration_counts: list[list[int]] = field(default_factory=list)
-    shrinkages: list[float] = field(default_factory=list)
+    shrinkages: list[float | str] = field(default_factory=list)
 
 
 def make_learner(
@@ -157,7 +157,7 @@ def run_session(
     user_likelihood: list[float] = []
     best_confidence: list[float] = []
     best_is_target: list[bool] = []
-    shrinkages: list[float] = []
+    shrinkages: list[float | str] = []
     for step in range(1, config.steps + 1):
         beliefs = learner.beliefs()
         best_confidence.append(float(beliefs.confidence[beliefs.best_task]))

@@ -93,3 +93,15 @@ def test_a_mixing_decay_reaches_the_gaussian_data_spec() -> None:
     plain = DataSpec(synthetic="gaussian", dims=6).resolve("feedback")(np.random.default_rng(2))
     np.testing.assert_allclose(data.features, plain.features @ mixing_matrix(6, 1.5).T)
     assert "mixed with decay 1.5" in spec.describe()
+
+
+@pytest.mark.parametrize(
+    ("spec", "message"),
+    [
+        ({"mixing_decay": 2.0}, "needs --synthetic gaussian and no dataset"),
+        ({"synthetic": "gaussian", "mixing_decay": -1.0}, "mixing decay must be in"),
+    ],
+)
+def test_a_mixing_decay_that_would_be_ignored_or_is_out_of_range_is_refused(spec, message):
+    with pytest.raises(ValueError, match=message):
+        DataSpec(**spec)

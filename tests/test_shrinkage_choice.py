@@ -14,6 +14,7 @@ from calibration_free.shrinkage_choice import (
     SHRINKAGE_GRID,
     choose_shrinkage,
     evidence_discriminability,
+    labelled_history,
 )
 from decoding.lda import ShrinkageLDA
 
@@ -60,7 +61,7 @@ def isotropic_many(n, rng, d=40):
 def test_the_measure_equals_a_plain_reference(n: int) -> None:
     X, y = correlated_pair(n, np.random.default_rng(n))
     measured = evidence_discriminability(
-        X, np.eye(2)[y], (0.1, 0.5, 0.9), eps=0.1, n_folds=10, smoothing=1.0
+        labelled_history(X, np.eye(2)[y]), 0, (0.1, 0.5, 0.9), eps=0.1, smoothing=1.0
     )
     expected = [reference_discriminability(X, y, s) for s in (0.1, 0.5, 0.9)]
     np.testing.assert_allclose(measured, expected, rtol=1e-8)
@@ -68,38 +69,64 @@ def test_the_measure_equals_a_plain_reference(n: int) -> None:
 
 def test_it_picks_little_shrinkage_where_the_correlation_carries_the_classes() -> None:
     X, y = correlated_pair(400, np.random.default_rng(0))
-    chosen = choose_shrinkage(X, np.eye(2)[y], eps=0.1, n_folds=10, smoothing=1.0)
+    chosen = choose_shrinkage(labelled_history(X, np.eye(2)[y]), 0, eps=0.1, smoothing=1.0)
     assert chosen is not None and chosen <= 0.1
 
 
 def test_it_keeps_the_heaviest_for_few_signals_in_many_dimensions() -> None:
     X, y = isotropic_many(80, np.random.default_rng(0))
-    weights = np.eye(2)[y]
-    scores = evidence_discriminability(
-        X, weights, SHRINKAGE_GRID, eps=0.1, n_folds=10, smoothing=1.0)
+    history = labelled_history(X, np.eye(2)[y])
+    scores = evidence_discriminability(history, 0, SHRINKAGE_GRID, eps=0.1, smoothing=1.0)
     assert np.argmax(scores) == len(SHRINKAGE_GRID) - 1  # less shrinkage fits the noise
-    chosen = choose_shrinkage(X, weights, eps=0.1, n_folds=10, smoothing=1.0)
-    assert chosen == max(SHRINKAGE_GRID)
+    assert choose_shrinkage(history, 0, eps=0.1, smoothing=1.0) == max(SHRINKAGE_GRID)
 
 
 def test_a_gain_within_one_standard_error_keeps_the_heaviest() -> None:
     X, y = correlated_pair(400, np.random.default_rng(0))
-    weights = np.eye(2)[y]
+    history = labelled_history(X, np.eye(2)[y])
     grid = (0.05, 0.06)  # close neighbours: their evidence differs by less than its error
-    scores = evidence_discriminability(X, weights, grid, eps=0.1, n_folds=10, smoothing=1.0)
+    scores = evidence_discriminability(history, 0, grid, eps=0.1, smoothing=1.0)
     error = np.sqrt((1 + np.max(scores) ** 2 / 2) / len(X))
     assert np.argmax(scores) == 0 and scores[0] - scores[1] < error
-    assert choose_shrinkage(X, weights, eps=0.1, n_folds=10, smoothing=1.0, grid=grid) == 0.06
+    assert choose_shrinkage(history, 0, eps=0.1, smoothing=1.0, grid=grid) == 0.06
 
 
 def test_a_class_too_rare_to_measure_gives_no_choice() -> None:
     X, y = correlated_pair(60, np.random.default_rng(1))
     y[:] = 0
     y[:2] = 1  # fold 0's training set holds one of them: no decoder knows the class
-    weights = np.eye(2)[y]
+    history = labelled_history(X, np.eye(2)[y])
     assert np.all(np.isnan(evidence_discriminability(
-        X, weights, SHRINKAGE_GRID, eps=0.1, n_folds=10, smoothing=1.0)))
-    assert choose_shrinkage(X, weights, eps=0.1, n_folds=10, smoothing=1.0) is None
+        history, 0, SHRINKAGE_GRID, eps=0.1, smoothing=1.0)))
+    assert choose_shrinkage(history, 0, eps=0.1, smoothing=1.0) is None
+
+
+def test_unlabelled_signals_do_not_count_as_evidence() -> None:
+    X, y = correlated_pair(300, np.random.default_rng(2))
+    weights = np.eye(2)[y]
+    weights[::7] = 0.0  # signals no label covers (guidance at a task's own cell)
+    labelled = ~np.all(weights == 0.0, axis=1)
+    with_rest = evidence_discriminability(
+        labelled_history(X, weights), 0, (0.1, 0.5), eps=0.1, smoothing=1.0)
+    # The unlabelled signals widen the covariance but add no increment: not the same as
+    # dropping them, and not the same as labelling them.
+    dropped = evidence_discriminability(
+        labelled_history(X[labelled], weights[labelled]), 0, (0.1, 0.5), eps=0.1,
+        smoothing=1.0)
+    assert np.all(np.isfinite(with_rest)) and not np.allclose(with_rest, dropped)
+
+
+@pytest.mark.parametrize(
+    ("signals", "weights", "message"),
+    [
+        (np.zeros((5, 3)), np.zeros((4, 2)), "same n; got shapes"),
+        (np.zeros(5), np.zeros((5, 2)), "same n; got shapes"),
+        (np.zeros((5, 3)), np.zeros((5, 1)), "at least two classes"),
+    ],
+)
+def test_a_history_of_wrong_shapes_is_refused(signals, weights, message) -> None:
+    with pytest.raises(ValueError, match=message):
+        labelled_history(signals, weights)
 
 
 def test_the_learner_chooses_at_every_target_from_the_adopted_labels() -> None:
@@ -111,10 +138,11 @@ def test_the_learner_chooses_at_every_target_from_the_adopted_labels() -> None:
         if learner.n_targets > len(chosen):  # a target was just reached
             history = learner.history
             assert history.n_adopted == history.n_signals
+            # Recomputed on a fresh history of the adopted labels (its scatters decomposed
+            # anew, where the learner's reuse its rolling decompositions).
+            fresh = labelled_history(history.signals, history.task_label_weights(0))
             chosen.append((learner.shrinkage_in_use, choose_shrinkage(
-                history.signals, history.task_label_weights(0),  # every task's, adopted
-                eps=config.eps, n_folds=config.n_folds,
-                smoothing=config.confusion_smoothing)))
+                fresh, 0, eps=config.eps, smoothing=config.confusion_smoothing)))
 
     run(learner, target=5, steps=150, seed=1, on_step=at_step)
     assert len(chosen) >= 2, "the session must reach targets for the choice to show"

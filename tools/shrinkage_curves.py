@@ -26,7 +26,11 @@ from acquisition.gaussian import generate_gaussian_features
 from acquisition.labelled import LabelledFeatures
 from acquisition.loaders import load_labelled
 from acquisition.sources import SYNTHETIC_EPOCHS_PER_CLASS, synthetic_features
-from calibration_free.shrinkage_choice import choose_shrinkage, evidence_discriminability
+from calibration_free.shrinkage_choice import (
+    choose_shrinkage,
+    evidence_discriminability,
+    labelled_history,
+)
 from decoding.lda import ShrinkageLDA
 
 GRID = (0.05, 0.1, 0.2, 0.3, 0.5, 0.7, 0.9)
@@ -65,17 +69,18 @@ def main() -> None:
     for _ in range(args.draws):
         subset = rng.choice(len(labels), args.signals, replace=False)
         rest = np.setdiff1d(np.arange(len(labels)), subset)
-        X, weights = features[subset], np.eye(2)[labels[subset]]
+        X = features[subset]
+        history = labelled_history(X, np.eye(2)[labels[subset]])
         accuracy.append([
             balanced_accuracy(
                 labels[rest], ShrinkageLDA(s).fit(X, labels[subset]).predict(features[rest])
             )
             for s in GRID
         ])
-        discriminability.append(evidence_discriminability(
-            X, weights, GRID, eps=0.1, n_folds=10, smoothing=1.0
-        ))
-        chosen[choose_shrinkage(X, weights, eps=0.1, n_folds=10, smoothing=1.0)] += 1
+        discriminability.append(
+            evidence_discriminability(history, 0, GRID, eps=0.1, smoothing=1.0)
+        )
+        chosen[choose_shrinkage(history, 0, eps=0.1, smoothing=1.0)] += 1
     print(f"{data.source}: {args.draws} draws of {args.signals} signals")
     print("shrinkage        " + " ".join(f"{s:>6}" for s in GRID))
     print("accuracy         " + " ".join(f"{v:6.3f}" for v in np.mean(accuracy, axis=0)))
