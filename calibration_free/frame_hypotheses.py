@@ -140,7 +140,7 @@ class FrameHypothesesLearner:
         ])
         confidence = pairwise_confidence(scores)
         best = int(np.argmax(scores))
-        confident = bool(confidence[best] > self.config.beta) and self._beats_chance(best)
+        confident = bool(confidence[best] > self.config.frame_beta) and self._beats_chance(best)
         return PairBeliefs(scores, confidence, best, confident)
 
     def _beats_chance(self, hypothesis: int) -> bool:

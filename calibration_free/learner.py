@@ -166,7 +166,7 @@ class TaskLearner:
 
     def _decision_rule(self) -> tuple[str, float]:
         """(confidence rule, threshold): by default the configured ones."""
-        return self.config.confidence, self.config.beta
+        return self.config.confidence, self.config.frame_beta
 
     def normalised_likelihood(self) -> np.ndarray:
         """``L_t / sum_u L_u`` of every task, shape (n_tasks,): the plain log-likelihood

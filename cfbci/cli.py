@@ -183,7 +183,7 @@ def _simulate_frame_hypotheses(args: argparse.Namespace, console: Console) -> in
         run_frame_job, jobs, scheduler=Scheduler.from_options(args.scheduler, args.jobs),
         description="sessions", console=console,
     )
-    summary = frame_hypotheses_report(sessions, args.steps, config.beta)
+    summary = frame_hypotheses_report(sessions, args.steps, config.frame_beta)
     console.print(summary)
     if args.json:
         report = {"config": {"world": args.world, "frame": "hypotheses",

@@ -75,10 +75,10 @@ def threshold_of(config: dict[str, Any] | None) -> tuple[float, bool]:
     (else the default of :class:`LearnerConfig`)."""
     if config is not None:
         try:
-            return learner_settings(config.get("learner", {}), config["frame"]).beta, True
+            return learner_settings(config.get("learner", {}), config["frame"]).frame_beta, True
         except (KeyError, ValueError):  # the service rejects such a config
             pass
-    return LearnerConfig().beta, False
+    return LearnerConfig().frame_beta, False
 
 
 @dataclass

@@ -407,7 +407,7 @@ def session_metrics(recording: Recording, file: str = "", rerun: bool = True) ->
             f"{where}: the configuration has no valid frame and world ({error}): {config}"
         ) from None
     try:
-        beta = learner_settings(config.get("learner", {}), frame).beta
+        beta = learner_settings(config.get("learner", {}), frame).frame_beta
     except (ValueError, TypeError):
         beta = float(config.get("learner", {}).get("beta", 0.9))
     frame_ = Frame(world, frame)

@@ -86,7 +86,8 @@ def test_proposals_and_beliefs_are_well_formed(make):
         beliefs = learner.beliefs()
         assert beliefs.scores.shape == beliefs.confidence.shape == (WORLD.n_tasks,)
         assert np.all((beliefs.confidence > 0) & (beliefs.confidence < 1))
-        assert beliefs.confident == (beliefs.confidence[beliefs.best_task] > learner.config.beta)
+        best_confidence = beliefs.confidence[beliefs.best_task]
+        assert beliefs.confident == (best_confidence > learner.config.frame_beta)
         state = WORLD.step(state, proposal.action)
     assert learner.beliefs().n_signals == 50
 

@@ -4,10 +4,12 @@ from __future__ import annotations
 
 from dataclasses import replace
 
+import numpy as np
 import pytest
 from test_learner import WORLD, run
 
 from calibration_free.config import (
+    DEFAULT_BETA,
     DEFAULT_FIRST_TARGET_SHRINKAGE,
     DEFAULT_NOVELTY_BONUS,
     LearnerConfig,
@@ -80,3 +82,34 @@ def test_the_decoders_take_the_shrinkage_after_the_first_target() -> None:
     assert learner.n_targets >= 1, "the session must reach a target for the switch to show"
     assert {shrinkage for n, shrinkage in fits if n == 0} == {0.8}
     assert {shrinkage for n, shrinkage in fits if n >= 1} == {0.3}
+
+
+def test_the_threshold_is_the_frames_and_is_recorded_resolved() -> None:
+    feedback, guidance = LearnerConfig(), LearnerConfig(frame="guidance")
+    assert feedback.frame_beta == DEFAULT_BETA["feedback"] == 0.9  # the thesis's
+    assert guidance.frame_beta == DEFAULT_BETA["guidance"] > 0.9
+    assert replace(LearnerConfig(beta=0.95), frame="guidance").frame_beta == 0.95
+    assert replace(feedback, frame="guidance").frame_beta == DEFAULT_BETA["guidance"]
+    # Recorded as in force: a guidance recording made when the default was 0.9 says so, and
+    # is read back with it.
+    assert guidance.to_dict()["beta"] == DEFAULT_BETA["guidance"]
+    old = learner_settings(guidance.to_dict() | {"beta": 0.9}, "guidance")
+    assert old.frame_beta == 0.9
+    with pytest.raises(ValueError, match="beta"):
+        LearnerConfig(frame="guidance", beta=1.0)
+
+
+def test_a_confidence_between_the_frames_thresholds_declares_in_feedback_only() -> None:
+    # Two tasks ahead of the rest, the best's pairwise confidence 0.91: above feedback's
+    # threshold, below guidance's.
+    log_likelihood = np.full(WORLD.n_tasks, -50.0)
+    log_likelihood[3], log_likelihood[4] = np.log(0.91), np.log(0.09)
+    confident = {}
+    for frame in ("feedback", "guidance"):
+        config = LearnerConfig(frame=frame, power_prior=False)
+        learner = CalibrationFreeLearner(WORLD, config, rng=0)
+        learner.log_likelihood[:] = log_likelihood  # the likelihood's own array
+        beliefs = learner.beliefs()
+        assert beliefs.best_task == 3 and abs(beliefs.confidence[3] - 0.91) < 1e-9
+        confident[frame] = beliefs.confident
+    assert confident == {"feedback": True, "guidance": False}
