@@ -434,7 +434,7 @@ class CalibrationFreeLearner(TaskLearner):
             )
         expected = self.frame.distribution_at(state, action)
         frame_weights = weights = self.frame.weights_at(state, action)
-        models = self._current_models()
+        models = None if self._prediction_is_discarded(state, action) else self._current_models()
         predicted = None
         if models is not None:
             if self._resplits_labels:
@@ -453,6 +453,20 @@ class CalibrationFreeLearner(TaskLearner):
         if target is not None:
             self._switch_task(target)
         self._likelihood.after_signal(self._history, self._current_models)
+
+    def _prediction_is_discarded(self, state: int, action: int) -> bool:
+        """Whether the decoders' prediction of this step's signal would be thrown away: the
+        step reaches the declared target, so the segment's likelihood restarts after it,
+        and no label needs the decoders to split it (a frame without ambiguous labels).
+        The step then skips fitting the decoders on the labels it is about to replace:
+        at 20 x 20, that fit was a third of the target steps' cost, and those steps set
+        the update's p99."""
+        target = self._pending_target
+        return (
+            target is not None
+            and not self.frame.has_ambiguous_labels
+            and self.world.declares(state, action, target)
+        )
 
     def _current_models(self) -> TaskModels | None:
         """Every task's decoders on the history so far (fitted on first use after each

@@ -242,3 +242,47 @@ def test_the_goal_pull_walks_the_exploring_learner_toward_its_leading_task():
     assert pulled == toward
     free, toward = first_moves(0.0)
     assert free != toward
+
+
+class _CountingFits(CalibrationFreeLearner):
+    """The learner, counting the fits of its decoders."""
+
+    n_fits = 0
+
+    def _fit_models(self, cross_validate: bool):
+        self.n_fits += 1
+        return super()._fit_models(cross_validate)
+
+
+class _AlwaysPredicting(_CountingFits):
+    """The learner as it was: its decoders predict every signal, a target step's too."""
+
+    def _prediction_is_discarded(self, state: int, action: int) -> bool:
+        return False
+
+
+def test_a_target_step_skips_only_the_prediction_it_would_discard():
+    learners = [_CountingFits(WORLD, rng=0), _AlwaysPredicting(WORLD, rng=0)]
+    traces = []
+    for learner in learners:
+        trace = []
+
+        def record(step, learner, proposal, beliefs, trace=trace):
+            trace.append((proposal, beliefs.log_likelihood, learner.n_fits, learner.n_targets))
+
+        declared = run(learner, target=5, steps=150, seed=3, on_step=record)
+        assert len(declared) >= 2, "the session must reach targets for the skip to show"
+        traces.append(trace)
+    skipping, predicting = traces
+    for (proposal, log_likelihood, _, _), (other, other_log_likelihood, _, _) in zip(
+        skipping, predicting, strict=True
+    ):
+        assert proposal == other
+        np.testing.assert_array_equal(log_likelihood, other_log_likelihood)
+    # Each target step (the one after a declaration) made one fit fewer.
+    target_steps = [i for i in range(1, 150) if skipping[i][3] > skipping[i - 1][3]]
+    assert len(target_steps) >= 2
+    for trace, saved in ((skipping, 1), (predicting, 0)):
+        for i in target_steps:
+            fits_then = trace[i][2] - trace[i - 1][2]
+            assert fits_then == 2 - saved  # (with the proposal's fit after the switch)
