@@ -23,7 +23,14 @@ from calibration_free.frames import Frame
 from calibration_free.likelihood import CONFIDENCES, normalised_likelihood, power_log_ratio
 from calibration_free.planning import PlanningInputs, greedy_action, make_planner, random_action
 from calibration_free.shrinkage_choice import choose_shrinkage
-from calibration_free.task_decoders import DecoderFit, TaskHistory, TaskModels, decoder_fit
+from calibration_free.task_decoders import (
+    DecoderFit,
+    TaskHistory,
+    TaskModels,
+    balanced_accuracy,
+    decoder_fit,
+    in_signal_order,
+)
 from calibration_free.task_likelihoods import make_likelihood
 from calibration_free.world import World
 from decoding.scatter_eigen import refresh_period
@@ -394,21 +401,30 @@ class CalibrationFreeLearner(TaskLearner):
         self, task: int, label_weights: np.ndarray | None = None
     ) -> float | None:
         """Cross-validated balanced accuracy of ``task``'s decoder on the history so far
-        (see :meth:`TaskModels.balanced_accuracy`); None before two classes have signals.
+        (see :func:`~calibration_free.task_decoders.balanced_accuracy`); None before two
+        classes have signals.
 
         Against ``task``'s own labels by default, or against ``label_weights``
-        (n_signals, n_classes), e.g. the true labels in an offline analysis. With a
-        likelihood that needs no cross-validation ("simple", "batch"), the k-fold fits
-        are made here, when asked for (the decisions do not use them).
+        (n_signals, n_classes), e.g. the true labels in an offline analysis. From the
+        current models' out-of-fold predictions when they have them; otherwise (the
+        decoders not yet fitted on the latest signal, or a likelihood without
+        cross-validation) ``task``'s fold decoders alone are fitted here, not every
+        task's: after a declared target the service asks for it before the next signal
+        relabels the history, and fitting every task then, for nothing, was most of the
+        next epoch's wait at 20 x 20.
         """
-        models = self._current_models()
-        if models is None or self._history is None:
+        history = self._history
+        if history is None or history.n_signals == 0:
             return None
-        if models.cv_by_fold is None:
-            models = self._models = self._fit_models(cross_validate=True)
         if label_weights is None:
-            label_weights = self._history.task_label_weights(task)
-        return models.balanced_accuracy(task, label_weights)
+            label_weights = history.task_label_weights(task)
+        models = self._models
+        if models is not None and models.cv_by_fold is not None:
+            return models.balanced_accuracy(task, label_weights)
+        _, folds = self._fit(history, task=task)
+        assert folds is not None
+        proba = in_signal_order(history.cross_validated_proba(folds), history.n_signals, 0)
+        return balanced_accuracy(proba, label_weights)
 
     @property
     def uses_power_prior(self) -> bool:

@@ -80,9 +80,6 @@ def evidence_discriminability(
         eigenvalues, basis = np.linalg.eigh(statistics.scatter)
         pending = np.zeros((eigenvalues.shape[0], 0, eigenvalues.shape[1]))  # none
         statistics = replace(statistics, eigen=ScatterEigen(basis, eigenvalues, pending))
-    # One labelling as a batch of one task, the layout of the history's fold decoders.
-    statistics = replace(statistics, counts=statistics.counts[:, None],
-                         sums=statistics.sums[:, None])
     weights = history.task_label_weights(task)
     n_classes = weights.shape[1]
     expected = (1.0 - eps) * np.eye(n_classes) + eps / (n_classes - 1) * (

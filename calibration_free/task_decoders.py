@@ -81,18 +81,19 @@ class FoldSums:
         self.own_total[:] = own.sum(axis=0)
 
     def total(self, task: int | None = None) -> np.ndarray:
-        """Every task's total over the folds, shape (n_tasks, *shape); or ``task``'s,
-        shape ``shape``."""
-        if task is not None:
-            return self.shared_total + self.own_total[task]
-        return self.shared_total + self.own_total
+        """Every task's total over the folds, shape (n_tasks, *shape); or ``task``'s alone,
+        shape (1, *shape)."""
+        own_total = self.own_total if task is None else self.own_total[[task]]
+        return self.shared_total + own_total
 
     def held_out(self, task: int | None = None) -> np.ndarray:
         """Every task's total without each fold, shape (n_folds, n_tasks, *shape); or
-        ``task``'s, shape (n_folds, *shape)."""
-        if task is not None:
-            return (self.shared_total - self.shared) + (self.own_total[task] - self.own[:, task])
-        return (self.shared_total - self.shared)[:, None] + (self.own_total - self.own)
+        ``task``'s alone, shape (n_folds, 1, *shape)."""
+        own_total, own = (
+            (self.own_total, self.own) if task is None
+            else (self.own_total[[task]], self.own[:, [task]])
+        )
+        return (self.shared_total - self.shared)[:, None] + (own_total - own)
 
 
 class TaskHistory:
@@ -289,13 +290,13 @@ class TaskHistory:
         """The pooled statistics of every fold's training set (all signals but that
         fold's), then of the whole history: batch shape (n_folds + 1, n_tasks); without
         the folds, of the whole history only: batch shape (1, n_tasks). With ``task``, of
-        that task's labelling only: no task axis."""
+        that task's labelling alone: a task axis of 1."""
 
         def training_sets(sums: FoldSums) -> np.ndarray:
-            whole = sums.total(task)
+            whole = sums.total(task)[None]
             if not with_folds:
-                return whole[None]
-            return np.concatenate([sums.held_out(task), whole[None]])
+                return whole
+            return np.concatenate([sums.held_out(task), whole])
 
         def shared(per_fold: np.ndarray) -> np.ndarray:
             return self._training_sets(per_fold) if with_folds else per_fold.sum(axis=0)[None]
@@ -330,18 +331,18 @@ class TaskHistory:
         return np.concatenate([total - per_fold, total[None]])
 
     def class_statistics(
-        self, with_folds: bool = True
+        self, with_folds: bool = True, task: int | None = None
     ) -> tuple[ClassStatistics, ClassStatistics | None]:
         """Per-class statistics of the whole history (n_tasks, ...) and of each fold's
-        training set (n_folds, n_tasks, ...; None without ``with_folds``); needs
-        ``class_scatters``."""
+        training set (n_folds, n_tasks, ...; None without ``with_folds``); with ``task``,
+        of that task's labelling alone (a task axis of 1). Needs ``class_scatters``."""
         if self._scatters is None:
             raise RuntimeError("this history keeps no per-class scatter matrices")
         parts = (self._counts, self._sums, self._scatters)
-        whole = ClassStatistics(*(part.total() for part in parts))
+        whole = ClassStatistics(*(part.total(task) for part in parts))
         if not with_folds:
             return whole, None
-        return whole, ClassStatistics(*(part.held_out() for part in parts))
+        return whole, ClassStatistics(*(part.held_out(task) for part in parts))
 
     def class_means(self) -> np.ndarray:
         """Every task's class means on the whole history, shape (n_tasks, n_classes,
@@ -421,6 +422,25 @@ def in_signal_order(by_fold: np.ndarray, n_signals: int, task: int | None = None
     return in_order[:, :n_signals]
 
 
+def balanced_accuracy(proba: np.ndarray, label_weights: np.ndarray) -> float | None:
+    """Balanced accuracy of out-of-fold class probabilities ``proba`` (n_signals, K)
+    against ``label_weights`` (n_signals, K), possibly soft.
+
+    Every signal's predicted class is the argmax of its probabilities (ties to the lower
+    class); a class's recall is the weight of its signals predicted as it over its total
+    weight; the result is the mean recall over the classes that have signals, or None
+    while fewer than two have.
+    """
+    totals = label_weights.sum(axis=0)
+    present = totals > 0
+    if present.sum() < 2:
+        return None
+    predicted = proba.argmax(axis=1)
+    hits = label_weights[np.arange(len(predicted)), predicted]
+    correct = np.bincount(predicted, weights=hits, minlength=len(totals))
+    return float(np.mean(correct[present] / totals[present]))
+
+
 DECODERS: tuple[str, ...] = ("lda", "student_t", "gaussian", "categorical")
 
 
@@ -464,15 +484,16 @@ class DecoderFit:
         return self.kind == "lda" and not isinstance(shrinkage, str) and shrinkage > 0
 
     def __call__(
-        self, history: TaskHistory, with_folds: bool = True
+        self, history: TaskHistory, with_folds: bool = True, task: int | None = None
     ) -> tuple[BatchedDecoders, BatchedDecoders | None]:
         """Every task's full decoder (batch (n_tasks,)) and fold decoders (batch
-        (n_folds, n_tasks); None without ``with_folds``: no cross-validation fit)."""
+        (n_folds, n_tasks); None without ``with_folds``: no cross-validation fit); with
+        ``task``, that task's alone (a task axis of 1)."""
         if self.class_scatters:
-            whole, training = history.class_statistics(with_folds)
+            whole, training = history.class_statistics(with_folds, task)
             folds = self._fit_classes(training) if training is not None else None
             return self._fit_classes(whole), folds
-        statistics = history.pooled_statistics(with_folds)
+        statistics = history.pooled_statistics(with_folds, task)
         if self.kind == "categorical":
             decoders: BatchedDecoders = fit_categorical(statistics.counts, statistics.sums)
         else:
@@ -560,24 +581,12 @@ class TaskModels:
         return cls(decoders, confusion, by_fold, history.n_signals)
 
     def balanced_accuracy(self, task: int, label_weights: np.ndarray) -> float | None:
-        """Cross-validated balanced accuracy of ``task``'s decoder.
-
-        Every signal's predicted class is the argmax of its out-of-fold probabilities (ties
-        to the lower class); a class's recall is the weight of its signals predicted as it
-        over its total weight (``label_weights`` (n_signals, K) are the task's, possibly
-        soft); the result is the mean recall over the classes that have signals, or None
-        while fewer than two have.
-        """
+        """Cross-validated balanced accuracy of ``task``'s decoder
+        (:func:`balanced_accuracy`)."""
         if self.cv_by_fold is None:
             raise RuntimeError("these models were fitted without cross-validation")
-        totals = label_weights.sum(axis=0)
-        present = totals > 0
-        if present.sum() < 2:
-            return None
-        predicted = in_signal_order(self.cv_by_fold, self.n_signals, task).argmax(axis=1)
-        hits = label_weights[np.arange(len(predicted)), predicted]
-        correct = np.bincount(predicted, weights=hits, minlength=len(totals))
-        return float(np.mean(correct[present] / totals[present]))
+        return balanced_accuracy(in_signal_order(self.cv_by_fold, self.n_signals, task),
+                                 label_weights)
 
     @property
     def informative(self) -> np.ndarray:

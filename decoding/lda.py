@@ -77,18 +77,22 @@ class PooledLinearDecoders(BatchedDecoders):
         """``(X V) coef + intercept`` with tasks last: (*J, n, *T, C).
 
         ``X`` (n, d), or (*J, 1.., n, d) with unit axes for the tasks; ``coef`` (*J, *T,
-        C, d), ``intercept`` (*J, *T, C). One matrix product per training set (BLAS reads
-        ``coef`` transposed in place).
+        C, d), ``intercept`` (*J, *T, C). Two matrix products per training set (BLAS reads
+        ``coef`` transposed in place), in the cheaper order: the signals projected on the
+        basis first when there are fewer of them than scores per signal (``n d^2 + n d
+        TC`` operations), else the decoders taken out of the basis first (``d^2 TC + n d
+        TC``).
         """
         n_sets = self.basis.ndim - 2
         X = np.asarray(X, dtype=float)
         if X.ndim > 2:  # the task axes broadcast: drop them
             X = X.reshape(*X.shape[: min(n_sets, X.ndim - 2)], *X.shape[-2:])
-        projected = X @ self.basis  # (*J, n, d)
         flat = coef.reshape(*coef.shape[:n_sets], -1, coef.shape[-1])  # (*J, T*C, d)
-        scores = (projected @ np.swapaxes(flat, -1, -2)).reshape(
-            *projected.shape[:-1], *coef.shape[n_sets:-1]
-        )
+        if X.shape[-2] <= flat.shape[-2]:
+            scores = (X @ self.basis) @ np.swapaxes(flat, -1, -2)
+        else:
+            scores = X @ (self.basis @ np.swapaxes(flat, -1, -2))
+        scores = scores.reshape(*scores.shape[:-1], *coef.shape[n_sets:-1])
         scores += intercept[(*(slice(None),) * n_sets, None)]
         return scores
 
@@ -191,7 +195,7 @@ def _fit_in_basis(
         return None
     safe_diagonal = np.where(singular[..., None], 1.0, diagonal) if any_singular else diagonal
     scaled = projected / safe_diagonal[..., None, :]  # U^T A^-1
-    gram = _pairwise_dots(scaled, projected)  # H = U^T A^-1 U
+    gram = _symmetric_dots(scaled, projected)  # H = U^T A^-1 U
     present = statistics.counts >= MIN_CLASS_COUNT
     n_present = present.sum(axis=-1, keepdims=True)
     # An uninformative decoder is never used: its system, which may be exactly singular
@@ -203,7 +207,7 @@ def _fit_in_basis(
         # Sigma = A + c Z^T Z - c U U^T (Z: the pending signals in the basis): eliminate Z
         # first, Z's own r x r system being positive definite; (I - c H) becomes its
         # Schur complement (I - c H) + c (U^T A^-1 Z^T) E.
-        pending = statistics.per_task(eigen.pending @ basis, 2)  # (*J, 1.., r, d)
+        pending = eigen.pending @ basis  # (*J, r, d)
         pending_gram, cross = _pending_blocks(pending, scaled, safe_diagonal)
         cc = c[..., None, None]
         eliminated = np.linalg.solve(  # E = (I + c Z A^-1 Z^T)^-1 c Z A^-1 U
@@ -221,7 +225,7 @@ def _fit_in_basis(
     if n_pending:
         pending_mixing = -(mixing @ np.swapaxes(eliminated, -1, -2))  # (*J, *T, C, r)
         coef = mixing @ projected  # (*J, *T, C, d), times A^-1 below
-        coef += pending_mixing @ pending
+        coef += _per_set_product(pending_mixing, pending)
         coef /= safe_diagonal[..., None, :]
         quadratic += np.einsum("...kl,...kl->...k", pending_mixing, cross[..., :n_classes, :])
     else:
@@ -246,15 +250,23 @@ def _pending_blocks(
     pending: np.ndarray, scaled: np.ndarray, diagonal: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
     """``Z A^-1 Z^T`` (*J, *T, r, r) and ``U^T A^-1 Z^T`` (*J, *T, K', r) from the pending
-    signals in the basis ``Z`` (*J, 1.., r, d), ``scaled = U^T A^-1`` (*J, *T, K', d) and
+    signals in the basis ``Z`` (*J, r, d), ``scaled = U^T A^-1`` (*J, *T, K', d) and
     ``diagonal = a`` (*J, *T, d)."""
     r = pending.shape[-2]
-    outer = pending[..., :, None, :] * pending[..., None, :, :]  # (*J, 1.., r, r, d)
+    outer = pending[..., :, None, :] * pending[..., None, :, :]  # (*J, r, r, d)
     flat = outer.reshape(*outer.shape[:-3], r * r, outer.shape[-1])
-    pending_gram = ((1.0 / diagonal)[..., None, :] @ np.swapaxes(flat, -1, -2)).reshape(
-        *diagonal.shape[:-1], r, r
-    )
-    return pending_gram, scaled @ np.swapaxes(pending, -1, -2)
+    pending_gram = _per_set_product(1.0 / diagonal[..., None, :], np.swapaxes(flat, -1, -2))
+    pending_gram = pending_gram.reshape(*diagonal.shape[:-1], r, r)
+    return pending_gram, _per_set_product(scaled, np.swapaxes(pending, -1, -2))
+
+
+def _per_set_product(per_task: np.ndarray, shared: np.ndarray) -> np.ndarray:
+    """``per_task @ shared`` for ``per_task`` (*J, *T, m, n) and a matrix per training set
+    ``shared`` (*J, n, p): (*J, *T, m, p), as one product per set (the tasks' rows
+    stacked), not one per task and set (a few microseconds each)."""
+    n_sets = shared.ndim - 2
+    rows = per_task.reshape(*per_task.shape[:n_sets], -1, per_task.shape[-1])
+    return (rows @ shared).reshape(*per_task.shape[:-1], shared.shape[-1])
 
 
 def oas_shrinkage(
@@ -318,17 +330,19 @@ def _inverse_small(system: np.ndarray) -> np.ndarray:
     return inverse.reshape(system.shape)
 
 
-def _pairwise_dots(rows: np.ndarray, other: np.ndarray) -> np.ndarray:
-    """``rows @ other^T`` for a batch of few rows (*B, m, d) each: (*B, m, m).
+def _symmetric_dots(rows: np.ndarray, other: np.ndarray) -> np.ndarray:
+    """``rows @ other^T`` for a batch of few rows (*B, m, d) each, when the result is
+    symmetric (``rows = other A^-1``, A diagonal): (*B, m, m).
 
-    One elementwise dot per pair over the batch (a matrix product per 2 x d batch item
-    would cost more than the arithmetic).
+    One elementwise dot per pair k <= j over the batch, mirrored (a matrix product per
+    2 x d batch item would cost more than the arithmetic).
     """
     m = rows.shape[-2]
     out = np.empty((*rows.shape[:-2], m, m))
     for k in range(m):
-        for j in range(m):
+        for j in range(k, m):
             out[..., k, j] = np.einsum("...d,...d->...", rows[..., k, :], other[..., j, :])
+            out[..., j, k] = out[..., k, j]
     return out
 
 

@@ -286,3 +286,26 @@ def test_a_target_step_skips_only_the_prediction_it_would_discard():
         for i in target_steps:
             fits_then = trace[i][2] - trace[i - 1][2]
             assert fits_then == 2 - saved  # (with the proposal's fit after the switch)
+
+
+def test_the_balanced_accuracy_between_fits_fits_one_task_and_gives_the_same_figure():
+    """Asked before the decoders are fitted on the latest signal (the service's state
+    message after a declared target), the learner fits that task's fold decoders alone,
+    not every task's, and reports what the fitted models report."""
+    learner = _CountingFits(WORLD, rng=0)
+    rng = np.random.default_rng(4)
+    checked = 0
+    for step in range(60):
+        state = int(rng.integers(WORLD.n_states))
+        action = int(rng.integers(WORLD.n_actions))
+        learner.observe(state, action, rng.normal(size=6) + (action == 0))
+        fits = learner.n_fits
+        between = [learner.balanced_accuracy(task) for task in (0, 7, 15)]
+        assert learner.n_fits == fits, "no models fitted for the balanced accuracy"
+        learner.propose(state)  # fits every task's models (with cross-validation)
+        if learner.n_fits == fits:
+            continue
+        fitted = [learner.balanced_accuracy(task) for task in (0, 7, 15)]
+        assert between == pytest.approx(fitted, abs=1e-12)
+        checked += step > 20 and None not in fitted
+    assert checked > 20

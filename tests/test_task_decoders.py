@@ -463,6 +463,31 @@ def test_one_tasks_pooled_statistics_equal_its_slice_of_every_tasks() -> None:
         every = tasks.pooled_statistics(with_folds)
         for task in range(4):
             one = tasks.pooled_statistics(with_folds, task=task)
-            np.testing.assert_array_equal(one.counts, every.counts[:, task])
-            np.testing.assert_array_equal(one.sums, every.sums[:, task])
+            np.testing.assert_array_equal(one.counts, every.counts[:, [task]])
+            np.testing.assert_array_equal(one.sums, every.sums[:, [task]])
             np.testing.assert_array_equal(one.scatter, every.scatter)
+
+
+@pytest.mark.parametrize(
+    ("decoder", "history_options"),
+    [("lda", {}), ("lda", {"eigen_period": 3}), ("student_t", {"class_scatters": True}),
+     ("gaussian", {"class_scatters": True})],
+)
+def test_one_task_fit_equals_that_task_in_the_batch(decoder, history_options):
+    rng = np.random.default_rng(11)
+    signals = rng.normal(size=(64, 5)) + 0.5 * rng.integers(0, 2, size=(64, 1))
+    weights = soft_weights(rng, 4, 64, 2)
+    tasks = history_of(signals[:40], weights[:, :40], **history_options)
+    tasks.relabel(1)  # shared and own parts both non-zero
+    for i in range(40, 64):
+        tasks.add(signals[i], weights[:, i])
+    fit = decoder_fit(decoder, 0.4)
+    every, every_folds = fit(tasks)
+    every_proba = tasks.cross_validated_proba(every_folds)
+    probe = rng.normal(size=(6, 5))
+    for task in range(4):
+        one, one_folds = fit(tasks, task=task)
+        np.testing.assert_allclose(one.proba(probe)[0], every.proba(probe)[task], atol=1e-12)
+        np.testing.assert_allclose(
+            tasks.cross_validated_proba(one_folds)[:, :, 0], every_proba[:, :, task], atol=1e-12
+        )
