@@ -471,11 +471,14 @@ def test_one_tasks_pooled_statistics_equal_its_slice_of_every_tasks() -> None:
 @pytest.mark.parametrize(
     ("decoder", "history_options"),
     [("lda", {}), ("lda", {"eigen_period": 3}), ("student_t", {"class_scatters": True}),
-     ("gaussian", {"class_scatters": True})],
+     ("gaussian", {"class_scatters": True}), ("categorical", {})],
 )
 def test_one_task_fit_equals_that_task_in_the_batch(decoder, history_options):
+    """What the learner fits for one task's balanced accuracy between two fits of all."""
     rng = np.random.default_rng(11)
     signals = rng.normal(size=(64, 5)) + 0.5 * rng.integers(0, 2, size=(64, 1))
+    if decoder == "categorical":  # button presses: one-hot signals
+        signals = np.eye(5)[rng.integers(0, 5, size=64)]
     weights = soft_weights(rng, 4, 64, 2)
     tasks = history_of(signals[:40], weights[:, :40], **history_options)
     tasks.relabel(1)  # shared and own parts both non-zero
@@ -484,7 +487,8 @@ def test_one_task_fit_equals_that_task_in_the_batch(decoder, history_options):
     fit = decoder_fit(decoder, 0.4)
     every, every_folds = fit(tasks)
     every_proba = tasks.cross_validated_proba(every_folds)
-    probe = rng.normal(size=(6, 5))
+    probe = signals[:6]
+    assert every.informative.all(), "uninformative decoders would compare uniform to uniform"
     for task in range(4):
         one, one_folds = fit(tasks, task=task)
         np.testing.assert_allclose(one.proba(probe)[0], every.proba(probe)[task], atol=1e-12)
