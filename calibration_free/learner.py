@@ -421,7 +421,7 @@ class CalibrationFreeLearner(TaskLearner):
         models = self._models
         if models is not None and models.cv_by_fold is not None:
             return models.balanced_accuracy(task, label_weights)
-        _, folds = self._fit(history, task=task)
+        _, folds = self._fit(history, tasks=np.array([task]))
         assert folds is not None
         proba = in_signal_order(history.cross_validated_proba(folds), history.n_signals, 0)
         return balanced_accuracy(proba, label_weights)

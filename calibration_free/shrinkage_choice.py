@@ -73,7 +73,7 @@ def evidence_discriminability(
         NaN for every shrinkage when a class has less than ``MIN_CLASS_COUNT`` weight in
         some fold's training set (no decoder knows it) or the increments do not vary.
     """
-    statistics = history.pooled_statistics(task=task)
+    statistics = history.pooled_statistics(tasks=np.array([task]))
     if np.any(statistics.counts < MIN_CLASS_COUNT):
         return np.full(len(shrinkages), np.nan)
     if statistics.eigen is None:  # decomposed once for every shrinkage

@@ -16,6 +16,13 @@ them, the history also keeps per task, fold and class a d x d scatter (T x F x K
 numbers, updated every step), the cost the shared form avoids. The categorical decoder
 (symbolic signals) needs only the class counts and sums.
 
+Tasks whose labels agree on every signal since the last switch have the same statistics,
+so the same decoders: :attr:`TaskHistory.labellings` groups them (each new signal splits a
+group by the label it gets; a switch merges them all) and :class:`TaskModels` fits,
+cross-validates and predicts once per labelling. In feedback a move's label depends on
+which side of the agent's cell the target lies, so a few dozen labellings stand for the
+400 tasks of a 20 x 20 grid; the results are every task's, exactly as if each were fitted.
+
 A likelihood that matches the decoders' raw predictions (simple or batch matching) fits
 the whole history's decoders only (``with_folds=False``): no cross-validation.
 
@@ -80,18 +87,18 @@ class FoldSums:
         self.own[:] = own
         self.own_total[:] = own.sum(axis=0)
 
-    def total(self, task: int | None = None) -> np.ndarray:
-        """Every task's total over the folds, shape (n_tasks, *shape); or ``task``'s alone,
-        shape (1, *shape)."""
-        own_total = self.own_total if task is None else self.own_total[[task]]
+    def total(self, tasks: np.ndarray | None = None) -> np.ndarray:
+        """Every task's total over the folds, shape (n_tasks, *shape); or those of the
+        ``tasks`` (indices, (m,)) alone, shape (m, *shape)."""
+        own_total = self.own_total if tasks is None else self.own_total[tasks]
         return self.shared_total + own_total
 
-    def held_out(self, task: int | None = None) -> np.ndarray:
+    def held_out(self, tasks: np.ndarray | None = None) -> np.ndarray:
         """Every task's total without each fold, shape (n_folds, n_tasks, *shape); or
-        ``task``'s alone, shape (n_folds, 1, *shape)."""
+        those of the ``tasks`` (indices, (m,)) alone, shape (n_folds, m, *shape)."""
         own_total, own = (
-            (self.own_total, self.own) if task is None
-            else (self.own_total[[task]], self.own[:, [task]])
+            (self.own_total, self.own) if tasks is None
+            else (self.own_total[tasks], self.own[:, tasks])
         )
         return (self.shared_total - self.shared)[:, None] + (own_total - own)
 
@@ -140,6 +147,11 @@ class TaskHistory:
         self._own_weights = np.empty((n_tasks, 64, n_classes))
         self._own_frame_weights = np.empty((n_tasks, 64, n_classes)) if keeps_frame_labels else None
         self._n_shared = 0
+        # Tasks whose labels agree on every signal since the last switch share one
+        # labelling (and so one set of decoders): each task's labelling, and one task of
+        # each labelling.
+        self._labelling = np.zeros(n_tasks, dtype=np.intp)
+        self._representatives = np.zeros(1, dtype=np.intp)
         self._scatter = np.zeros((n_folds, n_features, n_features))
         self._set_scatters: np.ndarray | None = None  # cache of _training_scatters()
         self._signal_sum = np.zeros((n_folds, n_features))
@@ -177,6 +189,24 @@ class TaskHistory:
         return np.concatenate([shared, self._own_weights[:, : self._n_own]], axis=1)
 
     @property
+    def labellings(self) -> tuple[np.ndarray, np.ndarray]:
+        """The distinct labellings of the history: every task's (n_tasks,), an index into
+        the second array, which holds one task of each labelling (n_labellings,).
+
+        Tasks whose label weights agree exactly on every signal have the same statistics,
+        so the same decoders, predictions and confusion: they are fitted once. Right after
+        a target switch every task has the adopted labels (one labelling); each signal
+        splits the labellings by the label it gets."""
+        return self._labelling, self._representatives
+
+    def _split_labellings(self, *rows: np.ndarray) -> None:
+        """Split the labellings by every task's new ``rows`` (n_tasks, m) each."""
+        key = np.column_stack([self._labelling, *rows])
+        _, first, inverse = np.unique(key, axis=0, return_index=True, return_inverse=True)
+        self._labelling = inverse.reshape(-1)
+        self._representatives = first
+
+    @property
     def n_adopted(self) -> int:
         """Signals before the last target switch, whose labels every task adopted."""
         return self._n_shared
@@ -212,6 +242,7 @@ class TaskHistory:
         if self._eigen is not None:
             members = np.arange(self.n_folds + 1) != fold
             self._eigen.add(signal, members, self._training_scatters())
+        self._split_labellings(weights, *(() if frame_weights is None else (frame_weights,)))
         self._counts.add(fold, weights)
         self._sums.add(fold, weights[:, :, None] * signal)
         if self._scatters is not None:
@@ -235,6 +266,8 @@ class TaskHistory:
         for sums in (self._counts, self._sums, self._scatters):
             if sums is not None:
                 sums.adopt(task)
+        self._labelling = np.zeros(self.n_tasks, dtype=np.intp)
+        self._representatives = np.zeros(1, dtype=np.intp)
 
     def resplit_own_labels(self, proba: np.ndarray) -> None:
         """Split again every ambiguous label since the last switch by ``proba``.
@@ -283,20 +316,24 @@ class TaskHistory:
         self._sums.replace_own(sums)
         if self._scatters is not None and scatters is not None:
             self._scatters.replace_own(scatters)
+        # Tasks of one labelling get the same new weights from the same probabilities;
+        # grouped again from the weights themselves, whatever ``proba`` was.
+        self._labelling = np.zeros(self.n_tasks, dtype=np.intp)
+        self._split_labellings(weights.reshape(self.n_tasks, -1), frame.reshape(self.n_tasks, -1))
 
     def pooled_statistics(
-        self, with_folds: bool = True, task: int | None = None
+        self, with_folds: bool = True, tasks: np.ndarray | None = None
     ) -> PooledStatistics:
         """The pooled statistics of every fold's training set (all signals but that
         fold's), then of the whole history: batch shape (n_folds + 1, n_tasks); without
-        the folds, of the whole history only: batch shape (1, n_tasks). With ``task``, of
-        that task's labelling alone: a task axis of 1."""
+        the folds, of the whole history only: batch shape (1, n_tasks). With ``tasks``
+        (indices, (m,)), of those tasks' labellings alone: a task axis of m."""
 
         def training_sets(sums: FoldSums) -> np.ndarray:
-            whole = sums.total(task)[None]
+            whole = sums.total(tasks)[None]
             if not with_folds:
                 return whole
-            return np.concatenate([sums.held_out(task), whole])
+            return np.concatenate([sums.held_out(tasks), whole])
 
         def shared(per_fold: np.ndarray) -> np.ndarray:
             return self._training_sets(per_fold) if with_folds else per_fold.sum(axis=0)[None]
@@ -331,18 +368,19 @@ class TaskHistory:
         return np.concatenate([total - per_fold, total[None]])
 
     def class_statistics(
-        self, with_folds: bool = True, task: int | None = None
+        self, with_folds: bool = True, tasks: np.ndarray | None = None
     ) -> tuple[ClassStatistics, ClassStatistics | None]:
         """Per-class statistics of the whole history (n_tasks, ...) and of each fold's
-        training set (n_folds, n_tasks, ...; None without ``with_folds``); with ``task``,
-        of that task's labelling alone (a task axis of 1). Needs ``class_scatters``."""
+        training set (n_folds, n_tasks, ...; None without ``with_folds``); with ``tasks``
+        (indices, (m,)), of those tasks' labellings alone (a task axis of m). Needs
+        ``class_scatters``."""
         if self._scatters is None:
             raise RuntimeError("this history keeps no per-class scatter matrices")
         parts = (self._counts, self._sums, self._scatters)
-        whole = ClassStatistics(*(part.total(task) for part in parts))
+        whole = ClassStatistics(*(part.total(tasks) for part in parts))
         if not with_folds:
             return whole, None
-        return whole, ClassStatistics(*(part.held_out(task) for part in parts))
+        return whole, ClassStatistics(*(part.held_out(tasks) for part in parts))
 
     def class_means(self) -> np.ndarray:
         """Every task's class means on the whole history, shape (n_tasks, n_classes,
@@ -353,10 +391,13 @@ class TaskHistory:
         overall = self.signals.mean(axis=0) if self.n_signals else np.zeros(self.n_features)
         return np.where(filled[..., None], means, overall)
 
-    def label_confusion_counts(self, by_fold: np.ndarray) -> np.ndarray:
-        """``sum_i w_i(t) p_i(t)^T`` for every task: (n_tasks, K, K).
+    def label_confusion_counts(
+        self, by_fold: np.ndarray, tasks: np.ndarray | None = None
+    ) -> np.ndarray:
+        """``sum_i w_i(t) p_i(t)^T`` for every task: (n_tasks, K, K); or for the ``tasks``
+        (indices, (m,)) alone: (m, K, K).
 
-        ``by_fold`` (n_folds, per_fold, n_tasks, K): class probabilities of every signal in
+        ``by_fold`` (n_folds, per_fold, n_tasks or m, K): class probabilities of every signal in
         the layout of :meth:`cross_validated_proba` (signal ``i`` at ``[i % n_folds, i //
         n_folds]``; the padding beyond the last signal is ignored). Row ``k`` of the result
         is the predictions summed over the signals with task ``t``'s label weight
@@ -374,9 +415,8 @@ class TaskHistory:
         counts = counts.reshape(n_classes, n_tasks, n_classes).transpose(1, 0, 2)
         if self._n_own:
             predicted = signals_from(by_fold, n_shared, self.n_signals)  # (n_own, T, K)
-            counts = counts + np.einsum(
-                "tik,itl->tkl", self._own_weights[:, : self._n_own], predicted
-            )
+            own = self._own_weights if tasks is None else self._own_weights[tasks]
+            counts = counts + np.einsum("tik,itl->tkl", own[:, : self._n_own], predicted)
         return counts
 
     def cross_validated_proba(self, fold_decoders: BatchedDecoders) -> np.ndarray:
@@ -484,22 +524,21 @@ class DecoderFit:
         return self.kind == "lda" and not isinstance(shrinkage, str) and shrinkage > 0
 
     def __call__(
-        self, history: TaskHistory, with_folds: bool = True, task: int | None = None
+        self, history: TaskHistory, with_folds: bool = True, tasks: np.ndarray | None = None
     ) -> tuple[BatchedDecoders, BatchedDecoders | None]:
         """Every task's full decoder (batch (n_tasks,)) and fold decoders (batch
         (n_folds, n_tasks); None without ``with_folds``: no cross-validation fit); with
-        ``task``, that task's alone (a task axis of 1)."""
+        ``tasks`` (indices, (m,)), those tasks' alone (a task axis of m)."""
         if self.class_scatters:
-            whole, training = history.class_statistics(with_folds, task)
+            whole, training = history.class_statistics(with_folds, tasks)
             folds = self._fit_classes(training) if training is not None else None
             return self._fit_classes(whole), folds
-        statistics = history.pooled_statistics(with_folds, task)
+        statistics = history.pooled_statistics(with_folds, tasks)
         if self.kind == "categorical":
             decoders: BatchedDecoders = fit_categorical(statistics.counts, statistics.sums)
         else:
             decoders = fit_pooled_lda(statistics, self.shrinkage)
         return decoders.select(-1), decoders.select(slice(0, -1)) if with_folds else None
-
 
     def _fit_classes(self, statistics: ClassStatistics) -> BatchedDecoders:
         if self.kind == "student_t":
@@ -517,32 +556,38 @@ class TaskModels:
     """Every task's decoder on the whole history, with its cross-validated confusion
     when it was fitted with one.
 
+    Tasks that share a labelling (:attr:`TaskHistory.labellings`) share their decoders:
+    the models hold one per labelling, and every per-task result is that labelling's.
+
     Attributes
     ----------
-    decoders : BatchedDecoders, batch shape (n_tasks,)
-    confusion : ndarray, shape (n_tasks, n_classes, n_classes), or None
+    decoders : BatchedDecoders, batch shape (n_labellings,)
+    labelling : ndarray, shape (n_tasks,), int
+        Every task's labelling: its decoder is ``decoders.select(labelling[task])``.
+    confusion : ndarray, shape (n_labellings, n_classes, n_classes), or None
         ``p(true label i | predicted j)`` from k-fold cross-validation; None when fitted
         without cross-validation.
-    cv_by_fold : ndarray, shape (n_folds, per_fold, n_tasks, n_classes), or None
+    cv_by_fold : ndarray, shape (n_folds, per_fold, n_labellings, n_classes), or None
         The out-of-fold class probabilities the confusion matrices were built from, in
-        the layout of :meth:`TaskHistory.cross_validated_proba` (:attr:`cv_proba` in
-        signal order).
+        the layout of :meth:`TaskHistory.cross_validated_proba` (:attr:`cv_proba`: every
+        task's, in signal order).
     n_signals : int
         Signals the models were fitted on.
     """
 
     decoders: BatchedDecoders
+    labelling: np.ndarray
     confusion: np.ndarray | None = None
     cv_by_fold: np.ndarray | None = None
     n_signals: int = 0
 
     @property
     def cv_proba(self) -> np.ndarray | None:
-        """Out-of-fold class probabilities, (n_tasks, n_signals, n_classes) (a copy), or
-        None without cross-validation."""
+        """Every task's out-of-fold class probabilities, (n_tasks, n_signals, n_classes)
+        (a copy), or None without cross-validation."""
         if self.cv_by_fold is None:
             return None
-        return in_signal_order(self.cv_by_fold, self.n_signals)
+        return in_signal_order(self.cv_by_fold, self.n_signals)[self.labelling]
 
     @classmethod
     def fit(
@@ -553,14 +598,15 @@ class TaskModels:
         balanced: bool = True,
         cross_validate: bool = True,
     ) -> TaskModels:
-        """Fit all tasks' decoders and (with ``cross_validate``) their k-fold confusion
-        matrices on ``history``.
+        """Fit every labelling's decoders and (with ``cross_validate``) their k-fold
+        confusion matrices on ``history``.
 
         ``smoothing`` and ``balanced``: see :func:`~calibration_free.likelihood.confusion_matrices`.
         """
-        decoders, fold_decoders = fit(history, with_folds=cross_validate)
+        labelling, representatives = history.labellings
+        decoders, fold_decoders = fit(history, cross_validate, representatives)
         if fold_decoders is None:
-            return cls(decoders=decoders)
+            return cls(decoders, labelling)
         return cls.cross_validated(history, decoders, fold_decoders, smoothing, balanced)
 
     @classmethod
@@ -572,26 +618,27 @@ class TaskModels:
         smoothing: float,
         balanced: bool = True,
     ) -> TaskModels:
-        """The models of fitted ``decoders`` (batch (n_tasks,)) with the confusion of
-        their ``fold_decoders`` (batch (n_folds, n_tasks)) on ``history``."""
+        """The models of the history's labellings' fitted ``decoders`` (batch
+        (n_labellings,)) with the confusion of their ``fold_decoders`` (batch (n_folds,
+        n_labellings))."""
+        labelling, representatives = history.labellings
         by_fold = history.cross_validated_proba(fold_decoders)
-        confusion = confusion_matrices(
-            history.label_confusion_counts(by_fold), decoders.present, smoothing, balanced
-        )
-        return cls(decoders, confusion, by_fold, history.n_signals)
+        counts = history.label_confusion_counts(by_fold, representatives)
+        confusion = confusion_matrices(counts, decoders.present, smoothing, balanced)
+        return cls(decoders, labelling, confusion, by_fold, history.n_signals)
 
     def balanced_accuracy(self, task: int, label_weights: np.ndarray) -> float | None:
         """Cross-validated balanced accuracy of ``task``'s decoder
         (:func:`balanced_accuracy`)."""
         if self.cv_by_fold is None:
             raise RuntimeError("these models were fitted without cross-validation")
-        return balanced_accuracy(in_signal_order(self.cv_by_fold, self.n_signals, task),
-                                 label_weights)
+        proba = in_signal_order(self.cv_by_fold, self.n_signals, int(self.labelling[task]))
+        return balanced_accuracy(proba, label_weights)
 
     @property
     def informative(self) -> np.ndarray:
         """Tasks whose decoder has enough data in every class, shape (n_tasks,), bool."""
-        return self.decoders.informative
+        return self.decoders.informative[self.labelling]
 
     def corrected_proba(self, signals: np.ndarray) -> np.ndarray:
         """``q = C p`` for signals (n, d): (n_tasks, n, K); needs the confusion.
@@ -604,14 +651,12 @@ class TaskModels:
         """
         if self.confusion is None:
             raise RuntimeError("these models were fitted without cross-validation")
-        return self._share_unknown_classes(
-            corrected_proba(self.confusion, self.decoders.proba(signals))
-        )
+        return self._per_task(corrected_proba(self.confusion, self.decoders.proba(signals)))
 
     def proba(self, signals: np.ndarray) -> np.ndarray:
         """The decoders' own class probabilities ``p`` of signals (n, d): (n_tasks, n, K),
         with unknown classes treated as in :meth:`corrected_proba`."""
-        return self._share_unknown_classes(self.decoders.proba(signals))
+        return self._per_task(self.decoders.proba(signals))
 
     def held_out_proba(self, first: int = 0) -> np.ndarray:
         """Every task's out-of-fold class probabilities of the signals it was fitted on
@@ -620,10 +665,12 @@ class TaskModels:
         if self.cv_by_fold is None:
             raise RuntimeError("these models were fitted without cross-validation")
         rows = signals_from(self.cv_by_fold, first, self.n_signals)
-        return self._share_unknown_classes(rows.swapaxes(0, 1))
+        return self._per_task(rows.swapaxes(0, 1))
 
-    def _share_unknown_classes(self, q: np.ndarray) -> np.ndarray:
+    def _per_task(self, q: np.ndarray) -> np.ndarray:
+        """Every labelling's probabilities ``q`` (n_labellings, n, K) as every task's
+        (n_tasks, n, K), unknown classes treated as in :meth:`corrected_proba`."""
         n_classes = q.shape[-1]
-        known = self.decoders.present & self.informative[:, None]
+        known = self.decoders.present & self.decoders.informative[:, None]
         share = known.sum(axis=1)[:, None, None] / n_classes
-        return np.where(known[:, None, :], q * share, 1.0 / n_classes)
+        return np.where(known[:, None, :], q * share, 1.0 / n_classes)[self.labelling]

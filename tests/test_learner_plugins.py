@@ -91,9 +91,10 @@ def test_simple_matching_commits_wrongly_where_matching_learns_nothing():
         expected = frame.distribution_at(state, action)
         if step >= 12:
             assert np.all(history.label_weights.sum(axis=1) > 0)  # both classes, every task
+            n_labellings = len(history.labellings[1])
             models = TaskModels.cross_validated(
-                history, FirstClassDecoders((GRID.n_tasks,)),
-                FirstClassDecoders((history.n_folds, GRID.n_tasks)), smoothing=0.0,
+                history, FirstClassDecoders((n_labellings,)),
+                FirstClassDecoders((history.n_folds, n_labellings)), smoothing=0.0,
             )
             signal = rng.normal(size=(1, 3))
             np.testing.assert_allclose(models.confusion[:, :, 0], 0.5)

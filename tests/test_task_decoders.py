@@ -19,7 +19,7 @@ from reference import (
 
 from calibration_free.config import LearnerConfig
 from calibration_free.learner import CalibrationFreeLearner
-from calibration_free.likelihood import match
+from calibration_free.likelihood import confusion_matrices, corrected_proba, match
 from calibration_free.task_decoders import TaskHistory, TaskModels, decoder_fit
 from calibration_free.world import GridWorld
 from decoding.lda import ShrinkageLDA
@@ -101,7 +101,10 @@ def test_soft_and_unlabelled_weights_equal_the_weighted_numpy_reference(
     for task in range(n_tasks):
         full = weighted_lda_log_proba(signals, weights[task], shrinkage, new)
         np.testing.assert_allclose(
-            np.exp(models.decoders.log_proba(new)[task]), np.exp(full), rtol=0, atol=1e-10
+            np.exp(models.decoders.log_proba(new)[models.labelling[task]]),
+            np.exp(full),
+            rtol=0,
+            atol=1e-10,
         )
         cv = weighted_cross_validated_proba(signals, weights[task], shrinkage)
         np.testing.assert_allclose(models.cv_proba[task], cv, rtol=0, atol=1e-10)
@@ -125,7 +128,9 @@ def test_unlabelled_signals_widen_the_covariance_but_train_no_class():
     models = TaskModels.fit(history_of(signals, weights), decoder_fit("lda", 0.5), 1.0)
     probe = rng.normal(size=(4, 3))
     with_rest = weighted_lda_log_proba(signals, weights[0], 0.5, probe)
-    np.testing.assert_allclose(models.decoders.log_proba(probe)[0], with_rest, atol=1e-10)
+    np.testing.assert_allclose(
+        models.decoders.log_proba(probe)[models.labelling[0]], with_rest, atol=1e-10
+    )
     # ... which is not the decoder of the labelled signals alone: the rest counts.
     alone = weighted_lda_log_proba(labelled, weights[0, :40], 0.5, probe)
     assert np.abs(with_rest - alone).max() > 1e-3
@@ -230,7 +235,7 @@ def test_fits_without_folds_equal_the_whole_history_decoders(decoder):
     with pytest.raises(RuntimeError, match="without cross-validation"):
         alone.corrected_proba(signals[:2])
     validated = TaskModels.fit(history, fit, 1.0)
-    assert alone.decoders.informative.all()
+    assert alone.informative.all()
     np.testing.assert_allclose(alone.proba(signals), validated.proba(signals), atol=1e-12)
 
 
@@ -324,7 +329,9 @@ def test_oas_lda_equals_sklearn_lda_at_each_training_sets_oas_intensity(seed, n_
         intensity = _oas_intensity(signals, y, n_classes)
         intensities.append(intensity)
         expected = lda(intensity).fit(signals, y).predict_proba(probe)
-        np.testing.assert_allclose(models.decoders.proba(probe)[task], expected, atol=1e-10)
+        np.testing.assert_allclose(
+            models.decoders.proba(probe)[models.labelling[task]], expected, atol=1e-10
+        )
         for f in (0, 3, 9):
             train = fold != f
             held_out = lda(_oas_intensity(signals[train], y[train], n_classes)).fit(
@@ -357,7 +364,9 @@ def test_without_shrinkage_and_fewer_signals_than_features_lda_is_sklearns_least
     fold = np.arange(len(signals)) % 10
     for task, y in enumerate(labels):
         expected = lda(0.0).fit(signals, y).predict_proba(probe)
-        np.testing.assert_allclose(models.decoders.proba(probe)[task], expected, atol=1e-8)
+        np.testing.assert_allclose(
+            models.decoders.proba(probe)[models.labelling[task]], expected, atol=1e-8
+        )
         train = fold != 0  # balanced labels: every class keeps at least 2 signals
         assert np.all(np.bincount(y[train], minlength=n_classes) >= 2)
         held_out = lda(0.0).fit(signals[train], y[train])
@@ -462,7 +471,7 @@ def test_one_tasks_pooled_statistics_equal_its_slice_of_every_tasks() -> None:
     for with_folds in (True, False):
         every = tasks.pooled_statistics(with_folds)
         for task in range(4):
-            one = tasks.pooled_statistics(with_folds, task=task)
+            one = tasks.pooled_statistics(with_folds, tasks=np.array([task]))
             np.testing.assert_array_equal(one.counts, every.counts[:, [task]])
             np.testing.assert_array_equal(one.sums, every.sums[:, [task]])
             np.testing.assert_array_equal(one.scatter, every.scatter)
@@ -490,8 +499,93 @@ def test_one_task_fit_equals_that_task_in_the_batch(decoder, history_options):
     probe = signals[:6]
     assert every.informative.all(), "uninformative decoders would compare uniform to uniform"
     for task in range(4):
-        one, one_folds = fit(tasks, task=task)
+        one, one_folds = fit(tasks, tasks=np.array([task]))
         np.testing.assert_allclose(one.proba(probe)[0], every.proba(probe)[task], atol=1e-12)
         np.testing.assert_allclose(
             tasks.cross_validated_proba(one_folds)[:, :, 0], every_proba[:, :, task], atol=1e-12
         )
+
+
+def _grouped_weights(rng, n_signals, n_classes, groups):
+    """Soft labels where the tasks of each group (a list of task counts) agree exactly:
+    (n_tasks, n_signals, n_classes)."""
+    distinct = soft_weights(rng, len(groups), n_signals, n_classes)
+    return np.repeat(distinct, groups, axis=0)
+
+
+def test_tasks_with_the_same_labels_since_the_switch_share_one_labelling():
+    rng = np.random.default_rng(21)
+    signals = rng.normal(size=(50, 4))
+    weights = _grouped_weights(rng, 50, 3, [2, 3, 1])  # tasks 0-1, 2-4, 5
+    weights[4, 45:] = weights[5, 45:]  # task 4 leaves its group at signal 45
+    tasks = TaskHistory(6, 3, 4)
+    assert len(tasks.labellings[1]) == 1  # no signal yet: every task alike
+    for i in range(45):
+        tasks.add(signals[i], weights[:, i])
+    labelling, representatives = tasks.labellings
+    assert len(representatives) == 3
+    assert len(set(labelling[:2])) == 1 and len(set(labelling[2:5])) == 1
+    assert len(set(labelling[[0, 2, 5]])) == 3
+    np.testing.assert_array_equal(labelling[representatives], np.arange(3))
+    for i in range(45, 50):
+        tasks.add(signals[i], weights[:, i])
+    labelling, representatives = tasks.labellings
+    assert len(representatives) == 4 and labelling[4] not in labelling[[0, 2, 5]]
+    tasks.relabel(3)  # every task adopts task 3's labels: one labelling again
+    assert tasks.labellings[0].tolist() == [0] * 6 and tasks.labellings[1].tolist() == [0]
+
+
+@pytest.mark.parametrize(
+    ("decoder", "history_options"),
+    [("lda", {}), ("lda", {"eigen_period": 3}), ("student_t", {"class_scatters": True}),
+     ("categorical", {})],
+)
+def test_models_of_shared_labellings_equal_every_task_fitted_on_its_own(
+    decoder, history_options
+):
+    """The models fit one decoder per labelling; fitting every task's labels (the same
+    labels repeated) must give every task the same decoders, predictions and confusion."""
+    rng = np.random.default_rng(22)
+    signals = rng.normal(size=(70, 5)) + 0.6 * rng.integers(0, 2, size=(70, 1))
+    if decoder == "categorical":
+        signals = np.eye(5)[rng.integers(0, 5, size=70)]
+    weights = _grouped_weights(rng, 70, 2, [3, 1, 2, 2])
+    tasks = history_of(signals[:40], weights[:, :40], **history_options)
+    tasks.relabel(4)  # a shared part, then own parts that group the tasks
+    for i in range(40, 70):
+        tasks.add(signals[i], weights[:, i])
+    fit = decoder_fit(decoder, 0.4)
+    models = TaskModels.fit(tasks, fit, smoothing=1.0)
+    assert len(models.labelling) == 8 and models.decoders.present.shape[0] == 4
+    every = np.arange(8)
+    decoders, folds = fit(tasks, tasks=every)
+    by_fold = tasks.cross_validated_proba(folds)
+    confusion = confusion_matrices(
+        tasks.label_confusion_counts(by_fold, every), decoders.present, 1.0, True
+    )
+    corrected = corrected_proba(confusion, decoders.proba(probe := signals[:7]))
+    assert decoders.informative.all(), "uninformative decoders would compare uniform to uniform"
+    for task in range(8):
+        own = models.labelling[task]
+        np.testing.assert_allclose(
+            models.decoders.proba(probe)[own], decoders.proba(probe)[task], atol=1e-12
+        )
+        np.testing.assert_allclose(models.cv_by_fold[:, :, own], by_fold[:, :, task], atol=1e-12)
+        np.testing.assert_allclose(models.confusion[own], confusion[task], atol=1e-12)
+        np.testing.assert_allclose(models.corrected_proba(probe)[task], corrected[task], atol=1e-12)
+
+
+def test_splitting_labels_again_regroups_the_tasks_by_their_new_labels():
+    """Probabilities that differ within a labelling split it; the labelling follows the
+    weights, not the probabilities' provenance."""
+    frame = np.array([[0.5, 0.5, 0.0], [1.0, 0.0, 0.0]])  # ambiguous, then a plain label
+    tasks = TaskHistory(3, 3, 2, keeps_frame_labels=True)
+    for x in np.eye(2):
+        tasks.add(x, np.repeat(frame[None, 0], 3, axis=0))
+    assert len(tasks.labellings[1]) == 1
+    proba = np.full((3, 2, 3), 1 / 3)
+    proba[2, :, 0] = 0.6  # task 2's probabilities differ: its split too
+    proba[2, :, 1:] = 0.2
+    tasks.resplit_own_labels(proba)
+    labelling, representatives = tasks.labellings
+    assert len(representatives) == 2 and labelling[0] == labelling[1] != labelling[2]

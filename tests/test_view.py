@@ -353,6 +353,17 @@ def test_subject_view_shows_the_grid_and_the_agent_only(
     _check_png(screenshot)
 
 
+def _pick(browser: webdriver.Chrome, picker: Select, session: str, other: str) -> None:
+    """Pick ``session`` in the drop-down, as an operator would, and wait until the page has
+    pinned it. Picking the option already shown fires no change (the page may be showing
+    ``session`` by itself, as the newest running one), so ``other`` is picked first."""
+    picker.select_by_value(other)
+    picker.select_by_value(session)
+    WebDriverWait(browser, TIMEOUT, poll_frequency=0.05).until(
+        lambda driver: driver.current_url.endswith(f"?session={session}")
+    )
+
+
 def test_session_picker_switches_between_running_sessions(
     view: tuple[str, str], browser: webdriver.Chrome, service: str,
     sources: ProcessPoolExecutor,
@@ -374,9 +385,9 @@ def test_session_picker_switches_between_running_sessions(
                 "return [...document.getElementById('picker').options].map(o => o.value)"
             ))
         )
-        picker.select_by_value("pick-b")
+        _pick(browser, picker, "pick-b", "pick-a")
         final_b = _wait(browser, _ended("pick-b", 25), "the end of pick-b")
-        picker.select_by_value("pick-a")
+        _pick(browser, picker, "pick-a", "pick-b")
         final_a = _wait(browser, _ended("pick-a", 40), "the end of pick-a")
         for future in futures:
             future.result()  # the source's own timeout guards it

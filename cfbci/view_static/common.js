@@ -56,15 +56,21 @@ const cfbci = (() => {
       follow(id) {
         if (id && id !== wanted) { wanted = id; model = null; send(); }
       },
+      /** The session followed now, or null. */
+      get following() { return wanted; },
     };
   }
 
-  /** The session to show: the pinned one, else the newest running, else the newest. */
-  function choose(sessions, pinned) {
+  /**
+   * The session to show: the pinned one, else the newest running, else the one shown now
+   * (a session that has just ended stays in view), else the newest.
+   */
+  function choose(sessions, pinned, shown) {
     if (pinned) return pinned;
     const running = sessions.filter((s) => s.status === "running");
-    const pool = running.length ? running : sessions;
-    return pool.length ? pool[pool.length - 1].session : null;
+    if (running.length) return running[running.length - 1].session;
+    if (shown && sessions.some((s) => s.session === shown)) return shown;
+    return sessions.length ? sessions[sessions.length - 1].session : null;
   }
 
   // Viridis (perceptually uniform, colour-blind safe), 9 control points.

@@ -2,7 +2,7 @@
 // The operator view: the world with the belief heat map, the ranked hypotheses, the best
 // task's confidence against the threshold, targets reached, the decoder's balanced accuracy,
 // the update latency and the session's events. /?session=ID follows ID; without it, the
-// newest running session (until one is picked).
+// newest running session (until one is picked; once none runs, the one shown stays).
 (() => {
   const $ = (id) => document.getElementById(id);
   const view = $("view");
@@ -22,7 +22,7 @@
     },
     sessions(list) {
       // Options are updated in place, so that an open drop-down stays open.
-      const chosen = cfbci.choose(list, pinned);
+      const chosen = cfbci.choose(list, pinned, link.following);
       const wanted = list.map((s) => [s.session, `${s.session} (${s.status})`]);
       if (chosen && !list.some((s) => s.session === chosen)) wanted.push([chosen, chosen]);
       wanted.forEach(([value, text], i) => {

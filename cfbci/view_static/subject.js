@@ -17,7 +17,7 @@
   };
   const link = cfbci.connect({
     link(up) { if (!up) message.textContent = "connection lost, reconnecting…"; },
-    sessions(list) { link.follow(cfbci.choose(list, pinned)); },
+    sessions(list) { link.follow(cfbci.choose(list, pinned, link.following)); },
     session(m) { model = m; if (!frame) frame = requestAnimationFrame(render); },
   });
   link.follow(pinned);
