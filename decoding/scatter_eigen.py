@@ -45,12 +45,20 @@ class ScatterEigen:
         return ScatterEigen(self.basis[index], self.eigenvalues[index], self.pending[index])
 
 
+#: Distinct labellings the tasks form between two targets, per square root of the number
+#: of tasks (tasks that agree on every label share their decoders): on average 11.7 of 25
+#: and 47 of 400 in feedback sessions on 5 x 5 and 20 x 20 grids (synthetic data, seed 0).
+LABELLINGS_PER_ROOT_TASK = 2.4
+
+
 def refresh_period(n_tasks: int, n_features: int) -> int:
     """Signals between two decompositions of one set: the d^3 eigendecomposition against
-    the pending signals' cost, which grows with the tasks (each solves an (r + K)-sized
-    system per set). About ``d / sqrt(4 T)`` signals, at least 1 (every set at every step)
-    and at most 8."""
-    return int(np.clip(n_features / np.sqrt(4.0 * n_tasks), 1, 8))
+    the pending signals' cost, which grows with the decoders fitted, one per distinct
+    labelling (each solves an (r + K)-sized system per set), about ``L = 2.4 sqrt(T)`` of
+    them (:data:`LABELLINGS_PER_ROOT_TASK`, at most T). About ``d / sqrt(4 L)`` signals, at
+    least 1 (every set at every step) and at most 8."""
+    labellings = min(n_tasks, LABELLINGS_PER_ROOT_TASK * np.sqrt(n_tasks))
+    return int(np.clip(n_features / np.sqrt(4.0 * labellings), 1, 8))
 
 
 class RollingScatterEigen:

@@ -48,8 +48,10 @@ def test_the_decompositions_follow_the_signals_not_the_reads():
 
 
 def test_the_period_shrinks_as_the_tasks_grow():
-    assert refresh_period(25, 57) == 5
-    assert refresh_period(400, 57) == 1
+    assert refresh_period(25, 57) == 8
+    assert refresh_period(400, 57) == 4
+    assert refresh_period(2500, 57) == 2
+    assert refresh_period(2500, 20) == 1
     assert refresh_period(1, 200) == 8
     with pytest.raises(ValueError, match="period must be >= 1"):
         RollingScatterEigen(2, 3, 0)
