@@ -14,7 +14,7 @@ task once confident.
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 
 import numpy as np
@@ -32,6 +32,9 @@ DEFAULT_DISCOUNT = 0.9
 DEFAULT_EPSILON = 0.1
 #: Indicator elements the uncertainty planner builds at a time (bounds its temporaries).
 _CHUNK_ELEMENTS = 1 << 22
+#: Bytes of row indicators the uncertainty planner keeps from one step to the next: built
+#: once when they fit (6.4 MB at 20 x 20 in feedback), else chunk by chunk at every step.
+_KEPT_INDICATOR_BYTES = 64 << 20
 
 
 def random_action(world: World, rng: np.random.Generator) -> int:
@@ -174,8 +177,9 @@ class UncertaintyPlanner(RewardPlanner):
     so ``m_t(s, a, e) = M[t, e, r]`` with ``M = q D^T`` and ``r`` the row of (t, s, a).
     Both moments over tasks are then sums over the rows of ``(weights x M)`` times the
     indicator of row ``r`` (T x columns): per step ``(n_rows - 1)`` products of an
-    ``(n_signals + 1, T)`` matrix with an indicator built chunk by chunk from the frame's
-    uint8 row table, nothing precomputed; exactly the old formula up to rounding. Where the
+    ``(n_signals + 1, T)`` matrix with an indicator of the frame's uint8 row table, kept
+    from step to step where it is small (up to 64 MB: 6.4 MB at 20 x 20) and built chunk by
+    chunk at every step otherwise; exactly the old formula up to rounding. Where the
     frame's labels do not depend on the action (guidance) the columns are states, not
     (state, action) pairs.
 
@@ -186,6 +190,10 @@ class UncertaintyPlanner(RewardPlanner):
     discount : float, default 0.9
         Discount of the value iteration.
     """
+
+    def __init__(self, frame: Frame, discount: float = DEFAULT_DISCOUNT) -> None:
+        super().__init__(frame, discount)
+        self._kept_indicators: list[tuple[int, int, list[np.ndarray]]] | None = None
 
     def reward(self, inputs: PlanningInputs) -> np.ndarray | None:
         predicted = inputs.predicted_samples()
@@ -218,15 +226,36 @@ class UncertaintyPlanner(RewardPlanner):
             (moments[:, :, 1:] - moments[:, :, :1]).transpose(2, 1, 0)
         )
         reward = np.empty(columns.shape[1])
-        chunk = max(1, _CHUNK_ELEMENTS // n_tasks)
-        for start in range(0, columns.shape[1], chunk):
-            block = columns[:, start : start + chunk]
-            totals = np.repeat(base[:, None], block.shape[1], axis=1)
-            for row, offset in enumerate(offsets, start=1):
-                totals += offset @ (block == row).astype(float)
-            reward[start : start + chunk] = self._combine(totals[:-1], totals[-1])
+        for start, stop, indicators in self._row_indicators(columns, len(offsets) + 1):
+            totals = np.repeat(base[:, None], stop - start, axis=1)
+            for offset, indicator in zip(offsets, indicators, strict=True):
+                totals += offset @ indicator
+            reward[start:stop] = self._combine(totals[:-1], totals[-1])
         reward = np.maximum(reward, 0.0).reshape(n_states, n_kinds)
         return np.broadcast_to(reward, (n_states, self.world.n_actions)).copy()
+
+    def _row_indicators(
+        self, columns: np.ndarray, n_rows: int
+    ) -> Iterable[tuple[int, int, list[np.ndarray]]]:
+        """Chunks of the columns of the frame's row table ``columns`` (T, C): ``(start,
+        stop, [float indicator (T, stop - start) of row r, for r = 1 .. n_rows - 1])``. The
+        table never changes: the indicators are kept if they fit in
+        :data:`_KEPT_INDICATOR_BYTES`, else built again at each call, a chunk at a time."""
+        if self._kept_indicators is not None:
+            return self._kept_indicators
+        n_tasks, n_columns = columns.shape
+        chunk = max(1, _CHUNK_ELEMENTS // n_tasks)
+        chunks = (
+            (start, min(start + chunk, n_columns), [
+                (columns[:, start : start + chunk] == row).astype(float)
+                for row in range(1, n_rows)
+            ])
+            for start in range(0, n_columns, chunk)
+        )
+        if columns.size * (n_rows - 1) * 8 > _KEPT_INDICATOR_BYTES:
+            return chunks
+        self._kept_indicators = list(chunks)
+        return self._kept_indicators
 
     @staticmethod
     def _task_terms(matches: np.ndarray, task_weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -53,6 +53,30 @@ def test_rewards_equal_the_old_formula(world, kind, seed):
     np.testing.assert_allclose(rewards, expected, rtol=1e-9, atol=1e-13)
 
 
+@pytest.mark.parametrize("kind", ["feedback", "guidance"])
+def test_rewards_are_the_same_with_indicators_kept_or_built_in_chunks(kind, monkeypatch):
+    """Small tables keep their row indicators between steps; large ones build them a chunk
+    at a time at every step. Both give the old formula's rewards, step after step."""
+    import calibration_free.planning as planning
+
+    rng = np.random.default_rng(3)
+    frame = Frame(GridWorld(5), kind, eps=0.1)
+    steps = [
+        (rng.dirichlet(np.ones(frame.n_classes), size=(25, 20)), rng.dirichlet(np.full(25, 0.3)))
+        for _ in range(3)
+    ]
+    kept, chunked = UncertaintyPlanner(frame), UncertaintyPlanner(frame)
+    from_kept = [kept.rewards(*step) for step in steps]
+    monkeypatch.setattr(planning, "_KEPT_INDICATOR_BYTES", 0)
+    monkeypatch.setattr(planning, "_CHUNK_ELEMENTS", 25 * 7)  # chunks of 7 columns
+    from_chunks = [chunked.rewards(*step) for step in steps]
+    assert kept._kept_indicators is not None and chunked._kept_indicators is None
+    for (corrected, weights), one, other in zip(steps, from_kept, from_chunks, strict=True):
+        expected = reference_rewards(frame.label_distribution, corrected, weights)
+        np.testing.assert_allclose(one, expected, rtol=1e-9, atol=1e-13)
+        np.testing.assert_allclose(other, expected, rtol=1e-9, atol=1e-13)
+
+
 def reference_information(
     label_distribution: np.ndarray, corrected: np.ndarray, task_weights: np.ndarray
 ) -> np.ndarray:
