@@ -150,8 +150,7 @@ class TaskHistory:
         # Tasks whose labels agree on every signal since the last switch share one
         # labelling (and so one set of decoders): each task's labelling, and one task of
         # each labelling.
-        self._labelling = np.zeros(n_tasks, dtype=np.intp)
-        self._representatives = np.zeros(1, dtype=np.intp)
+        self._labelling, self._representatives = _one_labelling(n_tasks)
         self._scatter = np.zeros((n_folds, n_features, n_features))
         self._set_scatters: np.ndarray | None = None  # cache of _training_scatters()
         self._signal_sum = np.zeros((n_folds, n_features))
@@ -266,8 +265,7 @@ class TaskHistory:
         for sums in (self._counts, self._sums, self._scatters):
             if sums is not None:
                 sums.adopt(task)
-        self._labelling = np.zeros(self.n_tasks, dtype=np.intp)
-        self._representatives = np.zeros(1, dtype=np.intp)
+        self._labelling, self._representatives = _one_labelling(self.n_tasks)
 
     def resplit_own_labels(self, proba: np.ndarray) -> None:
         """Split again every ambiguous label since the last switch by ``proba``.
@@ -318,7 +316,7 @@ class TaskHistory:
             self._scatters.replace_own(scatters)
         # Tasks of one labelling get the same new weights from the same probabilities;
         # grouped again from the weights themselves, whatever ``proba`` was.
-        self._labelling = np.zeros(self.n_tasks, dtype=np.intp)
+        self._labelling, self._representatives = _one_labelling(self.n_tasks)
         self._split_labellings(weights.reshape(self.n_tasks, -1), frame.reshape(self.n_tasks, -1))
 
     def pooled_statistics(
@@ -437,6 +435,11 @@ class TaskHistory:
         )
         proba = fold_decoders.proba(by_fold[:, None])  # (n_folds, T, per_fold, K)
         return proba.swapaxes(1, 2)  # a view of the decoders' (n_folds, per_fold, T, K)
+
+
+def _one_labelling(n_tasks: int) -> tuple[np.ndarray, np.ndarray]:
+    """Every task in labelling 0, task 0 standing for it (see :attr:`TaskHistory.labellings`)."""
+    return np.zeros(n_tasks, dtype=np.intp), np.zeros(1, dtype=np.intp)
 
 
 def _doubled(rows: np.ndarray) -> np.ndarray:
