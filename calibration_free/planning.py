@@ -34,7 +34,7 @@ DEFAULT_EPSILON = 0.1
 _CHUNK_ELEMENTS = 1 << 22
 #: Bytes of row indicators the uncertainty planner keeps from one step to the next: built
 #: once when they fit (6.4 MB at 20 x 20 in feedback), else chunk by chunk at every step.
-_KEPT_INDICATOR_BYTES = 64 << 20
+KEPT_INDICATOR_BYTES = 64 << 20
 
 
 def random_action(world: World, rng: np.random.Generator) -> int:
@@ -240,7 +240,7 @@ class UncertaintyPlanner(RewardPlanner):
         """Chunks of the columns of the frame's row table ``columns`` (T, C): ``(start,
         stop, [float indicator (T, stop - start) of row r, for r = 1 .. n_rows - 1])``. The
         table never changes: the indicators are kept if they fit in
-        :data:`_KEPT_INDICATOR_BYTES`, else built again at each call, a chunk at a time."""
+        :data:`KEPT_INDICATOR_BYTES`, else built again at each call, a chunk at a time."""
         if self._kept_indicators is not None:
             return self._kept_indicators
         n_tasks, n_columns = columns.shape
@@ -252,7 +252,7 @@ class UncertaintyPlanner(RewardPlanner):
             ])
             for start in range(0, n_columns, chunk)
         )
-        if columns.size * (n_rows - 1) * 8 > _KEPT_INDICATOR_BYTES:
+        if columns.size * (n_rows - 1) * 8 > KEPT_INDICATOR_BYTES:
             return chunks
         self._kept_indicators = list(chunks)
         return self._kept_indicators

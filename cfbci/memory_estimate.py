@@ -42,7 +42,12 @@ u = T K d, u' = T K' d, v = T K d² and w = T K n d:
   the precision);
 * planning: the whole history's decoders and out-of-fold predictions, the uncertainty or
   signal planner's indicator chunk (T x min(S A or S, 2^22 / T) columns: 9 bytes each)
-  and its value iteration.
+  and its value iteration. The uncertainty and information planners keep their row
+  indicators from the first step on where they fit in
+  :data:`~calibration_free.planning.KEPT_INDICATOR_BYTES` (T x columns floats for each
+  label row but the first: 1 in feedback; in guidance, whose rows are not known before
+  the tables are built, as many of the 2^K - 1 possible as would fit): counted with the
+  resident tables.
 
 ``python tools/session_memory.py`` measures sessions against this estimate (peak
 resident growth in a fresh process, :mod:`cfbci.memory_probe`).
@@ -54,6 +59,7 @@ from dataclasses import dataclass
 
 from calibration_free.config import LearnerConfig
 from calibration_free.frames import Frame
+from calibration_free.planning import KEPT_INDICATOR_BYTES
 from calibration_free.world import GridWorld, World
 
 _FLOAT = 8
@@ -194,6 +200,10 @@ def estimate(world: World, learner: LearnerConfig, steps: int, n_features: int) 
 
     columns = states * (1 if guidance else actions)
     chunk = min(columns, max(1, _CHUNK_ELEMENTS // tasks))
+    if learner.planner in ("uncertainty", "information"):  # kept from step to step
+        row_bytes = _FLOAT * tasks * columns
+        kept_rows = min(1 if not guidance else 2**classes - 1, KEPT_INDICATOR_BYTES // row_bytes)
+        world_tables += kept_rows * row_bytes
     if learner.planner in ("uncertainty", "information", "signal"):
         signals = learner.n_planning_signals
         planner = (

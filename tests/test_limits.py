@@ -9,13 +9,16 @@ import queue
 from collections.abc import Callable
 from pathlib import Path
 
+import numpy as np
 import pytest
 import zenoh
 from live import SPAWN, TIMEOUT
 
 from calibration_free.config import LearnerConfig
+from calibration_free.learner import CalibrationFreeLearner
 from calibration_free.world import GridWorld
 from calibration_free.worlds import make_world
+from cfbci import memory_estimate
 from cfbci.limits import ServiceLimits, add_options, from_args, world_memory_bytes
 from cfbci.memory_probe import MemoryCase, measure
 from cfbci.service import serve, unfinished
@@ -76,6 +79,29 @@ def test_the_memory_estimate_grows_with_world_steps_features_classes_and_decoder
     assert estimate(decoder="gaussian", d=4) < estimate(decoder="gaussian", d=8)
     assert estimate(likelihood="bhattacharyya") > 3 * base  # keeps per-class scatters too
     assert estimate(d=0) < base  # at the config: no feature term yet
+
+
+def test_the_memory_estimate_counts_the_row_indicators_the_planner_keeps() -> None:
+    """On a 20 x 20 grid in feedback the information planner keeps one float per task and
+    state-action between steps (6.4 MB): the estimate's resident tables count exactly what
+    a learner holds; on 50 x 50 the indicators (250 MB) exceed the budget and are not kept."""
+    def tables(world: GridWorld, planner: str) -> int:
+        return memory_estimate.estimate(world, LearnerConfig(planner=planner), 100, 8).world_tables
+
+    world = GridWorld(20)
+    learner = CalibrationFreeLearner(world, LearnerConfig(), rng=0)
+    rng = np.random.default_rng(0)
+    state = 0
+    for _ in range(15):  # past the random warm-up: the planner runs
+        action = learner.propose(state).action
+        learner.observe(state, action, rng.normal(size=8) + (action == 0))
+        state = world.step(state, action)
+    learner.propose(state)
+    kept = learner._planner._kept_indicators
+    assert kept is not None
+    held = sum(indicator.nbytes for _, _, indicators in kept for indicator in indicators)
+    assert held == tables(world, "information") - tables(world, "random") == 8 * 400 * 2000
+    assert tables(GridWorld(50), "information") == tables(GridWorld(50), "random")
 
 
 #: Small real sessions, measured in a fresh process each (peak resident growth, the

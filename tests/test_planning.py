@@ -67,7 +67,7 @@ def test_rewards_are_the_same_with_indicators_kept_or_built_in_chunks(kind, monk
     ]
     kept, chunked = UncertaintyPlanner(frame), UncertaintyPlanner(frame)
     from_kept = [kept.rewards(*step) for step in steps]
-    monkeypatch.setattr(planning, "_KEPT_INDICATOR_BYTES", 0)
+    monkeypatch.setattr(planning, "KEPT_INDICATOR_BYTES", 0)
     monkeypatch.setattr(planning, "_CHUNK_ELEMENTS", 25 * 7)  # chunks of 7 columns
     from_chunks = [chunked.rewards(*step) for step in steps]
     assert kept._kept_indicators is not None and chunked._kept_indicators is None
