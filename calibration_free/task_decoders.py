@@ -413,8 +413,9 @@ class TaskHistory:
         counts = counts.reshape(n_classes, n_tasks, n_classes).transpose(1, 0, 2)
         if self._n_own:
             predicted = signals_from(by_fold, n_shared, self.n_signals)  # (n_own, T, K)
-            own = self._own_weights if tasks is None else self._own_weights[tasks]
-            counts = counts + np.einsum("tik,itl->tkl", own[:, : self._n_own], predicted)
+            own = self._own_weights[:, : self._n_own]
+            own = own if tasks is None else own[tasks]
+            counts = counts + np.einsum("tik,itl->tkl", own, predicted)
         return counts
 
     def cross_validated_proba(self, fold_decoders: BatchedDecoders) -> np.ndarray:
