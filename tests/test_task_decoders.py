@@ -535,6 +535,28 @@ def test_tasks_with_the_same_labels_since_the_switch_share_one_labelling():
     assert tasks.labellings[0].tolist() == [0] * 6 and tasks.labellings[1].tolist() == [0]
 
 
+def test_labellings_are_the_distinct_label_rows_since_the_switch_in_lexicographic_order():
+    # The labellings are numbered, and represented, as np.unique numbers the tasks'
+    # distinct rows of label weights (value equality: -0.0 is 0.0), signal after signal.
+    rng = np.random.default_rng(22)
+    n_tasks, n_signals = 40, 30
+    weights = _grouped_weights(rng, n_signals, 2, [5, 1, 7, 3, 2, 9, 4, 6, 3])
+    weights = weights[rng.permutation(n_tasks)]
+    weights[rng.random(weights.shape) < 0.3] = 0.0
+    weights[:, ::3][weights[:, ::3] == 0.0] = -0.0
+    tasks = TaskHistory(n_tasks, 2, 3)
+    for i, signal in enumerate(rng.normal(size=(n_signals, 3))):
+        tasks.add(signal, weights[:, i])
+        _, first, inverse = np.unique(
+            weights[:, : i + 1].reshape(n_tasks, -1), axis=0, return_index=True,
+            return_inverse=True,
+        )
+        labelling, representatives = tasks.labellings
+        np.testing.assert_array_equal(labelling, inverse.reshape(-1))
+        np.testing.assert_array_equal(representatives, first)
+    assert len(representatives) > 5
+
+
 @pytest.mark.parametrize(
     ("decoder", "history_options"),
     [("lda", {}), ("lda", {"eigen_period": 3}), ("student_t", {"class_scatters": True}),
