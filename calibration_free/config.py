@@ -79,7 +79,7 @@ class LearnerConfig:
         with the "lda" decoder, the "matching" likelihood and ``declare_targets``, "cv":
         chosen at every target (the calibrated baseline: at the end of its calibration)
         from the cross-validated matching evidence on the adopted labels, the heaviest of
-        :data:`~calibration_free.shrinkage_choice.SHRINKAGE_GRID` (0.05 to 0.5) not clearly
+        :data:`~calibration_free.shrinkage_choice.SHRINKAGE_GRID` (0.01 to 0.5) not clearly
         less discriminating than the best (:mod:`calibration_free.shrinkage_choice`; tuned
         on synthetic data: the README's "Issue 13's levers"). None: "cv" where it can be
         chosen, else 0.5 (:attr:`resolved_shrinkage`). From the first target on; before

@@ -12,6 +12,7 @@ from calibration_free.config import LearnerConfig
 from calibration_free.learner import CalibrationFreeLearner
 from calibration_free.shrinkage_choice import (
     SHRINKAGE_GRID,
+    STANDARD_ERRORS,
     choose_shrinkage,
     evidence_discriminability,
     labelled_history,
@@ -81,13 +82,13 @@ def test_it_keeps_the_heaviest_for_few_signals_in_many_dimensions() -> None:
     assert choose_shrinkage(history, 0, eps=0.1, smoothing=1.0) == max(SHRINKAGE_GRID)
 
 
-def test_a_gain_within_one_standard_error_keeps_the_heaviest() -> None:
+def test_a_gain_within_the_margin_keeps_the_heaviest_and_one_beyond_it_does_not() -> None:
     X, y = correlated_pair(400, np.random.default_rng(0))
     history = labelled_history(X, np.eye(2)[y])
-    grid = (0.05, 0.06)  # close neighbours: their evidence differs by less than its error
+    grid = (0.05, 0.06, 0.3)  # close neighbours, and one clearly heavier
     scores = evidence_discriminability(history, 0, grid, eps=0.1, smoothing=1.0)
-    error = np.sqrt((1 + np.max(scores) ** 2 / 2) / len(X))
-    assert np.argmax(scores) == 0 and scores[0] - scores[1] < error
+    margin = STANDARD_ERRORS * np.sqrt((1 + np.max(scores) ** 2 / 2) / len(X))
+    assert np.argmax(scores) == 0 and scores[0] - scores[1] < margin < scores[0] - scores[2]
     assert choose_shrinkage(history, 0, eps=0.1, smoothing=1.0, grid=grid) == 0.06
 
 
