@@ -79,7 +79,8 @@ def evidence_discriminability(
         NaN for every shrinkage when a class has less than ``MIN_CLASS_COUNT`` weight in
         some fold's training set (no decoder knows it) or the increments do not vary.
     """
-    statistics = history.pooled_statistics(tasks=np.array([task]))
+    # The task's labelling once per shrinkage: every intensity fitted in one call.
+    statistics = history.pooled_statistics(tasks=np.full(len(shrinkages), task))
     if np.any(statistics.counts < MIN_CLASS_COUNT):
         return np.full(len(shrinkages), np.nan)
     if statistics.eigen is None:  # decomposed once for every shrinkage
@@ -93,10 +94,10 @@ def evidence_discriminability(
     )
     present = np.ones((1, n_classes), dtype=bool)
     result = np.full(len(shrinkages), np.nan)
-    for index, shrinkage in enumerate(shrinkages):
-        folds = fit_pooled_lda(statistics, shrinkage).select(slice(0, -1))
-        by_fold = history.cross_validated_proba(folds)
-        proba = in_signal_order(by_fold, history.n_signals, task=0)  # (n, K)
+    folds = fit_pooled_lda(statistics, np.asarray(shrinkages, dtype=float))
+    by_fold = history.cross_validated_proba(folds.select(slice(0, -1)))
+    for index in range(len(shrinkages)):
+        proba = in_signal_order(by_fold, history.n_signals, task=index)  # (n, K)
         confusion = confusion_matrices((weights.T @ proba)[None], present, smoothing, balanced)
         corrected = corrected_proba(confusion, proba[None])[0]
         log_matches = log_match(expected[None], corrected[:, None])  # (n, K): label c

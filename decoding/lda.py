@@ -128,22 +128,24 @@ class PooledLinearDecoders(BatchedDecoders):
 
 
 def fit_pooled_lda(
-    statistics: PooledStatistics, shrinkage: float | str = DEFAULT_SHRINKAGE
+    statistics: PooledStatistics, shrinkage: float | np.ndarray | str = DEFAULT_SHRINKAGE
 ) -> PooledLinearDecoders:
     """Pooled-covariance shrinkage LDA for every training set and labelling at once.
 
     Only the classes with at least ``MIN_CLASS_COUNT`` weight take part in the decisions
     (equal priors among them); every class's within-class spread, and that of the
     unlabelled signals around their own mean, make up the pooled covariance.
-    ``shrinkage``: a fixed intensity in [0, 1], or ``"oas"`` for each training set and
-    labelling's own (:func:`oas_shrinkage`).
+    ``shrinkage``: a fixed intensity in [0, 1]; an array of them broadcasting to the
+    labelling axes (``*T``), one per labelling (several intensities fitted at once on
+    repeats of one labelling); or ``"oas"`` for each training set and labelling's own
+    (:func:`oas_shrinkage`).
 
-    With ``statistics.eigen`` and a positive fixed shrinkage, the scatters are not
+    With ``statistics.eigen`` and positive fixed shrinkages, the scatters are not
     decomposed here: the signals added since their last decomposition join the Woodbury
     solve (``S = V diag(e) V^T + Y^T Y``), with the class sums.
     """
     eigen = statistics.eigen
-    if eigen is None or isinstance(shrinkage, str) or not shrinkage > 0:
+    if eigen is None or isinstance(shrinkage, str) or not np.all(np.asarray(shrinkage) > 0):
         eigenvalues, basis = np.linalg.eigh(statistics.scatter)  # (*J, d), (*J, d, d)
         eigen = ScatterEigen(basis, eigenvalues, np.zeros((*eigenvalues.shape[:-1], 0, 0)))
     decoders = _fit_in_basis(statistics, eigen, shrinkage)
@@ -153,7 +155,7 @@ def fit_pooled_lda(
 
 
 def _fit_in_basis(
-    statistics: PooledStatistics, eigen: ScatterEigen, shrinkage: float | str
+    statistics: PooledStatistics, eigen: ScatterEigen, shrinkage: float | np.ndarray | str
 ) -> PooledLinearDecoders | None:
     """:func:`fit_pooled_lda` in the basis of ``eigen``; None if a decoder's diagonal
     part is singular while signals are pending (only the least-squares path, which needs

@@ -396,6 +396,25 @@ def test_a_labelling_without_within_class_spread_does_not_stop_the_others():
         np.testing.assert_allclose(decoders.proba(signals)[1][:, :2], expected, atol=1e-10)
 
 
+@pytest.mark.parametrize("eigen_period", [None, 3])
+def test_one_shrinkage_per_labelling_equals_fitting_each_shrinkage_apart(eigen_period):
+    from decoding.lda import fit_pooled_lda
+
+    rng = np.random.default_rng(5)
+    history = TaskHistory(4, 2, 6, eigen_period=eigen_period)
+    labels = rng.integers(0, 2, size=(4, 47))
+    for i, signal in enumerate(rng.normal(size=(47, 6)) + labels[0][:, None]):
+        history.add(signal, one_hot(labels[:, i], 2))
+    shrinkages = np.array([0.02, 0.3, 0.9])
+    together = fit_pooled_lda(history.pooled_statistics(tasks=np.full(3, 2)), shrinkages)
+    signals = rng.normal(size=(9, 6))
+    for index, shrinkage in enumerate(shrinkages):
+        apart = fit_pooled_lda(history.pooled_statistics(tasks=np.array([2])), shrinkage)
+        np.testing.assert_allclose(
+            together.proba(signals)[:, index], apart.proba(signals)[:, 0], rtol=1e-12
+        )
+
+
 @pytest.mark.parametrize("decoder", ["lda", "gaussian"])
 def test_splitting_ambiguous_labels_again_equals_a_history_built_with_the_new_split(decoder):
     """Labels that allow two of three classes (guidance's two optimal directions) split
