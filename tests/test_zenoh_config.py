@@ -15,6 +15,8 @@ import zenoh
 from cfbci.cli import main
 from wire.transport import wait_for_subscribers
 from wire.zenoh_config import (
+    EPHEMERAL_PORT_RANGE,
+    LOWEST_LISTEN_PORT,
     build_config,
     free_tcp_endpoint,
     merge,
@@ -34,6 +36,22 @@ def _get(config: zenoh.Config, key: str) -> object:
 def _write(path: Path, text: str) -> Path:
     path.write_text(text)
     return path
+
+
+@pytest.mark.skipif(
+    not EPHEMERAL_PORT_RANGE.exists(), reason="the kernel's ephemeral port range is Linux's"
+)
+def test_a_free_endpoint_is_outside_the_ports_outgoing_connections_take() -> None:
+    # Ports handed to outgoing connections cannot take a listener's port chosen in advance.
+    low = int(EPHEMERAL_PORT_RANGE.read_text().split()[0])
+    ports = set()
+    for _ in range(20):
+        host, port = free_tcp_endpoint().removeprefix("tcp/").rsplit(":", 1)
+        ports.add(int(port))
+        assert host == "127.0.0.1" and LOWEST_LISTEN_PORT <= int(port) < low
+    assert len(ports) > 1  # drawn at random, not one fixed port
+    with zenoh.open(peer_config([f"tcp/127.0.0.1:{min(ports)}"], ())):
+        pass  # and Zenoh can listen there
 
 
 def test_defaults_are_a_peer_on_the_given_endpoints_without_multicast() -> None:

@@ -25,6 +25,7 @@ centred deployment with TLS, user/password authentication and access control.
 from __future__ import annotations
 
 import json
+import random
 import socket
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -189,8 +190,43 @@ def router_config(
     return build_config(document, zenoh_config)
 
 
+#: Where the kernel says its ephemeral ports are (Linux); the ports it hands to outgoing
+#: connections and to ``bind(0)``.
+EPHEMERAL_PORT_RANGE = Path("/proc/sys/net/ipv4/ip_local_port_range")
+#: The lowest port :func:`free_tcp_endpoint` picks below the ephemeral range.
+LOWEST_LISTEN_PORT = 10000
+
+
 def free_tcp_endpoint(host: str = "127.0.0.1") -> str:
-    """``tcp/<host>:<port>`` with a TCP port that was free a moment ago (picked by the OS)."""
+    """``tcp/<host>:<port>`` with a TCP port that was free a moment ago.
+
+    The endpoint is bound later by another process (a service started after it is
+    chosen). A port the OS picks for ``bind(0)`` is an ephemeral port, one the OS may also
+    give, in the meantime, to any outgoing connection (the session's other processes
+    connecting to each other): the listener then fails with "Address already in use" (it
+    did, once, in a ``make run``). So where the kernel's ephemeral range is known (Linux),
+    the port is drawn at random below it, from ``LOWEST_LISTEN_PORT`` up, where only an
+    explicit bind can take it; elsewhere the OS picks it.
+    """
+    low = _ephemeral_low()
+    attempts = 100 if low is not None and low > LOWEST_LISTEN_PORT else 0
+    draw = random.SystemRandom()
+    for _ in range(attempts):
+        port = draw.randrange(LOWEST_LISTEN_PORT, low)
+        with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as probe:
+            try:
+                probe.bind((host, port))
+            except OSError:
+                continue
+            return f"tcp/{host}:{port}"
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as probe:
         probe.bind((host, 0))
         return f"tcp/{host}:{probe.getsockname()[1]}"
+
+
+def _ephemeral_low() -> int | None:
+    """The first port of the kernel's ephemeral range, or None where it cannot be read."""
+    try:
+        return int(EPHEMERAL_PORT_RANGE.read_text().split()[0])
+    except (OSError, ValueError, IndexError):
+        return None
