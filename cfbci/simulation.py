@@ -129,6 +129,7 @@ def run_session(
     config: SessionConfig,
     data: LabelledFeatures | Callable[[np.random.Generator], LabelledFeatures],
     on_step: Callable[[StepRecord], None] | None = None,
+    after_observe: Callable[[TaskLearner], None] | None = None,
 ) -> SessionResult:
     """Run one closed-loop session.
 
@@ -141,6 +142,9 @@ def run_session(
         The signals the user answers with (synthetic data are generated per session).
     on_step : callable, optional
         Called with every :class:`StepRecord` (for traces and progress).
+    after_observe : callable, optional
+        Called with the learner after it observes each step's signal (for measurements of
+        its state, e.g. ``tools/labellings.py``); it must not change the learner.
     """
     data_rng, user_rng, learner_rng = session_streams(seed)
     dataset = data(data_rng) if callable(data) else data
@@ -179,6 +183,8 @@ def run_session(
                 wrong += 1
             user.new_target()
         learner.observe(state, proposal.action, signals[index])
+        if after_observe is not None:
+            after_observe(learner)
         if isinstance(learner, CalibratedBaseline) and step == learner.n_calibration:
             event = "calibration_done"
             user.new_target()

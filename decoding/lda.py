@@ -144,8 +144,12 @@ def fit_pooled_lda(
     decomposed here: the signals added since their last decomposition join the Woodbury
     solve (``S = V diag(e) V^T + Y^T Y``), with the class sums.
     """
+    if not isinstance(shrinkage, str):
+        intensities = np.asarray(shrinkage, dtype=float)
+        if not np.all((intensities >= 0.0) & (intensities <= 1.0)):  # NaN fails too
+            raise ValueError(f"shrinkage must be in [0, 1]; got {shrinkage!r}")
     eigen = statistics.eigen
-    if eigen is None or isinstance(shrinkage, str) or not np.all(np.asarray(shrinkage) > 0):
+    if eigen is None or isinstance(shrinkage, str) or not np.all(intensities > 0):
         eigenvalues, basis = np.linalg.eigh(statistics.scatter)  # (*J, d), (*J, d, d)
         eigen = ScatterEigen(basis, eigenvalues, np.zeros((*eigenvalues.shape[:-1], 0, 0)))
     decoders = _fit_in_basis(statistics, eigen, shrinkage)

@@ -221,3 +221,17 @@ def test_the_simulate_config_records_the_novelty_bonus_in_force() -> None:
     for frame in ("feedback", "guidance"):
         config = SessionConfig(learner=LearnerConfig(frame=frame)).to_dict()
         assert config["learner"]["novelty_bonus"] == DEFAULT_NOVELTY_BONUS[frame]
+
+
+def test_after_observe_sees_the_learner_after_every_signal_without_changing_the_session():
+    config = SessionConfig(steps=60)
+    seen: list[int] = []
+    watched = run_session(
+        3, config, separated(), after_observe=lambda learner: seen.append(learner.n_signals)
+    )
+    assert seen == list(range(1, 61))
+    plain = run_session(3, config, separated())
+    assert (watched.first_target_step, watched.correct_targets, watched.wrong_targets) == (
+        plain.first_target_step, plain.correct_targets, plain.wrong_targets
+    )
+    assert watched.correct_targets > 0  # the session did something worth comparing

@@ -630,3 +630,14 @@ def test_splitting_labels_again_regroups_the_tasks_by_their_new_labels():
     tasks.resplit_own_labels(proba)
     labelling, representatives = tasks.labellings
     assert len(representatives) == 2 and labelling[0] == labelling[1] != labelling[2]
+
+
+@pytest.mark.parametrize("shrinkage", [1.5, -0.1, np.nan, np.array([0.2, 1.2])])
+def test_a_shrinkage_outside_zero_one_is_rejected_with_its_value(shrinkage):
+    from decoding.lda import fit_pooled_lda
+
+    history = TaskHistory(2, 2, 3)
+    for signal in np.random.default_rng(0).normal(size=(12, 3)):
+        history.add(signal, one_hot(np.array([0, 1]), 2))
+    with pytest.raises(ValueError, match=r"shrinkage must be in \[0, 1\]"):
+        fit_pooled_lda(history.pooled_statistics(tasks=np.array([0, 0])), shrinkage)

@@ -19,35 +19,28 @@ import argparse
 import numpy as np
 
 from acquisition.sources import synthetic_features
-from acquisition.user import SimulatedUser
 from calibration_free.config import LearnerConfig
-from calibration_free.learner import CalibrationFreeLearner
-from calibration_free.session import session_streams
-from calibration_free.world import GridWorld
+from calibration_free.learner import CalibrationFreeLearner, TaskLearner
+from cfbci.simulation import SessionConfig, run_session
 
 
 def labellings_per_step(
     grid: int, steps: int, seed: int, accuracy: float, frame: str
 ) -> tuple[np.ndarray, int]:
-    """The number of labellings after each of ``steps`` signals, and the targets reached."""
-    world, config = GridWorld(grid), LearnerConfig(frame=frame)
-    data_rng, user_rng, learner_rng = session_streams(seed)
-    data = synthetic_features(accuracy, data_rng)
-    signals = data.features.astype(np.float32)
-    user = SimulatedUser(world, config.frame, data.labels, user_rng)
-    learner = CalibrationFreeLearner(world, config, learner_rng)
-    state = user.start_state
-    proposal = learner.propose(state)
-    counts = []
-    for _ in range(steps):
-        index, _ = user.answer(state, proposal.action)
-        if proposal.declares_target:
-            user.new_target()
-        learner.observe(state, proposal.action, signals[index])
+    """The number of labellings after each of ``steps`` signals of the session ``cfbci
+    simulate --grid GRID --steps STEPS --first-seed SEED --seeds 1 --synthetic-accuracy
+    ACCURACY --frame FRAME`` runs, and the targets reached (correct or not)."""
+    counts: list[int] = []
+
+    def count(learner: TaskLearner) -> None:
+        assert isinstance(learner, CalibrationFreeLearner)
         counts.append(len(learner.history.labellings[1]))
-        state = world.step(state, proposal.action)
-        proposal = learner.propose(state)
-    return np.array(counts), learner.n_targets
+
+    config = SessionConfig(steps=steps, grid=grid, learner=LearnerConfig(frame=frame))
+    result = run_session(
+        seed, config, lambda rng: synthetic_features(accuracy, rng), after_observe=count
+    )
+    return np.array(counts), result.correct_targets + result.wrong_targets
 
 
 def main() -> None:
