@@ -8,7 +8,11 @@ from typing import Any
 from calibration_free.frames import FRAMES
 from calibration_free.likelihood import CONFIDENCES, DEFAULT_CONFUSION_SMOOTHING
 from calibration_free.planning import DEFAULT_DISCOUNT, DEFAULT_EPSILON, PLANNERS
-from calibration_free.shrinkage_choice import CHOSEN_SHRINKAGE
+from calibration_free.shrinkage_choice import (
+    CHOSEN_SHRINKAGE,
+    SHRINKAGE_GRID,
+    STANDARD_ERRORS,
+)
 from calibration_free.task_decoders import DECODERS, DEFAULT_FOLDS
 from calibration_free.task_likelihoods import LIKELIHOODS
 from decoding.lda import DEFAULT_SHRINKAGE, SHRINKAGE_RULES
@@ -39,8 +43,17 @@ DEFAULT_FIRST_TARGET_SHRINKAGE: dict[str, float] = {"feedback": 0.9}
 #: Settings added after recordings began to hold every learner setting, each with the value
 #: that reproduces the learner from before it existed: a recording that lacks one ran
 #: without it (:func:`wire.messages.recorded_config` fills them in when a recording is read;
-#: a missing ``first_target_shrinkage`` becomes the recording's own ``shrinkage``).
-SETTINGS_BEFORE_THEY_EXISTED: dict[str, Any] = {"goal_pull": 0.0, "resplit_labels": False}
+#: a missing ``first_target_shrinkage`` becomes the recording's own ``shrinkage``). The
+#: shrinkage choice's floor and margin: the rule of its first day (2026-12-03 18:56 to
+#: 2026-12-04 17:18, grid from 0.05, one standard error); a recording of the two hours
+#: between that and the settings (from 0.01, half a standard error) re-runs with it and
+#: may diverge from its targets on, which the re-run's report shows.
+SETTINGS_BEFORE_THEY_EXISTED: dict[str, Any] = {
+    "goal_pull": 0.0,
+    "resplit_labels": False,
+    "shrinkage_floor": 0.05,
+    "shrinkage_margin": 1.0,
+}
 
 
 @dataclass(frozen=True)
@@ -84,6 +97,14 @@ class LearnerConfig:
         on synthetic data: the README's "Issue 13's levers"). None: "cv" where it can be
         chosen, else 0.5 (:attr:`resolved_shrinkage`). From the first target on; before
         it, ``first_target_shrinkage``.
+    shrinkage_floor : float, default 0.01
+        With ``shrinkage="cv"``: the lightest intensity the choice may take, in [0.01, 0.5];
+        the grid is :data:`~calibration_free.shrinkage_choice.SHRINKAGE_GRID`'s values from
+        it up (0.05 gives 0.05, 0.1, 0.2, 0.3, 0.5, the rule's first grid).
+    shrinkage_margin : float, default 0.5
+        With ``shrinkage="cv"``: how far below the most discriminating intensity's evidence
+        a heavier one may be and still be chosen, in standard errors of that evidence (1:
+        the textbook's one-standard-error rule; 0: the best evidence).
     first_target_shrinkage : float, "oas" or None, default the frame's
         The decoders' shrinkage until the first target is reached, as ``shrinkage``; None:
         the frame's default (:data:`DEFAULT_FIRST_TARGET_SHRINKAGE`: 0.9 for feedback),
@@ -171,6 +192,8 @@ class LearnerConfig:
     decoder: str = "lda"
     shrinkage: float | str | None = None
     first_target_shrinkage: float | str | None = None
+    shrinkage_floor: float = SHRINKAGE_GRID[0]
+    shrinkage_margin: float = STANDARD_ERRORS
     student_t_counts: str = "class"
     n_folds: int = DEFAULT_FOLDS
     confusion_smoothing: float = DEFAULT_CONFUSION_SMOOTHING
@@ -210,6 +233,10 @@ class LearnerConfig:
             self._check_shrinkage("shrinkage", self.shrinkage)
         if self.first_target_shrinkage is not None:
             self._check_shrinkage("first_target_shrinkage", self.first_target_shrinkage)
+        check_range(
+            "shrinkage_floor", self.shrinkage_floor, SHRINKAGE_GRID[0], SHRINKAGE_GRID[-1]
+        )
+        check_range("shrinkage_margin", self.shrinkage_margin, 0.0, 100.0)
         check_option("student_t_counts", self.student_t_counts, STUDENT_T_COUNTS)
         if self.beta is not None:
             check_range("beta", self.beta, 0.5, 1.0, inclusive=False)

@@ -22,7 +22,7 @@ from calibration_free.config import LearnerConfig
 from calibration_free.frames import Frame
 from calibration_free.likelihood import CONFIDENCES, normalised_likelihood, power_log_ratio
 from calibration_free.planning import PlanningInputs, greedy_action, make_planner, random_action
-from calibration_free.shrinkage_choice import choose_shrinkage
+from calibration_free.shrinkage_choice import choose_shrinkage, shrinkage_grid
 from calibration_free.task_decoders import (
     DecoderFit,
     TaskHistory,
@@ -153,6 +153,8 @@ class TaskLearner:
             eps=self.config.eps,
             smoothing=self.config.confusion_smoothing,
             balanced=self.config.balanced_confusion,
+            grid=shrinkage_grid(self.config.shrinkage_floor),
+            margin=self.config.shrinkage_margin,
         )
         if chosen is not None:
             fit = decoder_fit(self.config.decoder, chosen, self.config.student_t_counts)

@@ -10,12 +10,13 @@ confusion-corrected, tempered by the user error rate ``eps``, on labels the lear
 (the history it adopted at its targets).
 
 :func:`evidence_discriminability` measures it for a grid of shrinkages;
-:func:`choose_shrinkage` picks the heaviest that is not clearly worse than the best. The
-grid stops at the fixed default, 0.5: where the data show no clear gain from less
-shrinkage (the synthetic ErrP data) the learner keeps its tuned default, and where they
-do (correlated features whose class difference is spread over weak directions: the mixed
-Gaussian signals of :mod:`acquisition.gaussian`, and the real ErrP features of
-``s4.mat``) it takes less. README: "Issue 13's levers".
+:func:`choose_shrinkage` picks the heaviest that is not clearly worse than the best (the
+grid's floor and the margin are the learner settings ``shrinkage_floor`` and
+``shrinkage_margin``). The grid stops at the fixed default, 0.5: where the data show no
+clear gain from less shrinkage (the synthetic ErrP data) the learner keeps its tuned
+default, and where they do (correlated features whose class difference is spread over weak
+directions: the mixed Gaussian signals of :mod:`acquisition.gaussian`, and the real ErrP
+features of ``s4.mat``) it takes less. README: "Issue 13's levers".
 """
 
 from __future__ import annotations
@@ -31,16 +32,24 @@ from decoding.scatter_eigen import ScatterEigen
 
 #: The setting's value that asks for the choice.
 CHOSEN_SHRINKAGE = "cv"
-#: The shrinkages the choice is made among: none heavier than the fixed default, 0.5
-#: (heavier ones after the first target were measured to commit wrongly more often), down
-#: to 0.01 (the mixed Gaussian tuning signals chose the grid's floor, 0.05, at most targets
-#: when it was the floor; with 0.01 they choose 0.02 most): README, "Issue 13's levers".
+#: The shrinkages the choice is made among by default: none heavier than the fixed default,
+#: 0.5 (heavier ones after the first target were measured to commit wrongly more often), down
+#: to 0.01 (the mixed Gaussian tuning signals chose 0.05 at most targets when it was the
+#: floor; with 0.01 they choose 0.02 most: README, "The shrinkage choice's grid and
+#: margin"). The setting ``shrinkage_floor`` keeps its values from a floor up
+#: (:func:`shrinkage_grid`).
 SHRINKAGE_GRID: tuple[float, ...] = (0.01, 0.02, 0.05, 0.1, 0.2, 0.3, 0.5)
 #: How far below the best evidence a heavier shrinkage may be and still be chosen, in
-#: standard errors of that evidence (tuned on synthetic data, seeds 100-139 and 100-199:
-#: 1, the textbook's rule, left the mixed Gaussian signals 0.6-1.1 correct targets per
-#: session short of 0.5, and 0 lost the ErrP data 0.5 target: README, "Issue 13's levers").
+#: standard errors of that evidence, by default (the setting ``shrinkage_margin``; tuned on
+#: synthetic data, seeds 100-139 and 100-199: 1, the textbook's rule, left the mixed Gaussian
+#: signals 0.6-1.1 correct targets per session short of 0.5, and 0 lost the ErrP data 0.5
+#: target: README, "The shrinkage choice's grid and margin").
 STANDARD_ERRORS = 0.5
+
+
+def shrinkage_grid(floor: float) -> tuple[float, ...]:
+    """:data:`SHRINKAGE_GRID`'s intensities from ``floor`` up (at least its heaviest, 0.5)."""
+    return tuple(s for s in SHRINKAGE_GRID if s >= min(floor, SHRINKAGE_GRID[-1]))
 
 
 def evidence_discriminability(
@@ -113,15 +122,16 @@ def choose_shrinkage(
     smoothing: float,
     balanced: bool = True,
     grid: tuple[float, ...] = SHRINKAGE_GRID,
+    margin: float = STANDARD_ERRORS,
 ) -> float | None:
-    """The heaviest shrinkage of ``grid`` whose evidence is within
-    :data:`STANDARD_ERRORS` (0.5) standard errors of the most discriminating
+    """The heaviest shrinkage of ``grid`` whose evidence is within ``margin`` standard errors
+    (default :data:`STANDARD_ERRORS`, 0.5) of the most discriminating
     (:func:`evidence_discriminability` of ``task``'s labels of ``history``), or None when
     it cannot be measured (a class too rare).
 
     The one-standard-error rule of cross-validation (Hastie, Tibshirani and Friedman, *The
-    Elements of Statistical Learning*, §7.10), with half the margin: the most regularised
-    model that the data do not clearly reject. The standard error of a mean-over-spread
+    Elements of Statistical Learning*, §7.10), by default with half the margin: the most
+    regularised model that the data do not clearly reject. The standard error of a mean-over-spread
     ``r`` estimated from ``n`` labelled signals (the label weights' sum) is about ``sqrt((1
     + r^2 / 2) / n)``.
     """
@@ -132,8 +142,8 @@ def choose_shrinkage(
         return None
     best = np.nanmax(scores)
     labelled = history.task_label_weights(task).sum()
-    margin = STANDARD_ERRORS * np.sqrt((1.0 + best**2 / 2.0) / labelled)
-    return max(s for s, score in zip(grid, scores, strict=True) if score >= best - margin)
+    tolerance = margin * np.sqrt((1.0 + best**2 / 2.0) / labelled)
+    return max(s for s, score in zip(grid, scores, strict=True) if score >= best - tolerance)
 
 
 def labelled_history(

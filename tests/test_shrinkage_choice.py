@@ -16,6 +16,7 @@ from calibration_free.shrinkage_choice import (
     choose_shrinkage,
     evidence_discriminability,
     labelled_history,
+    shrinkage_grid,
 )
 from decoding.lda import ShrinkageLDA
 
@@ -49,6 +50,12 @@ def correlated_pair(n, rng):
     y = rng.integers(0, 2, size=n)
     pair = shared + 0.3 * rng.normal(size=(n, 2)) + 0.5 * np.c_[y, -y]
     return np.c_[pair, rng.normal(size=(n, 4))], y
+
+
+def correlated_signal(label, rng):
+    """One signal of :func:`correlated_pair`'s kind, of class ``label``."""
+    pair = rng.normal() * 3.0 + 0.3 * rng.normal(size=2) + 0.5 * np.array([label, -label])
+    return np.r_[pair, rng.normal(size=4)]
 
 
 def isotropic_many(n, rng, d=40):
@@ -90,6 +97,17 @@ def test_a_gain_within_the_margin_keeps_the_heaviest_and_one_beyond_it_does_not(
     margin = STANDARD_ERRORS * np.sqrt((1 + np.max(scores) ** 2 / 2) / len(X))
     assert np.argmax(scores) == 0 and scores[0] - scores[1] < margin < scores[0] - scores[2]
     assert choose_shrinkage(history, 0, eps=0.1, smoothing=1.0, grid=grid) == 0.06
+    # The margin is a parameter: none takes the best, a wide one the heaviest.
+    assert choose_shrinkage(history, 0, eps=0.1, smoothing=1.0, grid=grid, margin=0) == 0.05
+    wide = (scores[0] - scores[2]) / margin * STANDARD_ERRORS * 1.01
+    assert choose_shrinkage(history, 0, eps=0.1, smoothing=1.0, grid=grid, margin=wide) == 0.3
+
+
+def test_the_grid_keeps_the_intensities_from_its_floor_up() -> None:
+    assert shrinkage_grid(SHRINKAGE_GRID[0]) == SHRINKAGE_GRID
+    assert shrinkage_grid(0.05) == (0.05, 0.1, 0.2, 0.3, 0.5)  # the rule's first grid
+    assert shrinkage_grid(0.04) == (0.05, 0.1, 0.2, 0.3, 0.5)
+    assert shrinkage_grid(0.5) == (0.5,)
 
 
 def test_a_class_too_rare_to_measure_gives_no_choice() -> None:
@@ -130,8 +148,12 @@ def test_a_history_of_wrong_shapes_is_refused(signals, weights, message) -> None
         labelled_history(signals, weights)
 
 
-def test_the_learner_chooses_at_every_target_from_the_adopted_labels() -> None:
-    config = LearnerConfig(planner="random", shrinkage="cv", first_target_shrinkage=0.8)
+@pytest.mark.parametrize(
+    "rule", [{}, {"shrinkage_floor": 0.05, "shrinkage_margin": 1.0}, {"shrinkage_margin": 0.0}]
+)
+def test_the_learner_chooses_at_every_target_from_the_adopted_labels(rule: dict) -> None:
+    config = LearnerConfig(planner="random", shrinkage="cv", first_target_shrinkage=0.0, **rule)
+    grid = shrinkage_grid(config.shrinkage_floor)
     learner = CalibrationFreeLearner(WORLD, config, rng=0)
     chosen = []
 
@@ -143,15 +165,17 @@ def test_the_learner_chooses_at_every_target_from_the_adopted_labels() -> None:
             # anew, where the learner's reuse its rolling decompositions).
             fresh = labelled_history(history.signals, history.task_label_weights(0))
             chosen.append((learner.shrinkage_in_use, choose_shrinkage(
-                fresh, 0, eps=config.eps, smoothing=config.confusion_smoothing)))
+                fresh, 0, eps=config.eps, smoothing=config.confusion_smoothing, grid=grid,
+                margin=config.shrinkage_margin)))
 
-    run(learner, target=5, steps=150, seed=1, on_step=at_step)
+    # On correlated signals the three rules choose differently (0.02, 0.05 and 0.01).
+    run(learner, target=5, steps=300, seed=1, signal=correlated_signal, on_step=at_step)
     assert len(chosen) >= 2, "the session must reach targets for the choice to show"
     previous = config.shrinkage_before_first_target
     for in_use, expected in chosen:  # a choice that cannot be measured keeps the last
         assert in_use == (previous if expected is None else expected)
         previous = in_use
-    assert previous in SHRINKAGE_GRID, "some target must have been measurable"
+    assert previous in grid, "some target must have been measurable"
 
 
 def test_the_baseline_chooses_at_the_end_of_its_calibration() -> None:
@@ -169,6 +193,9 @@ def test_the_baseline_chooses_at_the_end_of_its_calibration() -> None:
         ({"shrinkage": "cv", "declare_targets": False}, "only with declare_targets"),
         ({"shrinkage": "cv", "decoder": "gaussian"}, "needs decoder 'lda' and likelihood"),
         ({"shrinkage": "cv", "likelihood": "simple"}, "needs decoder 'lda' and likelihood"),
+        ({"shrinkage_floor": 0.0}, r"shrinkage_floor must be in \[0.01, 0.5\]; got 0.0"),
+        ({"shrinkage_floor": 0.7}, r"shrinkage_floor must be in \[0.01, 0.5\]; got 0.7"),
+        ({"shrinkage_margin": -1.0}, r"shrinkage_margin must be in \[0.0, 100.0\]; got -1.0"),
     ],
 )
 def test_a_choice_that_cannot_be_made_is_refused(values: dict, message: str) -> None:
