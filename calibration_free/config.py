@@ -10,6 +10,7 @@ from calibration_free.likelihood import CONFIDENCES, DEFAULT_CONFUSION_SMOOTHING
 from calibration_free.planning import DEFAULT_DISCOUNT, DEFAULT_EPSILON, PLANNERS
 from calibration_free.shrinkage_choice import (
     CHOSEN_SHRINKAGE,
+    FIRST_TARGET_GRID,
     SHRINKAGE_GRID,
     STANDARD_ERRORS,
 )
@@ -32,12 +33,16 @@ DEFAULT_NOVELTY_BONUS: dict[str, float] = {"feedback": 1.0, "guidance": 3.0}
 DEFAULT_BETA: dict[str, float] = {"feedback": 0.9, "guidance": 0.92}
 
 
-#: The decoders' covariance shrinkage until the first target is reached, per frame (tuned on
-#: synthetic data, seeds 100-199: the README's "Issue 13's levers"): while no task's labels
-#: have been confirmed by a target, every decoder is fitted on few signals, many of them
-#: mislabelled, and heavy shrinkage (towards the nearest-mean classifier) is what they can
-#: afford. Guidance has none of its own (``shrinkage`` throughout): its tuning showed no gain.
-DEFAULT_FIRST_TARGET_SHRINKAGE: dict[str, float] = {"feedback": 0.9}
+#: The decoders' covariance shrinkage until the first target is reached, per frame, where it
+#: cannot be chosen from the data (tuned on synthetic data, seeds 100-199: the README's
+#: "Issue 13's levers"): while no task's labels have been confirmed by a target, every
+#: decoder is fitted on few signals, many of them mislabelled, and heavy shrinkage (towards
+#: the nearest-mean classifier) is what they can afford. Where it can be chosen (the LDA,
+#: the matching likelihood, declared targets) feedback chooses it ("cv", among
+#: :data:`~calibration_free.shrinkage_choice.FIRST_TARGET_GRID`, this value the heaviest:
+#: README, "A first-target shrinkage chosen from the data"). Guidance has none of its own
+#: (``shrinkage`` throughout): its tuning showed no gain.
+DEFAULT_FIRST_TARGET_SHRINKAGE: dict[str, float] = {"feedback": FIRST_TARGET_GRID[-1]}
 
 
 #: Settings added after recordings began to hold every learner setting, each with the value
@@ -97,6 +102,20 @@ class LearnerConfig:
         on synthetic data: the README's "Issue 13's levers"). None: "cv" where it can be
         chosen, else 0.5 (:attr:`resolved_shrinkage`). From the first target on; before
         it, ``first_target_shrinkage``.
+    first_target_shrinkage : float, "oas", "cv" or None, default the frame's
+        The decoders' shrinkage until the first target is reached, as ``shrinkage``; or,
+        with the "lda" decoder, the "matching" likelihood and ``declare_targets``, "cv": every
+        :data:`~calibration_free.shrinkage_choice.FIRST_CHOICE_PERIOD` (5) signals from the
+        :data:`~calibration_free.shrinkage_choice.FIRST_CHOICE_START`-th (40) on, chosen
+        by the same rule on the leading task's labels (no label is trusted yet) among
+        :data:`~calibration_free.shrinkage_choice.FIRST_TARGET_GRID` (0.3, 0.5, 0.7, 0.9),
+        the heaviest within one standard error of the best; 0.9 until the first choice.
+        None: the frame's default: in feedback "cv" where it can be chosen, else
+        :data:`DEFAULT_FIRST_TARGET_SHRINKAGE` (0.9); in guidance and sessions without
+        ``declare_targets`` (which never reach a first target), ``shrinkage``. Set it
+        equal to ``shrinkage`` for one shrinkage throughout (the thesis's). The decoders
+        only: the Bhattacharyya overlap, a distance between the classes rather than a
+        decoder, and the calibrated baseline, which has no such phase, use ``shrinkage``.
     shrinkage_floor : float, default 0.01
         With ``shrinkage="cv"``: the lightest intensity the choice may take, in [0.01, 0.5];
         the grid is :data:`~calibration_free.shrinkage_choice.SHRINKAGE_GRID`'s values from
@@ -105,14 +124,6 @@ class LearnerConfig:
         With ``shrinkage="cv"``: how far below the most discriminating intensity's evidence
         a heavier one may be and still be chosen, in standard errors of that evidence (1:
         the textbook's one-standard-error rule; 0: the best evidence).
-    first_target_shrinkage : float, "oas" or None, default the frame's
-        The decoders' shrinkage until the first target is reached, as ``shrinkage``; None:
-        the frame's default (:data:`DEFAULT_FIRST_TARGET_SHRINKAGE`: 0.9 for feedback),
-        else ``shrinkage`` (guidance, and sessions without ``declare_targets``, which
-        never reach a first target). Set it equal to ``shrinkage`` for one shrinkage
-        throughout (the thesis's). The decoders only: the Bhattacharyya overlap, a distance
-        between the classes rather than a decoder, and the calibrated baseline, which has
-        no such phase, use ``shrinkage``.
     student_t_counts : {"class", "total"}, default "class"
         With ``decoder="student_t"``: the count in each class's predictive, the class's own
         weight or the training set's total (the thesis code's, which lets a rarely labelled
@@ -265,19 +276,24 @@ class LearnerConfig:
             )
 
     def _check_chosen_shrinkage(self, name: str) -> None:
-        """``name = "cv"`` is chosen at targets, from the LDA's matching evidence."""
-        if name != "shrinkage" or not self.declare_targets:
+        """``name = "cv"`` is chosen from the LDA's matching evidence, on labels that targets
+        confirm (or, before the first target, the leading task's)."""
+        if not self.declare_targets:
             raise ValueError(
-                f"{name} {CHOSEN_SHRINKAGE!r} is chosen at every target: only 'shrinkage' "
-                "can be, and only with declare_targets (before the first target, "
-                "first_target_shrinkage is used)"
+                f"{name} {CHOSEN_SHRINKAGE!r} is chosen on labels that targets confirm: it "
+                "needs declare_targets"
             )
-        if self.decoder != "lda" or self.likelihood != "matching":
+        if not self._can_choose_shrinkage:
             raise ValueError(
-                f"shrinkage {CHOSEN_SHRINKAGE!r} measures the LDA's confusion-corrected "
+                f"{name} {CHOSEN_SHRINKAGE!r} measures the LDA's confusion-corrected "
                 f"evidence: it needs decoder 'lda' and likelihood 'matching'; got decoder "
                 f"{self.decoder!r}, likelihood {self.likelihood!r}"
             )
+
+    @property
+    def _can_choose_shrinkage(self) -> bool:
+        """Whether the decoders are the LDA scored by the matching likelihood."""
+        return self.decoder == "lda" and self.likelihood == "matching"
 
     @property
     def resolved_shrinkage(self) -> float | str:
@@ -287,8 +303,8 @@ class LearnerConfig:
         :attr:`frame_novelty_bonus`)."""
         if self.shrinkage is not None:
             return self.shrinkage
-        choosable = self.decoder == "lda" and self.likelihood == "matching"
-        return CHOSEN_SHRINKAGE if choosable and self.declare_targets else DEFAULT_SHRINKAGE
+        choosable = self._can_choose_shrinkage and self.declare_targets
+        return CHOSEN_SHRINKAGE if choosable else DEFAULT_SHRINKAGE
 
     @property
     def chooses_shrinkage(self) -> bool:
@@ -298,16 +314,24 @@ class LearnerConfig:
     @property
     def shrinkage_before_first_target(self) -> float | str:
         """The decoders' shrinkage until the first target: the given one, else the frame's
-        default, else ``shrinkage`` (unresolved in the field, as ``frame_novelty_bonus``).
-        A session that declares no targets has no first phase: the default is then
-        ``shrinkage`` throughout."""
+        default ("cv" in feedback where it can be chosen, else 0.9), else ``shrinkage``
+        (unresolved in the field, as ``frame_novelty_bonus``). A session that declares no
+        targets has no first phase: the default is then ``shrinkage`` throughout."""
         if self.first_target_shrinkage is not None:
             return self.first_target_shrinkage
         if not self.declare_targets:
             return self.resolved_shrinkage
-        # "cv" needs adopted labels: until the first target, the fixed default.
-        after = DEFAULT_SHRINKAGE if self.chooses_shrinkage else self.resolved_shrinkage
-        return DEFAULT_FIRST_TARGET_SHRINKAGE.get(self.frame, after)
+        if self.frame in DEFAULT_FIRST_TARGET_SHRINKAGE:
+            if self._can_choose_shrinkage:
+                return CHOSEN_SHRINKAGE
+            return DEFAULT_FIRST_TARGET_SHRINKAGE[self.frame]
+        # The rule after the first target needs adopted labels: until then, the default.
+        return DEFAULT_SHRINKAGE if self.chooses_shrinkage else self.resolved_shrinkage
+
+    @property
+    def chooses_first_target_shrinkage(self) -> bool:
+        """Whether the shrinkage is chosen from the data until the first target."""
+        return self.shrinkage_before_first_target == CHOSEN_SHRINKAGE
 
     @property
     def frame_novelty_bonus(self) -> float:

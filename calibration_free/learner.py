@@ -22,7 +22,15 @@ from calibration_free.config import LearnerConfig
 from calibration_free.frames import Frame
 from calibration_free.likelihood import CONFIDENCES, normalised_likelihood, power_log_ratio
 from calibration_free.planning import PlanningInputs, greedy_action, make_planner, random_action
-from calibration_free.shrinkage_choice import choose_shrinkage, shrinkage_grid
+from calibration_free.shrinkage_choice import (
+    CHOSEN_SHRINKAGE,
+    FIRST_CHOICE_PERIOD,
+    FIRST_CHOICE_START,
+    FIRST_TARGET_GRID,
+    FIRST_TARGET_STANDARD_ERRORS,
+    choose_shrinkage,
+    shrinkage_grid,
+)
 from calibration_free.task_decoders import (
     DecoderFit,
     TaskHistory,
@@ -115,6 +123,8 @@ class TaskLearner:
         self._pending_target: int | None = None
         self._visits = np.zeros(world.n_states)
         first = self.config.shrinkage_before_first_target
+        if first == CHOSEN_SHRINKAGE:  # until the first choice, the heaviest
+            first = FIRST_TARGET_GRID[-1]
         # A chosen shrinkage starts as the first phase's, until labels are adopted.
         after = first if self.config.chooses_shrinkage else self.config.resolved_shrinkage
         self._fits = tuple(
@@ -147,18 +157,28 @@ class TaskLearner:
         a choice that cannot be measured (a class too rare) keeps the current one."""
         if not self.config.chooses_shrinkage:
             return
+        grid = shrinkage_grid(self.config.shrinkage_floor)
+        fit = self._chosen_fit(history, task, grid, self.config.shrinkage_margin)
+        if fit is not None:
+            self._fits = (self._fits[0], fit)
+
+    def _chosen_fit(
+        self, history: TaskHistory, task: int, grid: tuple[float, ...], margin: float
+    ) -> DecoderFit | None:
+        """The decoders' fit at the shrinkage of ``grid`` chosen on ``task``'s labels of
+        ``history`` within ``margin`` standard errors; None if it cannot be measured."""
         chosen = choose_shrinkage(
             history,
             task,
             eps=self.config.eps,
             smoothing=self.config.confusion_smoothing,
             balanced=self.config.balanced_confusion,
-            grid=shrinkage_grid(self.config.shrinkage_floor),
-            margin=self.config.shrinkage_margin,
+            grid=grid,
+            margin=margin,
         )
-        if chosen is not None:
-            fit = decoder_fit(self.config.decoder, chosen, self.config.student_t_counts)
-            self._fits = (self._fits[0], fit)
+        if chosen is None:
+            return None
+        return decoder_fit(self.config.decoder, chosen, self.config.student_t_counts)
 
     def _scores(self) -> np.ndarray:
         """Log scores of the tasks, shape (n_tasks,)."""
@@ -467,10 +487,32 @@ class CalibrationFreeLearner(TaskLearner):
         self._power_sums += expected * float(x @ x)
         self._power_weights += expected
         self.n_signals += 1
+        self._choose_first_target_shrinkage()
         target = self._take_target_reached(state, action)
         if target is not None:
             self._switch_task(target)
         self._likelihood.after_signal(self._history, self._current_models)
+
+    def _choose_first_target_shrinkage(self) -> None:
+        """With ``first_target_shrinkage="cv"``, until the first target, every
+        :data:`FIRST_CHOICE_PERIOD` signals from the :data:`FIRST_CHOICE_START`-th, choose
+        the decoders' shrinkage on the leading task's labels (the best score: no label is
+        trusted yet) among :data:`FIRST_TARGET_GRID`; a choice that cannot be measured
+        keeps the current one."""
+        if (
+            not self.config.chooses_first_target_shrinkage
+            or self.n_targets > 0
+            or self.n_signals < FIRST_CHOICE_START
+            or self.n_signals % FIRST_CHOICE_PERIOD
+        ):
+            return
+        assert self._history is not None
+        leader = int(np.argmax(self._scores()))
+        fit = self._chosen_fit(
+            self._history, leader, FIRST_TARGET_GRID, FIRST_TARGET_STANDARD_ERRORS
+        )
+        if fit is not None:
+            self._fits = (fit, self._fits[1])
 
     def _prediction_is_discarded(self, state: int, action: int) -> bool:
         """Whether the decoders' prediction of this step's signal would be thrown away: the

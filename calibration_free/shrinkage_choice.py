@@ -12,7 +12,9 @@ confusion-corrected, tempered by the user error rate ``eps``, on labels the lear
 :func:`evidence_discriminability` measures it for a grid of shrinkages;
 :func:`choose_shrinkage` picks the heaviest that is not clearly worse than the best (the
 grid's floor and the margin are the learner settings ``shrinkage_floor`` and
-``shrinkage_margin``). The grid stops at the fixed default, 0.5: where the data show no
+``shrinkage_margin``); before the first target, on the leading task's labels
+(``first_target_shrinkage="cv"``: :data:`FIRST_TARGET_GRID`). The grid stops at the fixed
+default, 0.5: where the data show no
 clear gain from less shrinkage (the synthetic ErrP data) the learner keeps its tuned
 default, and where they do (correlated features whose class difference is spread over weak
 directions: the mixed Gaussian signals of :mod:`acquisition.gaussian`, and the real ErrP
@@ -45,6 +47,19 @@ SHRINKAGE_GRID: tuple[float, ...] = (0.01, 0.02, 0.05, 0.1, 0.2, 0.3, 0.5)
 #: signals 0.6-1.1 correct targets per session short of 0.5, and 0 lost the ErrP data 0.5
 #: target: README, "The shrinkage choice's grid and margin").
 STANDARD_ERRORS = 0.5
+
+
+#: The shrinkages chosen among until the first target (``first_target_shrinkage="cv"``),
+#: before any label is trusted: on the leading task's labels, every
+#: :data:`FIRST_CHOICE_PERIOD` signals from the :data:`FIRST_CHOICE_START`-th, the heaviest
+#: within :data:`FIRST_TARGET_STANDARD_ERRORS` of the best. Heavier than after the first
+#: target (few signals, many mislabelled), and a wider margin: a leader's labels may be
+#: wrong, and the choice must not follow their noise (tuned on synthetic data, seeds
+#: 100-199: README, "A first-target shrinkage chosen from the data").
+FIRST_TARGET_GRID: tuple[float, ...] = (0.3, 0.5, 0.7, 0.9)
+FIRST_TARGET_STANDARD_ERRORS = 1.0
+FIRST_CHOICE_START = 40
+FIRST_CHOICE_PERIOD = 5
 
 
 def shrinkage_grid(floor: float) -> tuple[float, ...]:

@@ -56,7 +56,9 @@ def test_a_wrong_kind_is_refused_naming_the_setting(values: dict, message: str) 
 
 def test_the_first_target_shrinkage_is_the_frames_and_is_recorded_resolved() -> None:
     feedback, guidance = LearnerConfig(), LearnerConfig(frame="guidance", shrinkage=0.3)
-    assert feedback.shrinkage_before_first_target == DEFAULT_FIRST_TARGET_SHRINKAGE["feedback"]
+    assert feedback.shrinkage_before_first_target == "cv"  # chosen where it can be
+    fixed = LearnerConfig(decoder="gaussian").shrinkage_before_first_target
+    assert fixed == DEFAULT_FIRST_TARGET_SHRINKAGE["feedback"]
     assert guidance.shrinkage_before_first_target == 0.3  # guidance: shrinkage throughout
     assert LearnerConfig(first_target_shrinkage=0.7).shrinkage_before_first_target == 0.7
     # Without declarations there is no first target: one shrinkage, unless one is given.

@@ -11,6 +11,9 @@ from calibration_free.baseline import CalibratedBaseline
 from calibration_free.config import LearnerConfig
 from calibration_free.learner import CalibrationFreeLearner
 from calibration_free.shrinkage_choice import (
+    FIRST_CHOICE_PERIOD,
+    FIRST_CHOICE_START,
+    FIRST_TARGET_GRID,
     SHRINKAGE_GRID,
     STANDARD_ERRORS,
     choose_shrinkage,
@@ -181,7 +184,7 @@ def test_the_learner_chooses_at_every_target_from_the_adopted_labels(rule: dict)
 def test_the_baseline_chooses_at_the_end_of_its_calibration() -> None:
     config = LearnerConfig(shrinkage="cv")
     baseline = CalibratedBaseline(WORLD, 3, n_calibration=60, config=config, rng=0)
-    assert baseline.shrinkage_in_use == config.shrinkage_before_first_target
+    assert baseline.shrinkage_in_use == FIRST_TARGET_GRID[-1]  # never used: it calibrates
     run(baseline, target=5, steps=61, seed=2)
     assert baseline.shrinkage_in_use in SHRINKAGE_GRID
 
@@ -189,8 +192,9 @@ def test_the_baseline_chooses_at_the_end_of_its_calibration() -> None:
 @pytest.mark.parametrize(
     ("values", "message"),
     [
-        ({"first_target_shrinkage": "cv"}, "only 'shrinkage' can be"),
-        ({"shrinkage": "cv", "declare_targets": False}, "only with declare_targets"),
+        ({"first_target_shrinkage": "cv", "declare_targets": False}, "needs declare_targets"),
+        ({"shrinkage": "cv", "declare_targets": False}, "needs declare_targets"),
+        ({"first_target_shrinkage": "cv", "decoder": "student_t"}, "needs decoder 'lda'"),
         ({"shrinkage": "cv", "decoder": "gaussian"}, "needs decoder 'lda' and likelihood"),
         ({"shrinkage": "cv", "likelihood": "simple"}, "needs decoder 'lda' and likelihood"),
         ({"shrinkage_floor": 0.0}, r"shrinkage_floor must be in \[0.01, 0.5\]; got 0.0"),
@@ -203,8 +207,33 @@ def test_a_choice_that_cannot_be_made_is_refused(values: dict, message: str) -> 
         LearnerConfig(**values)
 
 
-def test_until_the_first_target_a_fixed_shrinkage_is_used() -> None:
-    assert LearnerConfig(shrinkage="cv").shrinkage_before_first_target == 0.9
+def test_until_the_first_target_feedback_chooses_where_it_can() -> None:
+    assert LearnerConfig(shrinkage=0.5).shrinkage_before_first_target == "cv"
+    assert LearnerConfig(likelihood="simple").shrinkage_before_first_target == 0.9
     guidance = LearnerConfig(frame="guidance", shrinkage="cv")
     assert guidance.shrinkage_before_first_target == 0.5
     assert guidance.to_dict()["shrinkage"] == "cv"
+
+
+def test_until_the_first_target_the_learner_chooses_on_the_leading_tasks_labels() -> None:
+    learner = CalibrationFreeLearner(WORLD, LearnerConfig(planner="random"), rng=0)
+    checked = []
+
+    def at_step(step, _, __, beliefs):
+        n = learner.n_signals
+        due = n >= FIRST_CHOICE_START and n % FIRST_CHOICE_PERIOD == 0
+        if learner.n_targets or not due:
+            return
+        # The choice just made, on the leader's labels (the beliefs after that signal).
+        history = learner.history
+        fresh = labelled_history(history.signals, history.task_label_weights(
+            beliefs.best_task))
+        expected = choose_shrinkage(
+            fresh, 0, eps=0.1, smoothing=1.0, grid=FIRST_TARGET_GRID, margin=1.0)
+        if expected is not None:
+            checked.append(expected)
+            assert learner.shrinkage_in_use == expected
+
+    # Correlated signals: less than the heaviest is chosen (0.9 until the first choice).
+    run(learner, target=5, steps=150, seed=1, signal=correlated_signal, on_step=at_step)
+    assert len(checked) >= 3 and min(checked) < FIRST_TARGET_GRID[-1], checked

@@ -139,7 +139,10 @@ def test_unlabelled_signals_widen_the_covariance_but_train_no_class():
 def test_learner_updates_equal_the_reference_along_a_session():
     """Every log-likelihood increment of the learner, for every task, against sklearn."""
     world = GridWorld(3)
-    config = LearnerConfig(planner="random", beta=0.999999, power_prior=False)
+    # A fixed shrinkage before the first target (the reference cannot choose one).
+    config = LearnerConfig(
+        planner="random", beta=0.999999, power_prior=False, first_target_shrinkage=0.9
+    )
     learner = CalibrationFreeLearner(world, config, rng=0)
     rng = np.random.default_rng(5)
     frame = learner.frame
