@@ -12,13 +12,13 @@ confusion-corrected, tempered by the user error rate ``eps``, on labels the lear
 :func:`evidence_discriminability` measures it for a grid of shrinkages;
 :func:`choose_shrinkage` picks the heaviest that is not clearly worse than the best (the
 grid's floor and the margin are the learner settings ``shrinkage_floor`` and
-``shrinkage_margin``); before the first target, on the leading task's labels
-(``first_target_shrinkage="cv"``: :data:`FIRST_TARGET_GRID`). The grid stops at the fixed
-default, 0.5: where the data show no
-clear gain from less shrinkage (the synthetic ErrP data) the learner keeps its tuned
-default, and where they do (correlated features whose class difference is spread over weak
-directions: the mixed Gaussian signals of :mod:`acquisition.gaussian`, and the real ErrP
-features of ``s4.mat``) it takes less. README: "Issue 13's levers".
+``shrinkage_margin``); before the first target it is made on the leading task's labels
+(``first_target_shrinkage="cv"``: :data:`FIRST_TARGET_GRID`). The grid after the first
+target stops at the fixed default, 0.5: where the data show no clear gain from less
+shrinkage (the synthetic ErrP data) the learner keeps its tuned default, and where they do
+(correlated features whose class difference is spread over weak directions: the mixed
+Gaussian signals of :mod:`acquisition.gaussian`, and the real ErrP features of ``s4.mat``)
+it takes less. README: "Issue 13's levers".
 """
 
 from __future__ import annotations
@@ -57,8 +57,11 @@ STANDARD_ERRORS = 0.5
 #: wrong, and the choice must not follow their noise (tuned on synthetic data, seeds
 #: 100-199: README, "A first-target shrinkage chosen from the data").
 FIRST_TARGET_GRID: tuple[float, ...] = (0.3, 0.5, 0.7, 0.9)
+#: The first-target choice's margin, in standard errors (after the first target: 0.5).
 FIRST_TARGET_STANDARD_ERRORS = 1.0
+#: The signal count of the first choice (before it, 0.9: the grid's heaviest).
 FIRST_CHOICE_START = 40
+#: Signals between two choices until the first target.
 FIRST_CHOICE_PERIOD = 5
 
 
