@@ -21,6 +21,11 @@ from decoding.student_t import STUDENT_T_COUNTS
 from decoding.validation import check_option, check_range
 
 PLANNING_WEIGHTS: tuple[str, ...] = ("posterior", "confidence")
+#: The normalised-likelihood threshold while the evidence is calibrated, and the fewest
+#: signals at a target for it to be (tuned on synthetic data, seeds 100-199: the README's
+#: "Calibrated evidence after the first target").
+DEFAULT_CALIBRATED_BETA = 0.99
+DEFAULT_CALIBRATION_SIGNALS = 100
 #: The novelty bonus of each frame when none is given (tuned on synthetic data, seeds
 #: 100-119: the README's tuning table).
 DEFAULT_NOVELTY_BONUS: dict[str, float] = {"feedback": 1.0, "guidance": 3.0}
@@ -54,6 +59,7 @@ DEFAULT_FIRST_TARGET_SHRINKAGE: dict[str, float] = {"feedback": FIRST_TARGET_GRI
 #: between that and the settings (from 0.01, half a standard error) re-runs with it and
 #: may diverge from its targets on, which the re-run's report shows.
 SETTINGS_BEFORE_THEY_EXISTED: dict[str, Any] = {
+    "calibrated_evidence": False,
     "goal_pull": 0.0,
     "resplit_labels": False,
     "shrinkage_floor": 0.05,
@@ -138,6 +144,22 @@ class LearnerConfig:
         plain column normalisation.
     power_prior : bool, default True
         Add the ErrP power prior to the scores (feedback frame only).
+    calibrated_evidence : bool or None, default True in feedback where it applies
+        At every target reached once the history holds ``calibration_signals`` signals,
+        fit the temperature ``tau`` that makes the matches calibrated class probabilities
+        of the adopted labels (:mod:`calibration_free.evidence_temperature`); until the
+        next target every signal then adds ``tau log m`` and a task is declared when its
+        normalised likelihood exceeds ``calibrated_beta`` (before that, and after a target
+        with fewer signals, the tempered filter and ``confidence``/``beta``). Needs the
+        feedback frame, the "matching" likelihood and ``declare_targets``; None: True
+        where it applies, else False (:attr:`uses_calibrated_evidence`; tuned on synthetic
+        data: the README's "Calibrated evidence after the first target").
+    calibrated_beta : float, default 0.99
+        The normalised-likelihood threshold while the evidence is calibrated, in (0.5, 1).
+    calibration_signals : int, default 100
+        The fewest signals the history must hold at a target for the evidence to be
+        calibrated there: labels adopted on fewer are too often wrong, and a calibrated
+        filter on a wrong mapping locks it in.
     beta : float, default the frame's (:data:`DEFAULT_BETA`: 0.9 for feedback, 0.92 for
         guidance)
         Confidence threshold on the ``confidence`` rule, in (0.5, 1); the one in force is
@@ -210,6 +232,9 @@ class LearnerConfig:
     confusion_smoothing: float = DEFAULT_CONFUSION_SMOOTHING
     balanced_confusion: bool = True
     power_prior: bool = True
+    calibrated_evidence: bool | None = None
+    calibrated_beta: float = DEFAULT_CALIBRATED_BETA
+    calibration_signals: int = DEFAULT_CALIBRATION_SIGNALS
     beta: float | None = None
     planner: str = "information"
     epsilon: float = DEFAULT_EPSILON
@@ -227,6 +252,8 @@ class LearnerConfig:
             value = getattr(self, field.name)
             if field.type == "bool" and not isinstance(value, bool):
                 raise ValueError(f"{field.name} must be true or false; got {value!r}")
+            if field.type == "bool | None" and not isinstance(value, bool | None):
+                raise ValueError(f"{field.name} must be true, false or null; got {value!r}")
         check_option("frame", self.frame, FRAMES)
         check_option("likelihood", self.likelihood, LIKELIHOODS)
         check_option("confidence", self.confidence, tuple(CONFIDENCES))
@@ -259,6 +286,14 @@ class LearnerConfig:
         check_range("goal_pull", self.goal_pull, 0.0, 1e6)
         check_range("n_planning_signals", self.n_planning_signals, 1, 10_000)
         check_range("warmup_steps", self.warmup_steps, 0, 1_000_000)
+        check_range("calibrated_beta", self.calibrated_beta, 0.5, 1.0, inclusive=False)
+        check_range("calibration_signals", self.calibration_signals, 1, 1_000_000)
+        if self.calibrated_evidence and not self._can_calibrate_evidence:
+            raise ValueError(
+                "calibrated_evidence needs frame 'feedback', likelihood 'matching' and "
+                f"declare_targets; got frame {self.frame!r}, likelihood "
+                f"{self.likelihood!r}, declare_targets {self.declare_targets}"
+            )
 
     def _check_shrinkage(self, name: str, value: float | str) -> None:
         if not isinstance(value, str):
@@ -334,6 +369,20 @@ class LearnerConfig:
         return self.shrinkage_before_first_target == CHOSEN_SHRINKAGE
 
     @property
+    def _can_calibrate_evidence(self) -> bool:
+        """Whether targets confirm labels (declared targets) and the evidence is the
+        matching filter's on two-class feedback labels."""
+        return self.frame == "feedback" and self.likelihood == "matching" and self.declare_targets
+
+    @property
+    def uses_calibrated_evidence(self) -> bool:
+        """Whether the evidence is calibrated at targets: the given setting, else where it
+        applies (unresolved in the field, as :attr:`frame_novelty_bonus`)."""
+        if self.calibrated_evidence is None:
+            return self._can_calibrate_evidence
+        return self.calibrated_evidence
+
+    @property
     def frame_novelty_bonus(self) -> float:
         """The novelty bonus in force: the given one, or the frame's default (unresolved in
         the field, so that ``dataclasses.replace(config, frame=...)`` takes the new frame's)."""
@@ -358,6 +407,7 @@ class LearnerConfig:
             "beta": self.frame_beta,
             "shrinkage": self.resolved_shrinkage,
             "first_target_shrinkage": self.shrinkage_before_first_target,
+            "calibrated_evidence": self.uses_calibrated_evidence,
         }
 
     @classmethod

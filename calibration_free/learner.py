@@ -19,6 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from calibration_free.config import LearnerConfig
+from calibration_free.evidence_temperature import fit_temperature, label_log_matches
 from calibration_free.frames import Frame
 from calibration_free.likelihood import CONFIDENCES, normalised_likelihood, power_log_ratio
 from calibration_free.planning import PlanningInputs, greedy_action, make_planner, random_action
@@ -387,6 +388,17 @@ class CalibrationFreeLearner(TaskLearner):
         self._models: TaskModels | None = None
         self._power_sums = np.zeros((world.n_tasks, self.frame.n_classes))
         self._power_weights = np.zeros((world.n_tasks, self.frame.n_classes))
+        #: Whether the current task segment's evidence is calibrated
+        #: (``calibrated_evidence``), and its temperature once measured (None until the
+        #: segment's first signal: measured then, on the decoders fitted for it).
+        self._calibrated_segment = False
+        self._evidence_temperature: float | None = None
+
+    @property
+    def evidence_temperature(self) -> float:
+        """The factor of the current segment's evidence: the measured temperature where the
+        evidence is calibrated (:mod:`calibration_free.evidence_temperature`), else 1."""
+        return self._evidence_temperature or 1.0
 
     @property
     def log_likelihood(self) -> np.ndarray:
@@ -474,6 +486,8 @@ class CalibrationFreeLearner(TaskLearner):
         frame_weights = weights = self.frame.weights_at(state, action)
         models = None if self._prediction_is_discarded(state, action) else self._current_models()
         predicted = None
+        if self._calibrated_segment and self._evidence_temperature is None:
+            self._calibrate_evidence(models or self._current_models())
         if models is not None:
             if self._resplits_labels:
                 history = self._history
@@ -481,7 +495,7 @@ class CalibrationFreeLearner(TaskLearner):
             predicted = self._likelihood.predict(models, x[None])[:, 0]
             weights = resolve_ambiguous_labels(weights, predicted)
             expected = expect_the_chosen_label(expected, frame_weights, weights)
-        self._likelihood.take(expected, predicted)
+        self._likelihood.take(expected, predicted, self.evidence_temperature)
         self._history.add(x, weights, frame_weights)
         self._models = None
         self._power_sums += expected * float(x @ x)
@@ -556,6 +570,20 @@ class CalibrationFreeLearner(TaskLearner):
         self._power_sums[:] = self._power_sums[task]
         self._power_weights[:] = self._power_weights[task]
         self._likelihood.restart()
+        self._evidence_temperature = None
+        self._calibrated_segment = (
+            self.config.uses_calibrated_evidence
+            and self._history.n_signals >= self.config.calibration_signals
+        )
+
+    def _calibrate_evidence(self, models: TaskModels | None) -> None:
+        """Measure the segment's evidence temperature on the adopted labels: the models
+        are fitted on the history right after the target (every task has its labels)."""
+        assert models is not None and self._history is not None
+        corrected = models.held_out_corrected_proba(0)
+        labels = self._history.task_label_weights(0)
+        log_matches = label_log_matches(corrected, self.frame.eps)
+        self._evidence_temperature = fit_temperature(log_matches, labels)
 
     def _scores(self) -> np.ndarray:
         if not self.uses_power_prior:
@@ -563,6 +591,8 @@ class CalibrationFreeLearner(TaskLearner):
         return self.log_likelihood + power_log_ratio(self._power_sums, self._power_weights)
 
     def _decision_rule(self) -> tuple[str, float]:
+        if self._calibrated_segment:
+            return "normalised", self.config.calibrated_beta
         return self._likelihood.decision_rule() or super()._decision_rule()
 
     def _predicted_samples(self) -> np.ndarray | None:

@@ -685,10 +685,27 @@ class TaskModels:
         rows = signals_from(self.cv_by_fold, first, self.n_signals)
         return self._per_task(rows.swapaxes(0, 1))
 
+    def held_out_corrected_proba(self, task: int) -> np.ndarray:
+        """``task``'s out-of-fold ``q = C p`` of every signal it was fitted on, (n_signals,
+        K), unknown classes treated as in :meth:`corrected_proba`; needs the
+        cross-validation."""
+        if self.cv_by_fold is None or self.confusion is None:
+            raise RuntimeError("these models were fitted without cross-validation")
+        labelling = self.labelling[task : task + 1]
+        rows = in_signal_order(self.cv_by_fold, self.n_signals, int(labelling[0]))
+        corrected = corrected_proba(self.confusion[labelling], rows[None])
+        return self._with_unknown_classes(corrected, labelling)[0]
+
     def _per_task(self, q: np.ndarray) -> np.ndarray:
         """Every labelling's probabilities ``q`` (n_labellings, n, K) as every task's
         (n_tasks, n, K), unknown classes treated as in :meth:`corrected_proba`."""
+        return self._with_unknown_classes(q, slice(None))[self.labelling]
+
+    def _with_unknown_classes(self, q: np.ndarray, labellings: slice | np.ndarray) -> np.ndarray:
+        """Probabilities ``q`` (n_labellings, n, K) of the labellings ``labellings`` with
+        the classes their decoders do not know given ``1 / K`` (see
+        :meth:`corrected_proba`)."""
         n_classes = q.shape[-1]
-        known = self.decoders.present & self.decoders.informative[:, None]
+        known = (self.decoders.present & self.decoders.informative[:, None])[labellings]
         share = known.sum(axis=1)[:, None, None] / n_classes
-        return np.where(known[:, None, :], q * share, 1.0 / n_classes)[self.labelling]
+        return np.where(known[:, None, :], q * share, 1.0 / n_classes)

@@ -101,12 +101,16 @@ class TaskLikelihood:
             return models.corrected_proba(signals)
         return models.proba(signals)
 
-    def take(self, expected: np.ndarray, predicted: np.ndarray | None) -> None:
+    def take(
+        self, expected: np.ndarray, predicted: np.ndarray | None, temperature: float = 1.0
+    ) -> None:
         """A new signal: every task's expected label distribution (n_tasks, K) and the
         prediction of it (n_tasks, K) by the decoders trained before it (None before any
-        decoder: the first signal adds nothing)."""
+        decoder: the first signal adds nothing); its log match is multiplied by
+        ``temperature`` (the calibrated evidence's,
+        :mod:`calibration_free.evidence_temperature`)."""
         if predicted is not None:
-            self.log_likelihood += log_match(expected, predicted)
+            self.log_likelihood += temperature * log_match(expected, predicted)
 
     def after_signal(self, history: TaskHistory, models: ModelsSource) -> None:
         """The new signal has joined ``history`` (and any target switch is done)."""
@@ -132,7 +136,9 @@ class BatchMatching(TaskLikelihood):
     def name(self) -> str:
         return "batch"
 
-    def take(self, expected: np.ndarray, predicted: np.ndarray | None) -> None:
+    def take(
+        self, expected: np.ndarray, predicted: np.ndarray | None, temperature: float = 1.0
+    ) -> None:
         self._expected.append(expected)
 
     def after_signal(self, history: TaskHistory, models: ModelsSource) -> None:
@@ -172,9 +178,11 @@ class BhattacharyyaOverlap(TaskLikelihood):
     def corrects_confusion(self) -> bool:
         return self.switched
 
-    def take(self, expected: np.ndarray, predicted: np.ndarray | None) -> None:
+    def take(
+        self, expected: np.ndarray, predicted: np.ndarray | None, temperature: float = 1.0
+    ) -> None:
         if self.switched:
-            super().take(expected, predicted)
+            super().take(expected, predicted, temperature)
 
     def after_signal(self, history: TaskHistory, models: ModelsSource) -> None:
         if self.switched:

@@ -38,7 +38,7 @@ CONFIG = {
     "grid": 3, "frame": "feedback",
     "learner": {"eps": 0.1, "decoder": "lda", "goal_pull": 0.5, "resplit_labels": True,
                 "first_target_shrinkage": 0.9, "shrinkage_floor": 0.01,
-                "shrinkage_margin": 0.5},
+                "shrinkage_margin": 0.5, "calibrated_evidence": True},
 }
 T0 = 1_700_000_000_123_456_789  # ns
 GRID = GridWorld(3)
@@ -356,8 +356,8 @@ def test_a_killed_writer_loses_at_most_the_message_being_written(tmp_path: Path)
 
 
 def test_an_older_recording_reads_back_with_the_settings_it_ran_with(tmp_path: Path) -> None:
-    # Made before goal_pull, resplit_labels, first_target_shrinkage and the shrinkage
-    # choice's floor and margin existed: its learner ran without any, whatever today's
+    # Made before goal_pull, resplit_labels, first_target_shrinkage, the shrinkage
+    # choice's floor and margin and calibrated_evidence existed: its learner ran without any, whatever today's
     # defaults say, so that it replays as it ran (one shrinkage throughout: its own, or the
     # default of the time). A plane world's settings are not the grid learner's and are left
     # alone.
@@ -370,8 +370,10 @@ def test_an_older_recording_reads_back_with_the_settings_it_ran_with(tmp_path: P
     assert learner == {
         "eps": 0.1, "goal_pull": 0.0, "resplit_labels": False, "first_target_shrinkage": 0.5,
         "shrinkage_floor": 0.05, "shrinkage_margin": 1.0,  # the "cv" rule of its first day
+        "calibrated_evidence": False,
     }
     assert LearnerConfig().resplit_labels  # the defaults today differ
+    assert LearnerConfig().uses_calibrated_evidence
     assert (LearnerConfig().shrinkage_floor, LearnerConfig().shrinkage_margin) != (0.05, 1.0)
     assert LearnerConfig().shrinkage_before_first_target != 0.5
     oas = {"grid": 3, "frame": "feedback", "learner": {"shrinkage": "oas"}}
