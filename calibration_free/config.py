@@ -24,7 +24,7 @@ PLANNING_WEIGHTS: tuple[str, ...] = ("posterior", "confidence")
 #: The normalised-likelihood threshold while the evidence is calibrated, and the fewest
 #: signals at a target for it to be (tuned on synthetic data, seeds 100-199: the README's
 #: "Calibrated evidence after the first target").
-DEFAULT_CALIBRATED_BETA = 0.99
+DEFAULT_CALIBRATED_BETA = 0.995
 DEFAULT_CALIBRATION_SIGNALS = 100
 #: The novelty bonus of each frame when none is given (tuned on synthetic data, seeds
 #: 100-119: the README's tuning table).
@@ -154,7 +154,7 @@ class LearnerConfig:
         feedback frame, the "matching" likelihood and ``declare_targets``; None: True
         where it applies, else False (:attr:`uses_calibrated_evidence`; tuned on synthetic
         data: the README's "Calibrated evidence after the first target").
-    calibrated_beta : float, default 0.99
+    calibrated_beta : float, default 0.995
         The normalised-likelihood threshold while the evidence is calibrated, in (0.5, 1).
     calibration_signals : int, default 100
         The fewest signals the history must hold at a target for the evidence to be
