@@ -44,6 +44,8 @@ def test_a_string_shrinkage_and_a_null_novelty_bonus_are_settings() -> None:
         ({"eps": None}, "'eps' must be a number; got None"),
         ({"n_folds": 2.0}, "'n_folds' must be an integer; got 2.0"),
         ({"power_prior": 1}, "'power_prior' must be a boolean; got 1"),
+        ({"calibrated_evidence": "yes"},
+         "'calibrated_evidence' must be a boolean or null; got 'yes'"),
         ({"planner": 3}, "'planner' must be a string; got 3"),
         ({"shrinkage": "ledoit"}, "shrinkage"),  # a string, but not a rule
         ({"bogus": 1}, "unknown learner setting"),
