@@ -357,10 +357,10 @@ def test_a_killed_writer_loses_at_most_the_message_being_written(tmp_path: Path)
 
 def test_an_older_recording_reads_back_with_the_settings_it_ran_with(tmp_path: Path) -> None:
     # Made before goal_pull, resplit_labels, first_target_shrinkage, the shrinkage
-    # choice's floor and margin and calibrated_evidence existed: its learner ran without any, whatever today's
-    # defaults say, so that it replays as it ran (one shrinkage throughout: its own, or the
-    # default of the time). A plane world's settings are not the grid learner's and are left
-    # alone.
+    # choice's floor and margin and calibrated_evidence existed: its learner ran without
+    # any, whatever today's defaults say, so that it replays as it ran (one shrinkage
+    # throughout: its own, or the default of the time). A plane world's settings are not
+    # the grid learner's and are left alone.
     from calibration_free.config import LearnerConfig
 
     older = {"grid": 3, "frame": "feedback", "learner": {"eps": 0.1}}
