@@ -23,34 +23,13 @@ from scipy.special import log_softmax
 TEMPERATURE_BOUNDS = (0.05, 20.0)
 
 
-def label_log_matches(corrected: np.ndarray, eps: float) -> np.ndarray:
-    """``log m_c`` of every class ``c`` as the expected label, for predictions ``q``.
-
-    Parameters
-    ----------
-    corrected : ndarray, shape (n_signals, K)
-        Confusion-corrected class probabilities ``q`` (rows summing to 1).
-    eps : float
-        The user error rate: the expected label distribution of class ``c`` puts ``1 -
-        eps`` on ``c`` and ``eps / (K - 1)`` on each other class.
-
-    Returns
-    -------
-    ndarray, shape (n_signals, K)
-        ``log((1 - eps) q_c + eps / (K - 1) (1 - q_c))``, floored at the smallest float.
-    """
-    n_classes = corrected.shape[1]
-    matches = (1.0 - eps) * corrected + eps / (n_classes - 1) * (1.0 - corrected)
-    return np.log(np.maximum(matches, np.finfo(float).tiny))
-
-
 def fit_temperature(log_matches: np.ndarray, label_weights: np.ndarray) -> float:
     """The temperature that makes ``softmax(tau log m)`` the likeliest class probabilities.
 
     Parameters
     ----------
     log_matches : ndarray, shape (n_signals, K)
-        :func:`label_log_matches` of the signals.
+        :func:`~calibration_free.likelihood.label_log_matches` of the signals.
     label_weights : ndarray, shape (n_signals, K)
         The labels (one-hot, or soft weights) the probabilities must explain.
 

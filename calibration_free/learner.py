@@ -19,9 +19,14 @@ from dataclasses import dataclass
 import numpy as np
 
 from calibration_free.config import LearnerConfig
-from calibration_free.evidence_temperature import fit_temperature, label_log_matches
+from calibration_free.evidence_temperature import fit_temperature
 from calibration_free.frames import Frame
-from calibration_free.likelihood import CONFIDENCES, normalised_likelihood, power_log_ratio
+from calibration_free.likelihood import (
+    CONFIDENCES,
+    label_log_matches,
+    normalised_likelihood,
+    power_log_ratio,
+)
 from calibration_free.planning import PlanningInputs, greedy_action, make_planner, random_action
 from calibration_free.shrinkage_choice import (
     CHOSEN_SHRINKAGE,
@@ -150,6 +155,12 @@ class TaskLearner:
     def shrinkage_in_use(self) -> float | str:
         """The decoders' shrinkage now (with ``shrinkage="cv"``, the latest choice)."""
         return self._fit.shrinkage
+
+    @property
+    def evidence_temperature(self) -> float:
+        """The factor of the current task segment's evidence: 1 (the tempered filter)
+        unless the learner calibrates it (``calibrated_evidence``)."""
+        return 1.0
 
     def _choose_shrinkage(self, history: TaskHistory, task: int) -> None:
         """With ``shrinkage="cv"``, choose the shrinkage from now on from ``history``'s
@@ -396,8 +407,8 @@ class CalibrationFreeLearner(TaskLearner):
 
     @property
     def evidence_temperature(self) -> float:
-        """The factor of the current segment's evidence: the measured temperature where the
-        evidence is calibrated (:mod:`calibration_free.evidence_temperature`), else 1."""
+        """The measured temperature where the segment's evidence is calibrated
+        (:mod:`calibration_free.evidence_temperature`), else 1."""
         return self._evidence_temperature or 1.0
 
     @property
@@ -487,7 +498,7 @@ class CalibrationFreeLearner(TaskLearner):
         models = None if self._prediction_is_discarded(state, action) else self._current_models()
         predicted = None
         if self._calibrated_segment and self._evidence_temperature is None:
-            self._calibrate_evidence(models or self._current_models())
+            self._calibrate_evidence(models if models is not None else self._current_models())
         if models is not None:
             if self._resplits_labels:
                 history = self._history

@@ -69,6 +69,29 @@ def log_match(label_distribution: np.ndarray, predicted: np.ndarray) -> np.ndarr
     return np.log(np.maximum(matches, _TINY))
 
 
+def label_log_matches(corrected: np.ndarray, eps: float) -> np.ndarray:
+    """``log m_c`` of a signal for every class ``c`` as the label expected of it.
+
+    Parameters
+    ----------
+    corrected : ndarray, shape (n_signals, K)
+        Confusion-corrected class probabilities ``q``.
+    eps : float
+        The user error rate: the expected distribution of label ``c`` puts ``1 - eps`` on
+        ``c`` and ``eps / (K - 1)`` on each other class.
+
+    Returns
+    -------
+    ndarray, shape (n_signals, K)
+        :func:`log_match` of each label's expected distribution against ``q``.
+    """
+    n_classes = corrected.shape[1]
+    expected = (1.0 - eps) * np.eye(n_classes) + eps / (n_classes - 1) * (
+        1.0 - np.eye(n_classes)
+    )
+    return log_match(expected[None], corrected[:, None])
+
+
 def power_log_ratio(power_sums: np.ndarray, weight_sums: np.ndarray) -> np.ndarray:
     """The power prior ``log(P_error / P_correct)`` of every task (feedback frame).
 

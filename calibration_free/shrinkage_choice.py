@@ -27,7 +27,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from calibration_free.likelihood import confusion_matrices, corrected_proba, log_match
+from calibration_free.likelihood import confusion_matrices, corrected_proba, label_log_matches
 from calibration_free.task_decoders import TaskHistory, in_signal_order
 from decoding.lda import MIN_CLASS_COUNT, fit_pooled_lda
 from decoding.scatter_eigen import ScatterEigen
@@ -115,11 +115,7 @@ def evidence_discriminability(
         pending = np.zeros((eigenvalues.shape[0], 0, eigenvalues.shape[1]))  # none
         statistics = replace(statistics, eigen=ScatterEigen(basis, eigenvalues, pending))
     weights = history.task_label_weights(task)
-    n_classes = weights.shape[1]
-    expected = (1.0 - eps) * np.eye(n_classes) + eps / (n_classes - 1) * (
-        1.0 - np.eye(n_classes)
-    )
-    present = np.ones((1, n_classes), dtype=bool)
+    present = np.ones((1, weights.shape[1]), dtype=bool)
     result = np.full(len(shrinkages), np.nan)
     folds = fit_pooled_lda(statistics, np.asarray(shrinkages, dtype=float))
     by_fold = history.cross_validated_proba(folds.select(slice(0, -1)))
@@ -127,8 +123,7 @@ def evidence_discriminability(
         proba = in_signal_order(by_fold, history.n_signals, task=index)  # (n, K)
         confusion = confusion_matrices((weights.T @ proba)[None], present, smoothing, balanced)
         corrected = corrected_proba(confusion, proba[None])[0]
-        log_matches = log_match(expected[None], corrected[:, None])  # (n, K): label c
-        result[index] = _mean_over_spread(log_matches, weights)
+        result[index] = _mean_over_spread(label_log_matches(corrected, eps), weights)
     return result
 
 

@@ -98,6 +98,10 @@ class SessionResult:
     shrinkages : list of float or str
         The decoders' shrinkage from each target on (the calibrated baseline's: from the
         end of its calibration); with ``shrinkage="cv"``, the choices the data made.
+    temperatures : list of float
+        The evidence temperature of each task segment a target ended, in order (1 where
+        the evidence was not calibrated: the first segment, a target on fewer than
+        ``calibration_signals`` signals, ``calibrated_evidence`` off, the baseline).
     """
 
     seed: int
@@ -111,6 +115,7 @@ class SessionResult:
     user_task_likelihood: list[float] = field(default_factory=list)
     calibration_counts: list[list[int]] = field(default_factory=list)
     shrinkages: list[float | str] = field(default_factory=list)
+    temperatures: list[float] = field(default_factory=list)
 
 
 def make_learner(
@@ -162,6 +167,7 @@ def run_session(
     best_confidence: list[float] = []
     best_is_target: list[bool] = []
     shrinkages: list[float | str] = []
+    temperatures: list[float] = []
     for step in range(1, config.steps + 1):
         beliefs = learner.beliefs()
         best_confidence.append(float(beliefs.confidence[beliefs.best_task]))
@@ -175,6 +181,7 @@ def run_session(
         if proposal.declares_target:
             reached = state == world.task_states[user.target]
             event = "correct_target" if reached else "wrong_target"
+            temperatures.append(learner.evidence_temperature)  # the segment it ends
             first_target = first_target or step
             if event == "correct_target":
                 correct += 1
@@ -203,7 +210,7 @@ def run_session(
     return SessionResult(
         seed, config.steps, first_target, first_correct, correct, wrong, first_confident,
         confident_correct, user_likelihood, calibration_counts(best_confidence, best_is_target),
-        shrinkages,
+        shrinkages, temperatures,
     )
 
 

@@ -10,13 +10,9 @@ from scipy.special import softmax
 from test_learner import WORLD
 
 from calibration_free.config import LearnerConfig
-from calibration_free.evidence_temperature import (
-    TEMPERATURE_BOUNDS,
-    fit_temperature,
-    label_log_matches,
-)
+from calibration_free.evidence_temperature import TEMPERATURE_BOUNDS, fit_temperature
 from calibration_free.learner import CalibrationFreeLearner
-from calibration_free.likelihood import normalised_likelihood
+from calibration_free.likelihood import label_log_matches, normalised_likelihood
 from calibration_free.world import GOAL
 from wire.messages import learner_settings, recorded_config
 

@@ -1,6 +1,7 @@
 """Closed-loop sessions, the simulated user, and the ``cfbci simulate`` command."""
 
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -101,6 +102,23 @@ def test_a_session_reports_the_shrinkage_in_force_from_each_target():
         assert len(result.shrinkages) == result.correct_targets + result.wrong_targets >= 3
     assert set(chosen.shrinkages) <= set(SHRINKAGE_GRID)
     assert set(fixed.shrinkages) == {0.3}
+
+
+def test_a_session_reports_the_evidence_temperature_of_each_segment():
+    learner = LearnerConfig(calibration_signals=40)
+    calibrated = run_session(3, SessionConfig(steps=150, grid=4, learner=learner), separated())
+    tempered = run_session(
+        3,
+        SessionConfig(steps=150, grid=4, learner=replace(learner, calibrated_evidence=False)),
+        separated(),
+    )
+    for result in (calibrated, tempered):
+        assert len(result.temperatures) == result.correct_targets + result.wrong_targets >= 3
+    assert set(tempered.temperatures) == {1.0}
+    # The first segment is never calibrated; a later one on well separated signals is, with
+    # evidence stronger than the tempered filter's.
+    assert calibrated.temperatures[0] == 1.0
+    assert max(calibrated.temperatures[1:]) > 1.5
 
 
 def test_summary_statistics():
