@@ -89,6 +89,13 @@ class Beliefs:
         likelihood imposes: Bhattacharyya's 0.99 before its switch).
     n_signals : int
         Signals observed so far.
+    rule : str
+        The confidence rule in force (a key of
+        :data:`~calibration_free.likelihood.CONFIDENCES`): ``LearnerConfig.confidence``, or
+        "normalised" while the evidence is calibrated.
+    threshold : float
+        The threshold ``confident`` compares with (``beta``, ``calibrated_beta`` while the
+        evidence is calibrated, or the one the likelihood imposes).
     """
 
     log_likelihood: np.ndarray
@@ -97,6 +104,8 @@ class Beliefs:
     best_task: int
     confident: bool
     n_signals: int
+    rule: str
+    threshold: float
 
     def normalised_likelihood(self) -> np.ndarray:
         """``L_t / sum_u L_u`` of :attr:`log_likelihood` (no power prior), shape (n_tasks,)."""
@@ -228,6 +237,8 @@ class TaskLearner:
             best_task=best,
             confident=bool(confidence[best] > threshold),
             n_signals=self.n_signals,
+            rule=rule,
+            threshold=threshold,
         )
 
     def propose(self, state: int) -> Proposal:

@@ -24,7 +24,14 @@ from rich.markup import escape
 from rich.table import Table
 
 from cfbci.parallel import Scheduler, run_parallel
-from replay.calibration import CalibrationBin, calibration_curve, pool_counts
+from replay.calibration import (
+    CalibrationBin,
+    CalibrationPanel,
+    calibration_curve,
+    pool_counts,
+    pool_counts_by_rule,
+    rule_summary,
+)
 from replay.figures import calibration_figure, save_figures, session_figures
 from replay.html_report import SessionReport, write_html
 from replay.metrics import aggregate, session_metrics
@@ -103,10 +110,16 @@ def metrics_document(reports: list[SessionReport], out_dir: Path) -> dict[str, A
             **report.metrics.to_dict(),
         })
     counts = [m.calibration_counts for m in done if m.calibration_counts is not None]
+    by_rule = [m.calibration_counts_by_rule for m in done
+               if m.calibration_counts_by_rule is not None]
     return {
         "aggregate": aggregate(done),
         "confidence_calibration": [asdict(b) for b in calibration_curve(pool_counts(counts))]
         if counts else None,
+        "confidence_calibration_by_rule": {
+            "sessions": len(by_rule),
+            "rules": [rule_summary(pooled) for pooled in pool_counts_by_rule(by_rule)],
+        } if by_rule else None,
         "sessions": sessions,
         "errors": [{"file": r.file, "error": r.error} for r in reports if r.error],
     }
@@ -189,15 +202,19 @@ def run_report(
     (out_dir / "metrics.json").write_text(json.dumps(document, indent=1) + "\n")
     calibration = None
     if document["confidence_calibration"] is not None:
-        curve = [CalibrationBin(**b) for b in document["confidence_calibration"]]
+        panels = [CalibrationPanel(
+            "all steps", [CalibrationBin(**b) for b in document["confidence_calibration"]])]
+        if document["confidence_calibration_by_rule"] is not None:
+            panels += [CalibrationPanel.of_rule(rule)
+                       for rule in document["confidence_calibration_by_rule"]["rules"]]
         betas = {r.metrics.beta for r in reports
                  if r.metrics is not None and r.metrics.calibration_counts is not None}
-        figure = calibration_figure(curve, betas.pop() if len(betas) == 1 else 0.9)
-        caption = ("Pooled over the sessions: bars, the fraction of steps in each confidence "
-                   "bin whose best task was the user's target (labels: steps); dashed, a "
-                   "calibrated confidence.")
+        figure = calibration_figure(panels, betas.pop() if len(betas) == 1 else 0.9)
+        caption = ("Pooled over the sessions, all steps and each decision rule's: bars, the "
+                   "fraction of steps in each confidence bin whose best task was the user's "
+                   "target (labels: steps); dashed, a calibrated confidence.")
         [saved] = save_figures([("confidence_calibration", figure, caption)], out_dir,
                                CALIBRATION_STEM)
-        calibration = (saved, curve)
+        calibration = (saved, panels)
     write_html(out_dir, reports, document["aggregate"], calibration)
     return reports

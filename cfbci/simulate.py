@@ -119,10 +119,15 @@ def print_report(report: dict[str, Any], console: Console) -> None:
         console.print(f"mean normalised likelihood of the user's task: {', '.join(shown)}")
     curve = summary["confidence_calibration"]
     bins = [b for b in curve if b["steps"]]
-    beta = report["config"]["learner"].get("beta")
-    if beta is not None and curve[bin_of(beta)]["steps"]:
-        console.print(f"in the bin of the confidence threshold {beta:g}, the best task was the "
-                      f"user's target at {curve[bin_of(beta)]['fraction_right']:.1%} of steps")
+    for rule in summary["confidence_calibration_by_rule"]:
+        in_bin, above = rule["curve"][bin_of(rule["threshold"])], rule["above_threshold"]
+        if in_bin["steps"]:
+            console.print(
+                f"{rule['rule']} confidence, threshold {rule['threshold']:g}: the best task "
+                f"was the user's target at {in_bin['fraction_right']:.1%} of the "
+                f"{in_bin['steps']} steps in the threshold's bin"
+                + (f", {above['right'] / above['steps']:.1%} of the {above['steps']} above it"
+                   if above["steps"] else ""))
     console.print("confidence calibration (best task's confidence: fraction of steps it was "
                   "the user's target, steps): " + "; ".join(
                       f"{b['low']:.1f}-{b['high']:.1f}: {b['fraction_right']:.2f} ({b['steps']})"

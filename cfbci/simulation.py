@@ -27,7 +27,15 @@ from calibration_free.session import StepRecord, session_streams
 from calibration_free.world import World, transition_draws
 from calibration_free.worlds import WORLDS, make_world
 from decoding.validation import check_option
-from replay.calibration import calibration_counts, calibration_curve, pool_counts
+from replay.calibration import (
+    RuleCounts,
+    calibration_counts,
+    calibration_curve,
+    counts_by_rule,
+    pool_counts,
+    pool_counts_by_rule,
+    rule_summary,
+)
 
 BASELINES: tuple[str, ...] = ("calibrated",)
 
@@ -95,6 +103,10 @@ class SessionResult:
         Per confidence bin (:mod:`replay.calibration`), the steps whose best task had a
         confidence in it (before the step's action) and those where it was the user's
         target then.
+    calibration_counts_by_rule : list of RuleCounts
+        The same counts split by the decision rule in force at the step: by default the
+        pairwise W against 0.9, and the normalised likelihood against 0.995 in segments
+        whose evidence is calibrated.
     shrinkages : list of float or str
         The decoders' shrinkage from each target on (the calibrated baseline's: from the
         end of its calibration); with ``shrinkage="cv"``, the choices the data made.
@@ -114,6 +126,7 @@ class SessionResult:
     first_confident_correct: bool | None = None
     user_task_likelihood: list[float] = field(default_factory=list)
     calibration_counts: list[list[int]] = field(default_factory=list)
+    calibration_counts_by_rule: list[RuleCounts] = field(default_factory=list)
     shrinkages: list[float | str] = field(default_factory=list)
     temperatures: list[float] = field(default_factory=list)
 
@@ -166,12 +179,14 @@ def run_session(
     user_likelihood: list[float] = []
     best_confidence: list[float] = []
     best_is_target: list[bool] = []
+    rules: list[tuple[str, float]] = []
     shrinkages: list[float | str] = []
     temperatures: list[float] = []
     for step in range(1, config.steps + 1):
         beliefs = learner.beliefs()
         best_confidence.append(float(beliefs.confidence[beliefs.best_task]))
         best_is_target.append(beliefs.best_task == user.target)
+        rules.append((beliefs.rule, beliefs.threshold))
         if beliefs.confident and first_confident is None:
             first_confident, confident_correct = step, beliefs.best_task == user.target
         proposal = learner.propose(state)
@@ -210,7 +225,7 @@ def run_session(
     return SessionResult(
         seed, config.steps, first_target, first_correct, correct, wrong, first_confident,
         confident_correct, user_likelihood, calibration_counts(best_confidence, best_is_target),
-        shrinkages, temperatures,
+        counts_by_rule(best_confidence, best_is_target, rules), shrinkages, temperatures,
     )
 
 
@@ -223,7 +238,8 @@ def normalised(log_likelihood: np.ndarray) -> np.ndarray:
 def summarise(results: list[SessionResult]) -> dict[str, Any]:
     """Median first target and first confident step (none counts as steps + 1), mean
     targets, pooled wrong rate, the thesis's fraction of wrong *first* targets (among the
-    sessions that reached one), and the mean user-task likelihood at steps 10, 20, ..."""
+    sessions that reached one), the mean user-task likelihood at steps 10, 20, ..., and the
+    confidence calibration curve, pooled and per decision rule."""
     firsts = [r.first_target_step or r.steps + 1 for r in results]
     confident = [r.first_confident_step or r.steps + 1 for r in results]
     reached = [r for r in results if r.first_target_step is not None]
@@ -245,5 +261,9 @@ def summarise(results: list[SessionResult]) -> dict[str, Any]:
         },
         "confidence_calibration": [
             asdict(b) for b in calibration_curve(pool_counts(r.calibration_counts for r in results))
+        ],
+        "confidence_calibration_by_rule": [
+            rule_summary(pooled)
+            for pooled in pool_counts_by_rule(r.calibration_counts_by_rule for r in results)
         ],
     }

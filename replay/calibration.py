@@ -7,13 +7,17 @@ intervals of [0, 1], ``[k/10, (k+1)/10)``, the last one closed (a confidence of 
 default threshold 0.9 fall in the last bin).
 
 Counts are kept per session (:func:`calibration_counts`) so that sessions run apart (Dask
-workers, recordings) pool by summing (:func:`pool_counts`).
+workers, recordings) pool by summing (:func:`pool_counts`). A learner may decide by more
+than one rule in a session (the pairwise W against 0.9, the normalised likelihood against
+0.995 while its evidence is calibrated): :func:`counts_by_rule` keeps one set of counts
+per rule, so that each threshold can be read against its own rule's curve.
 """
 
 from __future__ import annotations
 
 from collections.abc import Iterable, Sequence
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
+from typing import Any
 
 import numpy as np
 
@@ -50,6 +54,59 @@ def calibration_counts(
     return counts
 
 
+@dataclass(frozen=True)
+class RuleCounts:
+    """The counts (:func:`calibration_counts`) of the steps decided by one rule: the
+    confidence rule (a key of :data:`calibration_free.likelihood.CONFIDENCES`) compared
+    with ``threshold``; and ``above_threshold``, ``[steps, right]`` of the steps whose best
+    task's confidence exceeded the threshold (the confident ones)."""
+
+    rule: str
+    threshold: float
+    counts: list[list[int]]
+    above_threshold: list[int]
+
+
+def counts_by_rule(
+    best_confidence: Sequence[float],
+    best_is_target: Sequence[bool],
+    rules: Sequence[tuple[str, float]],
+) -> list[RuleCounts]:
+    """:func:`calibration_counts` of each rule's steps; ``rules`` holds the ``(rule,
+    threshold)`` in force at each step. Rules in the order they first occur."""
+    if len(rules) != len(best_confidence):
+        raise ValueError(f"{len(best_confidence)} confidences but {len(rules)} rules")
+    steps: dict[tuple[str, float], list[int]] = {}
+    for i, rule in enumerate(rules):
+        steps.setdefault(rule, []).append(i)
+    return [
+        RuleCounts(
+            rule, threshold,
+            calibration_counts([best_confidence[i] for i in chosen],
+                               [best_is_target[i] for i in chosen]),
+            [sum(best_confidence[i] > threshold for i in chosen),
+             sum(best_confidence[i] > threshold and best_is_target[i] for i in chosen)],
+        )
+        for (rule, threshold), chosen in steps.items()
+    ]
+
+
+def pool_counts_by_rule(per_session: Iterable[Sequence[RuleCounts]]) -> list[RuleCounts]:
+    """The per-rule counts of several sessions, each rule's summed (in the order the
+    rules first occur)."""
+    by_rule: dict[tuple[str, float], list[RuleCounts]] = {}
+    for session in per_session:
+        for counts in session:
+            by_rule.setdefault((counts.rule, counts.threshold), []).append(counts)
+    return [
+        RuleCounts(
+            rule, threshold, pool_counts(c.counts for c in counts),
+            np.sum([c.above_threshold for c in counts], axis=0).tolist(),
+        )
+        for (rule, threshold), counts in by_rule.items()
+    ]
+
+
 def pool_counts(per_session: Iterable[Sequence[Sequence[int]]]) -> list[list[int]]:
     """The bin counts of several sessions summed."""
     total = np.zeros((N_BINS, 2), dtype=int)
@@ -77,3 +134,34 @@ def calibration_curve(counts: Sequence[Sequence[int]]) -> list[CalibrationBin]:
         for k, (n, right) in enumerate(counts)
     ]
 
+
+
+def rule_summary(counts: RuleCounts) -> dict[str, Any]:
+    """A rule's pooled counts as JSON: ``rule``, ``threshold``, ``curve`` (the
+    :class:`CalibrationBin` fields per bin) and ``above_threshold`` (``steps``, ``right``)."""
+    steps, right = counts.above_threshold
+    return {
+        "rule": counts.rule,
+        "threshold": counts.threshold,
+        "curve": [asdict(b) for b in calibration_curve(counts.counts)],
+        "above_threshold": {"steps": steps, "right": right},
+    }
+
+
+@dataclass(frozen=True)
+class CalibrationPanel:
+    """One curve of a calibration figure: all steps pooled (``threshold`` None), or one
+    rule's steps with its threshold and ``above_threshold`` (``[steps, right]``)."""
+
+    name: str
+    curve: list[CalibrationBin]
+    threshold: float | None = None
+    above_threshold: list[int] | None = None
+
+    @classmethod
+    def of_rule(cls, summary: dict[str, Any]) -> CalibrationPanel:
+        """The panel of one rule's :func:`rule_summary`."""
+        above = summary["above_threshold"]
+        return cls(f"{summary['rule']} > {summary['threshold']:g}",
+                   [CalibrationBin(**b) for b in summary["curve"]], summary["threshold"],
+                   [above["steps"], above["right"]])

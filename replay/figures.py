@@ -8,6 +8,7 @@ of :mod:`replay.metrics` (see its docstring for the definitions and their alignm
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -21,7 +22,7 @@ from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
 from matplotlib.patches import Rectangle
 
-from replay.calibration import CalibrationBin
+from replay.calibration import CalibrationPanel
 from replay.metrics import SessionMetrics
 from replay.recording import RANKED, Recording, decode_array
 from wire.messages import config_world
@@ -504,24 +505,33 @@ def session_figures(
     return save_figures(items, out_dir, stem)
 
 
-def calibration_figure(curve: list[CalibrationBin], threshold: float) -> Figure:
-    """Reliability diagram: per confidence bin, the fraction of steps whose best task was
-    the user's target, against the diagonal of a calibrated confidence; bar labels give
-    each bin's steps."""
-    figure = Figure(figsize=(5.0, 4.2), layout="constrained")
-    ax = figure.subplots()
-    filled = [b for b in curve if b.steps]
-    centres = [(b.low + b.high) / 2 for b in filled]
-    width = curve[0].high - curve[0].low
-    bars = ax.bar(centres, [b.fraction_right for b in filled], width=0.9 * width,
-                  color="#4c72b0", label="fraction right")
-    ax.bar_label(bars, labels=[str(b.steps) for b in filled], fontsize=7, padding=2)
-    ax.plot([0, 1], [0, 1], color="black", linestyle="--", linewidth=1, label="calibrated")
-    ax.axvline(threshold, color="#c44e52", linewidth=1, label=f"threshold {threshold:g}")
-    ax.set(xlim=(0, 1), ylim=(0, 1.08), xlabel="confidence of the best task (binned)",
-           ylabel="fraction of steps it was the user's target",
-           title=f"Confidence calibration ({sum(b.steps for b in curve)} steps)")
-    ax.legend(loc="upper left", fontsize=8)
+def calibration_figure(panels: Sequence[CalibrationPanel], threshold: float) -> Figure:
+    """Reliability diagrams side by side, one per panel (all steps, then each decision
+    rule's): per confidence bin, the fraction of steps whose best task was the user's
+    target, against the diagonal of a calibrated confidence; bar labels give each bin's
+    steps; the vertical line is the panel's threshold (``threshold`` for the pooled one)."""
+    figure = Figure(figsize=(5.0 * len(panels), 4.2), layout="constrained")
+    axes = figure.subplots(1, len(panels), squeeze=False)[0]
+    for ax, panel in zip(axes, panels, strict=True):
+        filled = [b for b in panel.curve if b.steps]
+        centres = [(b.low + b.high) / 2 for b in filled]
+        width = panel.curve[0].high - panel.curve[0].low
+        bars = ax.bar(centres, [b.fraction_right for b in filled], width=0.9 * width,
+                      color="#4c72b0", label="fraction right")
+        ax.bar_label(bars, labels=[str(b.steps) for b in filled], fontsize=7, padding=2)
+        ax.plot([0, 1], [0, 1], color="black", linestyle="--", linewidth=1,
+                label="calibrated")
+        line = panel.threshold if panel.threshold is not None else threshold
+        ax.axvline(line, color="#c44e52", linewidth=1, label=f"threshold {line:g}")
+        ax.set(xlim=(0, 1), ylim=(0, 1.08), xlabel="confidence of the best task (binned)",
+               ylabel="fraction of steps it was the user's target",
+               title=f"{panel.name} ({sum(b.steps for b in panel.curve)} steps)")
+        ax.legend(loc="upper left", fontsize=8)
+    if len(panels) > 1:
+        figure.suptitle("Confidence calibration, all steps and per decision rule")
+    else:
+        axes[0].set_title(f"Confidence calibration ({sum(b.steps for b in panels[0].curve)} "
+                          "steps)")
     return figure
 
 

@@ -15,7 +15,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from replay.calibration import CalibrationBin
+from replay.calibration import CalibrationPanel
 from replay.figures import SavedFigure
 from replay.metrics import SCALAR_METRICS, SessionMetrics
 
@@ -192,31 +192,49 @@ def session_section(report: SessionReport, first_figure: int) -> str:
     return "\n".join(parts)
 
 
-def calibration_section(figure: SavedFigure, curve: Sequence[CalibrationBin]) -> str:
-    """The pooled confidence calibration: its figure and table."""
+def calibration_section(figure: SavedFigure, panels: Sequence[CalibrationPanel]) -> str:
+    """The confidence calibration, all steps pooled and per decision rule: its figure and a
+    table with two columns (steps, fraction right) per panel, and each rule's steps above
+    its threshold."""
+
+    def cell(steps: int, right: float | None) -> str:
+        return f"<td>{steps}</td><td>{'-' if right is None else f'{right:.3f}'}</td>"
+
+    head = "".join(f'<th colspan="2">{html.escape(p.name)}</th>' for p in panels)
+    sub = "<th>steps</th><th>fraction right</th>" * len(panels)
     rows = "".join(
-        f"<tr><td>{b.low:.1f}-{b.high:.1f}</td><td>{b.steps}</td><td>"
-        f"{'-' if b.fraction_right is None else f'{b.fraction_right:.3f}'}</td></tr>"
-        for b in curve
+        f"<tr><td>{bins[0].low:.1f}-{bins[0].high:.1f}</td>"
+        + "".join(cell(b.steps, b.fraction_right) for b in bins) + "</tr>"
+        for bins in zip(*(p.curve for p in panels), strict=True)
     )
+    above = "".join(
+        "<td></td><td></td>" if p.above_threshold is None
+        else cell(p.above_threshold[0],
+                  p.above_threshold[1] / p.above_threshold[0] if p.above_threshold[0] else None)
+        for p in panels
+    )
+    if any(p.above_threshold is not None for p in panels):
+        rows += f"<tr><td>above the rule's threshold</td>{above}</tr>"
     return (
         "<h2>Confidence calibration (all sessions)</h2>"
         "<p>Per step, the best task's confidence before the step's action, binned, against "
         "whether that task was the user's target then: a calibrated confidence of 0.9 is right "
-        "90 % of the time.</p>"
+        "90 % of the time. Where the learner decided by more than one rule (the pairwise W "
+        "against 0.9; the normalised likelihood against 0.995 once its evidence is "
+        "calibrated), each rule's steps also have their own curve (the sessions the re-run "
+        "reproduced).</p>"
         f'<figure id="confidence-calibration">{_image(figure)}</figure>'
-        "<table><tr><th>confidence</th><th>steps</th><th>fraction right</th></tr>"
-        f"{rows}</table>"
+        f"<table><tr><th>confidence</th>{head}</tr><tr><th></th>{sub}</tr>{rows}</table>"
     )
 
 
 def render_html(
     reports: Sequence[SessionReport],
     aggregate: dict[str, dict[str, float | int | None]],
-    calibration: tuple[SavedFigure, Sequence[CalibrationBin]] | None = None,
+    calibration: tuple[SavedFigure, Sequence[CalibrationPanel]] | None = None,
 ) -> str:
-    """The whole report as one HTML document (``calibration``: the pooled calibration
-    figure and curve)."""
+    """The whole report as one HTML document (``calibration``: the calibration figure and
+    its panels)."""
     done = [r for r in reports if r.metrics is not None]
     failed = [r for r in reports if r.metrics is None]
     truncated = [r for r in done if r.metrics is not None and r.metrics.truncated]
@@ -263,7 +281,7 @@ def write_html(
     out_dir: Path,
     reports: Sequence[SessionReport],
     aggregate: dict[str, dict[str, float | int | None]],
-    calibration: tuple[SavedFigure, Sequence[CalibrationBin]] | None = None,
+    calibration: tuple[SavedFigure, Sequence[CalibrationPanel]] | None = None,
 ) -> Path:
     """Write ``out_dir/index.html`` (see the module docstring); return its path."""
     out_dir.mkdir(parents=True, exist_ok=True)

@@ -50,7 +50,7 @@ import numpy as np
 from calibration_free.frames import FRAMES, Frame
 from calibration_free.learner import CalibrationFreeLearner
 from calibration_free.world import GridWorld, World
-from replay.calibration import calibration_counts
+from replay.calibration import RuleCounts, calibration_counts, counts_by_rule
 from replay.recording import Recording
 from replay.rerun import first_divergence, recompute
 from wire.messages import config_world, learner_settings, world_text
@@ -184,6 +184,13 @@ class SessionMetrics:
         (None elsewhere; see :mod:`replay.plane_report`).
     final_distance : float or None
         Its last value.
+    calibration_counts : list of [int, int] or None
+        Per confidence bin (:mod:`replay.calibration`), the states with a known target whose
+        best task's confidence falls in it, and those whose best task was the target.
+    calibration_counts_by_rule : list of RuleCounts or None
+        The same split by the decision rule in force at each state (the pairwise W against
+        0.9, the normalised likelihood against 0.995 in calibrated segments), known from the
+        re-run: None unless it reproduced the recording.
     update_steps : list of int or None
         Puddle world: the epochs after which the learner updated (every ``update_every``;
         None elsewhere; see :mod:`replay.puddle_report`).
@@ -240,6 +247,7 @@ class SessionMetrics:
     distance: list[float | None] | None = None
     final_distance: float | None = None
     calibration_counts: list[list[int]] | None = None
+    calibration_counts_by_rule: list[RuleCounts] | None = None
     update_steps: list[int] | None = None
     taught_likelihood: list[float | None] | None = None
     final_taught_likelihood: float | None = None
@@ -325,11 +333,14 @@ def _confidences(
 
 @dataclass
 class _Rerun:
-    """What the re-run of the learner gives: accuracy vs truth per signal, divergence."""
+    """What the re-run of the learner gives: accuracy vs truth per signal, divergence, and
+    the decision rule (rule, threshold) in force at each recorded state (None unless the
+    re-run reproduced the recording)."""
 
     accuracy_truth: list[float | None]
     identical: bool | None
     note: str | None
+    rules: list[tuple[str, float]] | None = None
 
 
 def _rerun(recording: Recording, n_classes: int) -> _Rerun:
@@ -361,9 +372,9 @@ def _rerun(recording: Recording, n_classes: int) -> _Rerun:
         )
         moves, states, events = moves[:n_moves], states[:n_states], events[:n_events]
     divergence = first_divergence(recording, moves, states, events)
-    return _Rerun(
-        accuracy, divergence is None, None if divergence is None else divergence.describe()
-    )
+    if divergence is not None:
+        return _Rerun(accuracy, False, divergence.describe())
+    return _Rerun(accuracy, True, None, [(s["rule"], s["threshold"]) for s in states])
 
 
 def _mean_gap(steps: list[int]) -> float | None:
@@ -419,8 +430,10 @@ def session_metrics(recording: Recording, file: str = "", rerun: bool = True) ->
     steps = [int(m["step"]) for m in moves]
     targets = [truth.get(step, {}).get("target") for step in steps]
     true_conf, other_conf, other_task = _confidences(states, targets, n_steps)
-    best = [(float(s["confidence"][s["best_task"]]), s["best_task"] == t)
-            for s, t in zip(states, targets, strict=False) if t is not None and "confidence" in s]
+    counted = [k for k, (s, t) in enumerate(zip(states, targets, strict=False))
+               if t is not None and "confidence" in s]
+    best = [(float(states[k]["confidence"][states[k]["best_task"]]),
+             states[k]["best_task"] == targets[k]) for k in counted]
     calibration = calibration_counts([c for c, _ in best], [r for _, r in best])
 
     declared = declared_targets(moves, truth, world)
@@ -436,6 +449,11 @@ def session_metrics(recording: Recording, file: str = "", rerun: bool = True) ->
     else:
         replay = _Rerun([None] * n_signals, None, "not re-run")
     accuracy_truth = replay.accuracy_truth
+    calibration_by_rule = None
+    if replay.rules is not None:
+        calibration_by_rule = counts_by_rule(
+            [c for c, _ in best], [r for _, r in best], [replay.rules[k] for k in counted]
+        )
 
     warning = recording.warning
     if recording.truncated:
@@ -484,6 +502,7 @@ def session_metrics(recording: Recording, file: str = "", rerun: bool = True) ->
         truncated=recording.truncated,
         warning=warning,
         calibration_counts=calibration,
+        calibration_counts_by_rule=calibration_by_rule,
     )
 
 

@@ -152,8 +152,12 @@ class Rerun:
         return self.learner.n_signals >= self.steps
 
     def _record_state(self) -> None:
+        """The state message's fields and confidences, and the decision rule in force
+        (``rule``, ``threshold``: not in the message; the report's calibration per rule)."""
         fields, confidence = state_fields(self.learner)
-        self.states.append({**fields, "confidence": [float(x) for x in confidence]})
+        beliefs = self.learner.beliefs()
+        self.states.append({**fields, "confidence": [float(x) for x in confidence],
+                            "rule": beliefs.rule, "threshold": beliefs.threshold})
 
     def _move(self) -> int:
         proposal = self.learner.propose(self.state)
@@ -231,7 +235,8 @@ def rerun_of(config: dict[str, Any]) -> Rerun | PlaneRerun:
 def recompute(
     recording: Recording, on_observe: Observer | None = None
 ) -> tuple[list[dict], list[dict], list[str]]:
-    """The moves, states (with ``confidence``) and target events of the re-run.
+    """The moves, states (with ``confidence``; outside a plane world also the decision
+    ``rule`` and ``threshold`` in force) and target events of the re-run.
 
     Parameters
     ----------

@@ -356,6 +356,12 @@ def test_cfbci_report_writes_metrics_figures_and_html(
     assert sum(b["steps"] for b in curve) == sum(
         sum(t is not None for t in s["true_target"]) for s in document["sessions"])
     assert all(b["fraction_right"] is None or 0 <= b["fraction_right"] <= 1 for b in curve)
+    # Per decision rule, over the sessions the re-run reproduced: here both, so the rules'
+    # counts add up to the pooled ones bin by bin.
+    by_rule = document["confidence_calibration_by_rule"]
+    assert by_rule["sessions"] == 2 and by_rule["rules"]
+    assert [b["steps"] for b in curve] == [
+        sum(r["curve"][k]["steps"] for r in by_rule["rules"]) for k in range(len(curve))]
     assert (out / "all-sessions_confidence_calibration.png").read_bytes().startswith(b"\x89PNG")
     assert "Confidence calibration (all sessions)" in page
     assert page.count("<figure") == 2 * len(KINDS) + 1

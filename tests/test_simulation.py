@@ -152,6 +152,7 @@ def test_simulate_command_writes_report_and_trace(tmp_path, capsys):
         "median_first_target_step", "mean_correct_targets", "mean_wrong_targets",
         "wrong_target_rate", "sessions_with_a_target", "median_first_confident_step",
         "wrong_first_target_fraction", "mean_user_task_likelihood", "confidence_calibration",
+        "confidence_calibration_by_rule",
     }
     assert {"first_confident_step", "first_confident_correct", "user_task_likelihood",
             "calibration_counts"} <= set(out["sessions"][0])
