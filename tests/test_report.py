@@ -218,6 +218,8 @@ def test_metrics_of_a_hand_built_recording(tmp_path: Path) -> None:
     assert not m.truncated and m.warning is None
     # The hand-built moves are not the learner's: the re-run says so.
     assert m.replay_identical is False and "step 1" in (m.replay_note or "")
+    # The rule in force at each step is the re-run's: not known where it diverged.
+    assert m.calibration_counts is not None and m.calibration_counts_by_rule is None
     assert len(m.accuracy_truth) == 6
     assert all(a is None or 0.0 <= a <= 1.0 for a in m.accuracy_truth)
     json.dumps(m.to_dict(), allow_nan=False)  # JSON-ready
