@@ -600,7 +600,8 @@ class CalibrationFreeLearner(TaskLearner):
 
     def _calibrate_evidence(self, models: TaskModels | None) -> None:
         """Measure the segment's evidence temperature on the adopted labels: the models
-        are fitted on the history right after the target (every task has its labels)."""
+        are fitted on the history right after the target, where every task has the
+        adopted labels (one labelling: task 0's are everyone's)."""
         assert models is not None and self._history is not None
         corrected = models.held_out_corrected_proba(0)
         labels = self._history.task_label_weights(0)

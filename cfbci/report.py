@@ -205,7 +205,7 @@ def run_report(
         panels = [CalibrationPanel(
             "all steps", [CalibrationBin(**b) for b in document["confidence_calibration"]])]
         if document["confidence_calibration_by_rule"] is not None:
-            panels += [CalibrationPanel.of_rule(rule)
+            panels += [CalibrationPanel.of_rule_summary(rule)
                        for rule in document["confidence_calibration_by_rule"]["rules"]]
         betas = {r.metrics.beta for r in reports
                  if r.metrics is not None and r.metrics.calibration_counts is not None}

@@ -159,7 +159,7 @@ class CalibrationPanel:
     above_threshold: list[int] | None = None
 
     @classmethod
-    def of_rule(cls, summary: dict[str, Any]) -> CalibrationPanel:
+    def of_rule_summary(cls, summary: dict[str, Any]) -> CalibrationPanel:
         """The panel of one rule's :func:`rule_summary`."""
         above = summary["above_threshold"]
         return cls(f"{summary['rule']} > {summary['threshold']:g}",

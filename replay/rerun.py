@@ -154,8 +154,8 @@ class Rerun:
     def _record_state(self) -> None:
         """The state message's fields and confidences, and the decision rule in force
         (``rule``, ``threshold``: not in the message; the report's calibration per rule)."""
-        fields, confidence = state_fields(self.learner)
         beliefs = self.learner.beliefs()
+        fields, confidence = state_fields(self.learner, beliefs)
         self.states.append({**fields, "confidence": [float(x) for x in confidence],
                             "rule": beliefs.rule, "threshold": beliefs.threshold})
 

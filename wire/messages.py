@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 
 from calibration_free.config import SETTINGS_BEFORE_THEY_EXISTED, LearnerConfig
-from calibration_free.learner import CalibrationFreeLearner, Proposal
+from calibration_free.learner import Beliefs, CalibrationFreeLearner, Proposal
 from calibration_free.session import session_streams
 from calibration_free.world import GridWorld, TransitionDraws, World
 from calibration_free.worlds import make_world
@@ -138,10 +138,13 @@ def target_text(world: World, step: int, state: int) -> str:
     return f"step {step}: target reached in state {state} ({world.state_name(state)})"
 
 
-def state_fields(learner: CalibrationFreeLearner) -> tuple[dict[str, Any], np.ndarray]:
+def state_fields(
+    learner: CalibrationFreeLearner, beliefs: Beliefs | None = None
+) -> tuple[dict[str, Any], np.ndarray]:
     """The fields of a ``state`` message, and its payload: the confidence of every task
-    (float32, shape (n_tasks,))."""
-    beliefs = learner.beliefs()
+    (float32, shape (n_tasks,)); ``beliefs``: the learner's current ones, if the caller
+    has them already."""
+    beliefs = learner.beliefs() if beliefs is None else beliefs
     counts = (
         learner.history.task_label_weights(beliefs.best_task).sum(axis=0)
         if beliefs.n_signals
