@@ -15,7 +15,7 @@ from calibration_free.shrinkage_choice import (
     STANDARD_ERRORS,
 )
 from calibration_free.task_decoders import DECODERS, DEFAULT_FOLDS
-from calibration_free.task_likelihoods import LIKELIHOODS
+from calibration_free.task_likelihoods import FIRST_TARGET_EVIDENCE, LIKELIHOODS
 from decoding.lda import DEFAULT_SHRINKAGE, SHRINKAGE_RULES
 from decoding.student_t import STUDENT_T_COUNTS
 from decoding.validation import check_option, check_range
@@ -26,6 +26,10 @@ PLANNING_WEIGHTS: tuple[str, ...] = ("posterior", "confidence")
 #: "Calibrated evidence after the first target").
 DEFAULT_CALIBRATED_BETA = 0.995
 DEFAULT_CALIBRATION_SIGNALS = 100
+#: The normalised-likelihood threshold of the Gaussian evidence until the first target
+#: (tuned on synthetic data, seeds 100-199: the README's "The Gaussian evidence before the
+#: first target").
+DEFAULT_EVIDENCE_BETA = 0.998
 #: The novelty bonus of each frame when none is given (tuned on synthetic data, seeds
 #: 100-119: the README's tuning table).
 DEFAULT_NOVELTY_BONUS: dict[str, float] = {"feedback": 1.0, "guidance": 3.0}
@@ -60,6 +64,7 @@ DEFAULT_FIRST_TARGET_SHRINKAGE: dict[str, float] = {"feedback": FIRST_TARGET_GRI
 #: may diverge from its targets on, which the re-run's report shows.
 SETTINGS_BEFORE_THEY_EXISTED: dict[str, Any] = {
     "calibrated_evidence": False,
+    "first_target_evidence": "filter",
     "goal_pull": 0.0,
     "resplit_labels": False,
     "shrinkage_floor": 0.05,
@@ -160,6 +165,16 @@ class LearnerConfig:
         The fewest signals the history must hold at a target for the evidence to be
         calibrated there: labels adopted on fewer are too often wrong, and a calibrated
         filter on a wrong mapping locks it in.
+    first_target_evidence : {"filter", "gaussian"}, default "filter"
+        What scores the tasks until the first target: the likelihood's filter (with
+        ``confidence``/``beta``), or "gaussian": after every signal, the log marginal
+        likelihood of the whole history under each task's labels, a Gaussian model of
+        the classes with its parameters integrated out
+        (:mod:`calibration_free.gaussian_evidence`), a task declared when its normalised
+        likelihood exceeds ``evidence_beta``. Needs the feedback frame, the "matching"
+        likelihood and ``declare_targets``.
+    evidence_beta : float, default 0.998
+        The normalised-likelihood threshold of the Gaussian evidence, in (0.5, 1).
     beta : float, default the frame's (:data:`DEFAULT_BETA`: 0.9 for feedback, 0.92 for
         guidance)
         Confidence threshold on the ``confidence`` rule, in (0.5, 1); the one in force is
@@ -235,6 +250,8 @@ class LearnerConfig:
     calibrated_evidence: bool | None = None
     calibrated_beta: float = DEFAULT_CALIBRATED_BETA
     calibration_signals: int = DEFAULT_CALIBRATION_SIGNALS
+    first_target_evidence: str = "filter"
+    evidence_beta: float = DEFAULT_EVIDENCE_BETA
     beta: float | None = None
     planner: str = "information"
     epsilon: float = DEFAULT_EPSILON
@@ -259,6 +276,14 @@ class LearnerConfig:
         check_option("confidence", self.confidence, tuple(CONFIDENCES))
         check_option("decoder", self.decoder, DECODERS)
         check_option("planner", self.planner, PLANNERS)
+        check_option("first_target_evidence", self.first_target_evidence, FIRST_TARGET_EVIDENCE)
+        if self.first_target_evidence == "gaussian" and not self._can_calibrate_evidence:
+            raise ValueError(
+                "first_target_evidence 'gaussian' scores two-class labellings until a "
+                "declared first target: it needs frame 'feedback', likelihood 'matching' "
+                f"and declare_targets; got frame {self.frame!r}, likelihood "
+                f"{self.likelihood!r}, declare_targets {self.declare_targets}"
+            )
         if self.likelihood == "bhattacharyya" and self.frame != "feedback":
             raise ValueError(
                 "likelihood 'bhattacharyya' compares two classes: it needs frame "
@@ -287,6 +312,7 @@ class LearnerConfig:
         check_range("n_planning_signals", self.n_planning_signals, 1, 10_000)
         check_range("warmup_steps", self.warmup_steps, 0, 1_000_000)
         check_range("calibrated_beta", self.calibrated_beta, 0.5, 1.0, inclusive=False)
+        check_range("evidence_beta", self.evidence_beta, 0.5, 1.0, inclusive=False)
         check_range("calibration_signals", self.calibration_signals, 1, 1_000_000)
         if self.calibrated_evidence and not self._can_calibrate_evidence:
             raise ValueError(

@@ -404,7 +404,11 @@ class CalibrationFreeLearner(TaskLearner):
     ) -> None:
         super().__init__(world, config, rng)
         self._likelihood = make_likelihood(
-            self.config.likelihood, world.n_tasks, self.config.resolved_shrinkage
+            self.config.likelihood,
+            world.n_tasks,
+            self.config.resolved_shrinkage,
+            self.config.first_target_evidence,
+            self.config.evidence_beta,
         )
         self._history: TaskHistory | None = None
         self._models: TaskModels | None = None

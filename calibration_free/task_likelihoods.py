@@ -32,6 +32,13 @@ decoders trained before it) and then that the signal has joined
   good, to the matching filter (and the configured confidence rule): once hypotheses share
   most labels their overlaps stop discriminating.
 
+The matching filter may also be preceded, until the first target, by the Gaussian evidence
+(``LearnerConfig.first_target_evidence="gaussian"``, :class:`FirstTargetGaussianEvidence`):
+after every signal each task's log-likelihood is the log marginal likelihood of the whole
+history under that task's labels (:mod:`calibration_free.gaussian_evidence`), and a task
+is declared when its normalised likelihood exceeds ``evidence_beta``; from the first target
+on, the matching filter as always.
+
 The prediction a likelihood matches (:meth:`TaskLikelihood.predict`) is also what the
 learner splits ambiguous guidance labels with and what the meaning-space planner samples:
 with ``"simple"`` or ``"batch"`` (or Bhattacharyya before its switch) no confusion matrix
@@ -49,11 +56,15 @@ from calibration_free.bhattacharyya import (
     overlap_log_factor,
     overlap_of_classes,
 )
+from calibration_free.gaussian_evidence import log_evidence
 from calibration_free.likelihood import log_match
 from calibration_free.task_decoders import TaskHistory, TaskModels
 from decoding.validation import check_option
 
 LIKELIHOODS: tuple[str, ...] = ("matching", "simple", "batch", "bhattacharyya")
+#: What scores the tasks until the first target: the likelihood itself ("filter") or, before
+#: the matching filter, the Gaussian evidence ("gaussian").
+FIRST_TARGET_EVIDENCE: tuple[str, ...] = ("filter", "gaussian")
 #: Normalised likelihood above which the Bhattacharyya likelihood declares a task.
 BHATTACHARYYA_THRESHOLD = 0.99
 
@@ -200,9 +211,68 @@ class BhattacharyyaOverlap(TaskLikelihood):
         return None if self.switched else ("normalised", BHATTACHARYYA_THRESHOLD)
 
 
-def make_likelihood(kind: str, n_tasks: int, shrinkage: float) -> TaskLikelihood:
-    """A fresh likelihood of kind ``kind`` (one of :data:`LIKELIHOODS`) for ``n_tasks``."""
+class FirstTargetGaussianEvidence(TaskLikelihood):
+    """The Gaussian evidence of every task's labelling until the first target, then the
+    matching filter.
+
+    Until the first target the decoders are still fitted, cross-validated and corrected by
+    their confusion at every signal, as for the matching filter: the planner samples
+    their predictions and the first-target shrinkage is chosen on them; only the scores
+    come from the evidence.
+
+    Parameters
+    ----------
+    n_tasks : int
+    threshold : float
+        Normalised likelihood above which a task is declared until the first target.
+    """
+
+    def __init__(self, n_tasks: int, threshold: float) -> None:
+        super().__init__(n_tasks, corrected=True)
+        self.threshold = threshold
+        self.switched = False
+
+    @property
+    def name(self) -> str:
+        return "matching" if self.switched else "gaussian-evidence"
+
+    def take(
+        self, expected: np.ndarray, predicted: np.ndarray | None, temperature: float = 1.0
+    ) -> None:
+        if self.switched:
+            super().take(expected, predicted, temperature)
+
+    def after_signal(self, history: TaskHistory, models: ModelsSource) -> None:
+        if not self.switched:
+            self.log_likelihood[:] = log_evidence(history.pooled_statistics(with_folds=False))
+
+    def restart(self) -> None:
+        super().restart()
+        self.switched = True
+
+    def decision_rule(self) -> tuple[str, float] | None:
+        return None if self.switched else ("normalised", self.threshold)
+
+
+def make_likelihood(
+    kind: str,
+    n_tasks: int,
+    shrinkage: float,
+    first_target_evidence: str,
+    evidence_beta: float,
+) -> TaskLikelihood:
+    """A fresh likelihood of kind ``kind`` (one of :data:`LIKELIHOODS`) for ``n_tasks``;
+    with ``first_target_evidence="gaussian"`` (the "matching" kind only), preceded by the
+    Gaussian evidence until the first target, declared above ``evidence_beta``."""
     check_option("likelihood", kind, LIKELIHOODS)
+    check_option("first_target_evidence", first_target_evidence, FIRST_TARGET_EVIDENCE)
+    if first_target_evidence == "gaussian":
+        if kind != "matching":
+            raise ValueError(
+                "first_target_evidence 'gaussian' precedes the matching filter: it needs "
+                f"likelihood 'matching'; got {kind!r}"
+            )
+        return FirstTargetGaussianEvidence(n_tasks, evidence_beta)
     if kind == "batch":
         return BatchMatching(n_tasks)
     if kind == "bhattacharyya":
