@@ -164,68 +164,21 @@ class BatchMatching(TaskLikelihood):
         self._expected.clear()
 
 
-class BhattacharyyaOverlap(TaskLikelihood):
-    """The overlap pseudo-likelihood until the first target, then the matching filter.
+class UntilFirstTarget(TaskLikelihood):
+    """A scoring of its own until the first target, then the matching filter for good.
 
-    Parameters
-    ----------
-    n_tasks : int
-    shrinkage : float
-        Shrinkage of the class covariances.
-    """
-
-    needs_class_scatters = True
-
-    def __init__(self, n_tasks: int, shrinkage: float) -> None:
-        super().__init__(n_tasks, corrected=True)
-        self.shrinkage = shrinkage
-        self.switched = False
-
-    @property
-    def name(self) -> str:
-        return "matching" if self.switched else "bhattacharyya"
-
-    @property
-    def corrects_confusion(self) -> bool:
-        return self.switched
-
-    def take(
-        self, expected: np.ndarray, predicted: np.ndarray | None, temperature: float = 1.0
-    ) -> None:
-        if self.switched:
-            super().take(expected, predicted, temperature)
-
-    def after_signal(self, history: TaskHistory, models: ModelsSource) -> None:
-        if self.switched:
-            return
-        statistics, _ = history.class_statistics(with_folds=False)
-        if np.all(defined_classes(statistics)):
-            rho = overlap_of_classes(statistics, self.shrinkage)
-            self.log_likelihood += overlap_log_factor(rho)
-
-    def restart(self) -> None:
-        super().restart()
-        self.switched = True
-
-    def decision_rule(self) -> tuple[str, float] | None:
-        return None if self.switched else ("normalised", BHATTACHARYYA_THRESHOLD)
-
-
-class FirstTargetGaussianEvidence(TaskLikelihood):
-    """The Gaussian evidence of every task's labelling until the first target, then the
-    matching filter.
-
-    Until the first target the decoders are still fitted, cross-validated and corrected by
-    their confusion at every signal, as for the matching filter: the planner samples
-    their predictions and the first-target shrinkage is chosen on them; only the scores
-    come from the evidence.
+    Until the first target a task is declared when its normalised likelihood exceeds
+    ``threshold``, whatever the configured confidence rule; subclasses name the scoring
+    (:attr:`first_name`) and update the scores from the history after every signal
+    (:meth:`score_history`).
 
     Parameters
     ----------
     n_tasks : int
     threshold : float
-        Normalised likelihood above which a task is declared until the first target.
     """
+
+    first_name: str
 
     def __init__(self, n_tasks: int, threshold: float) -> None:
         super().__init__(n_tasks, corrected=True)
@@ -234,7 +187,7 @@ class FirstTargetGaussianEvidence(TaskLikelihood):
 
     @property
     def name(self) -> str:
-        return "matching" if self.switched else "gaussian-evidence"
+        return "matching" if self.switched else self.first_name
 
     def take(
         self, expected: np.ndarray, predicted: np.ndarray | None, temperature: float = 1.0
@@ -244,7 +197,11 @@ class FirstTargetGaussianEvidence(TaskLikelihood):
 
     def after_signal(self, history: TaskHistory, models: ModelsSource) -> None:
         if not self.switched:
-            self.log_likelihood[:] = log_evidence(history.pooled_statistics(with_folds=False))
+            self.score_history(history)
+
+    def score_history(self, history: TaskHistory) -> None:
+        """Update :attr:`log_likelihood` now that the newest signal has joined ``history``."""
+        raise NotImplementedError
 
     def restart(self) -> None:
         super().restart()
@@ -252,6 +209,51 @@ class FirstTargetGaussianEvidence(TaskLikelihood):
 
     def decision_rule(self) -> tuple[str, float] | None:
         return None if self.switched else ("normalised", self.threshold)
+
+
+class BhattacharyyaOverlap(UntilFirstTarget):
+    """The overlap pseudo-likelihood until the first target (declared above
+    :data:`BHATTACHARYYA_THRESHOLD`), then the matching filter.
+
+    Parameters
+    ----------
+    n_tasks : int
+    shrinkage : float
+        Shrinkage of the class covariances.
+    """
+
+    first_name = "bhattacharyya"
+    needs_class_scatters = True
+
+    def __init__(self, n_tasks: int, shrinkage: float) -> None:
+        super().__init__(n_tasks, BHATTACHARYYA_THRESHOLD)
+        self.shrinkage = shrinkage
+
+    @property
+    def corrects_confusion(self) -> bool:
+        return self.switched
+
+    def score_history(self, history: TaskHistory) -> None:
+        statistics, _ = history.class_statistics(with_folds=False)
+        if np.all(defined_classes(statistics)):
+            rho = overlap_of_classes(statistics, self.shrinkage)
+            self.log_likelihood += overlap_log_factor(rho)
+
+
+class FirstTargetGaussianEvidence(UntilFirstTarget):
+    """The Gaussian evidence of every task's labelling until the first target (declared
+    above ``threshold``), then the matching filter.
+
+    Until the first target the decoders are still fitted, cross-validated and corrected by
+    their confusion at every signal, as for the matching filter: the planner samples
+    their predictions and the first-target shrinkage is chosen on them; only the scores
+    come from the evidence.
+    """
+
+    first_name = "gaussian-evidence"
+
+    def score_history(self, history: TaskHistory) -> None:
+        self.log_likelihood[:] = log_evidence(history.pooled_statistics(with_folds=False))
 
 
 def make_likelihood(

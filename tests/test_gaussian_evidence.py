@@ -6,13 +6,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from scipy.special import multigammaln
-from test_learner import WORLD as GRID
-from test_learner import run as drive
+from test_learner_plugins import run_through_a_first_phase
 
 from calibration_free.config import LearnerConfig
 from calibration_free.gaussian_evidence import MEAN_PRIOR, PRIOR_STRENGTH, log_evidence
-from calibration_free.learner import CalibrationFreeLearner
-from calibration_free.likelihood import normalised_likelihood, pairwise_confidence
+from calibration_free.likelihood import normalised_likelihood
 from calibration_free.task_decoders import TaskHistory
 
 
@@ -91,29 +89,13 @@ def test_log_evidence_is_zero_until_two_distinct_signals():
 
 def test_the_learner_declares_on_the_evidence_then_switches_to_matching():
     config = LearnerConfig(first_target_evidence="gaussian", planner="random", evidence_beta=0.99)
-    learner = CalibrationFreeLearner(GRID, config, rng=2)
-    phases, declared_at = [], []
 
-    def check(step, learner, proposal, beliefs):
-        phases.append(learner.likelihood_in_use)
-        if learner.likelihood_in_use == "gaussian-evidence":
-            if step > 0:  # the scores are the history's evidence, recomputed every step
-                statistics = learner.history.pooled_statistics(with_folds=False)
-                np.testing.assert_allclose(beliefs.log_likelihood, log_evidence(statistics))
-            normalised = normalised_likelihood(beliefs.scores)
-            np.testing.assert_allclose(beliefs.confidence, normalised)
-            assert (beliefs.rule, beliefs.threshold) == ("normalised", 0.99)
-            assert beliefs.confident == (normalised.max() > 0.99)
-        elif beliefs.rule == "pairwise":
-            np.testing.assert_allclose(beliefs.confidence, pairwise_confidence(beliefs.scores))
-        if proposal.declares_target:
-            declared_at.append(step)
+    def recomputed_every_step(step, learner, beliefs):
+        if step > 0:
+            statistics = learner.history.pooled_statistics(with_folds=False)
+            np.testing.assert_allclose(beliefs.log_likelihood, log_evidence(statistics))
 
-    declared = drive(learner, 9, steps=150, seed=2, on_step=check)
-    assert declared and set(declared) == {9} and len(declared) >= 2
-    first = declared_at[0]
-    assert set(phases[: first + 1]) == {"gaussian-evidence"}
-    assert set(phases[first + 1 :]) == {"matching"}
+    run_through_a_first_phase(config, "gaussian-evidence", 0.99, 2, 150, recomputed_every_step)
 
 
 @pytest.mark.parametrize(

@@ -111,34 +111,51 @@ def test_simple_matching_commits_wrongly_where_matching_learns_nothing():
     assert best == 0  # the top-left corner, not the user's cell (the bottom row)
 
 
-def test_bhattacharyya_decides_at_0_99_then_switches_to_matching_at_the_first_target():
-    config = LearnerConfig(likelihood="bhattacharyya", planner="random", beta=0.9)
-    learner = CalibrationFreeLearner(GRID, config, rng=1)
+def run_through_a_first_phase(config, first_name, threshold, seed, steps, check_first_phase):
+    """Drive a learner toward task 9 and check its phases: ``first_name`` up to the first
+    declared target (confident at a normalised likelihood above ``threshold``, every
+    step's beliefs also checked by ``check_first_phase(step, learner, beliefs)``), the
+    matching filter with the configured pairwise rule after it. Returns the learner and
+    the first target's step."""
+    learner = CalibrationFreeLearner(GRID, config, rng=seed)
     phases, declared_at = [], []
-    previous = [np.zeros(GRID.n_tasks)]
 
     def check(step, learner, proposal, beliefs):
         phases.append(learner.likelihood_in_use)
-        if step <= 3:  # a class of fewer than two signals somewhere: the steps add nothing
-            np.testing.assert_array_equal(beliefs.log_likelihood, 0.0)
-        if learner.likelihood_in_use == "bhattacharyya":
+        if learner.likelihood_in_use == first_name:
             normalised = normalised_likelihood(beliefs.scores)
-            assert beliefs.confident == (normalised.max() > BHATTACHARYYA_THRESHOLD)
+            assert (beliefs.rule, beliefs.threshold) == ("normalised", threshold)
+            assert beliefs.confident == (normalised.max() > threshold)
             np.testing.assert_allclose(beliefs.confidence, normalised)
-            assert np.all(beliefs.log_likelihood <= previous[0] + 1e-12)  # non-increasing
-            previous[0] = beliefs.log_likelihood
-        else:
+            check_first_phase(step, learner, beliefs)
+        elif beliefs.rule == "pairwise":
             pairwise = pairwise_confidence(beliefs.scores)
             np.testing.assert_allclose(beliefs.confidence, pairwise)
-            assert beliefs.confident == (pairwise[beliefs.best_task] > config.beta)
+            assert beliefs.confident == (pairwise[beliefs.best_task] > config.frame_beta)
         if proposal.declares_target:
             declared_at.append(step)
 
-    declared = drive(learner, 9, steps=200, seed=1, on_step=check)
+    declared = drive(learner, 9, steps=steps, seed=seed, on_step=check)
     assert declared and set(declared) == {9} and len(declared) >= 2
     first = declared_at[0]
-    assert set(phases[: first + 1]) == {"bhattacharyya"}
+    assert set(phases[: first + 1]) == {first_name}
     assert set(phases[first + 1 :]) == {"matching"}
+    return learner, first
+
+
+def test_bhattacharyya_decides_at_0_99_then_switches_to_matching_at_the_first_target():
+    config = LearnerConfig(likelihood="bhattacharyya", planner="random", beta=0.9)
+    previous = [np.zeros(GRID.n_tasks)]
+
+    def non_increasing(step, learner, beliefs):
+        if step <= 3:  # a class of fewer than two signals somewhere: the steps add nothing
+            np.testing.assert_array_equal(beliefs.log_likelihood, 0.0)
+        assert np.all(beliefs.log_likelihood <= previous[0] + 1e-12)
+        previous[0] = beliefs.log_likelihood
+
+    learner, first = run_through_a_first_phase(
+        config, "bhattacharyya", BHATTACHARYYA_THRESHOLD, 1, 200, non_increasing
+    )
     # The switch relabelled the history: every task holds the declared task's labels of
     # the signals up to the target.
     weights = learner.history.label_weights[:, : first + 1]
