@@ -277,7 +277,7 @@ class LearnerConfig:
         check_option("decoder", self.decoder, DECODERS)
         check_option("planner", self.planner, PLANNERS)
         check_option("first_target_evidence", self.first_target_evidence, FIRST_TARGET_EVIDENCE)
-        if self.first_target_evidence == "gaussian" and not self._can_calibrate_evidence:
+        if self.first_target_evidence == "gaussian" and not self._matches_feedback_targets:
             raise ValueError(
                 "first_target_evidence 'gaussian' scores two-class labellings until a "
                 "declared first target: it needs frame 'feedback', likelihood 'matching' "
@@ -314,7 +314,7 @@ class LearnerConfig:
         check_range("calibrated_beta", self.calibrated_beta, 0.5, 1.0, inclusive=False)
         check_range("evidence_beta", self.evidence_beta, 0.5, 1.0, inclusive=False)
         check_range("calibration_signals", self.calibration_signals, 1, 1_000_000)
-        if self.calibrated_evidence and not self._can_calibrate_evidence:
+        if self.calibrated_evidence and not self._matches_feedback_targets:
             raise ValueError(
                 "calibrated_evidence needs frame 'feedback', likelihood 'matching' and "
                 f"declare_targets; got frame {self.frame!r}, likelihood "
@@ -395,9 +395,10 @@ class LearnerConfig:
         return self.shrinkage_before_first_target == CHOSEN_SHRINKAGE
 
     @property
-    def _can_calibrate_evidence(self) -> bool:
+    def _matches_feedback_targets(self) -> bool:
         """Whether targets confirm labels (declared targets) and the evidence is the
-        matching filter's on two-class feedback labels."""
+        matching filter's on two-class feedback labels: where the evidence can be
+        calibrated at targets, and where the Gaussian evidence can precede the filter."""
         return self.frame == "feedback" and self.likelihood == "matching" and self.declare_targets
 
     @property
@@ -405,7 +406,7 @@ class LearnerConfig:
         """Whether the evidence is calibrated at targets: the given setting, else where it
         applies (unresolved in the field, as :attr:`frame_novelty_bonus`)."""
         if self.calibrated_evidence is None:
-            return self._can_calibrate_evidence
+            return self._matches_feedback_targets
         return self.calibrated_evidence
 
     @property

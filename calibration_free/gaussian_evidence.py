@@ -22,8 +22,9 @@ evidence of every task is a few matrix products per signal, whatever the history
 The evidence integrates the class means out instead of fitting them on the labels it
 judges, so it needs no cross-validation, and it uses every signal's full position relative
 to the classes rather than a thresholded prediction. ``nu_0`` (``PRIOR_STRENGTH`` signals
-per feature) shrinks the covariance towards the isotropic until the signals outnumber the
-features; ``kappa_0`` (``MEAN_PRIOR``) says how far apart the class means are expected to
+per feature) weighs the isotropic prior on the covariance as ``nu_0`` signals (half of the
+posterior's scale when the history holds ``d`` signals); ``kappa_0`` (``MEAN_PRIOR``) says
+how far apart the class means are expected to
 be: ``E ||mu_0 - mu_1||^2_Sigma = 2 d / kappa_0`` (34 features: 6.8, a class separation
 of about 0.9 balanced accuracy). Both were chosen on synthetic data (the README's "The
 Gaussian evidence before the first target").
