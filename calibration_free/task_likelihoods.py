@@ -253,7 +253,10 @@ class FirstTargetGaussianEvidence(UntilFirstTarget):
     first_name = "gaussian-evidence"
 
     def score_history(self, history: TaskHistory) -> None:
-        self.log_likelihood[:] = log_evidence(history.pooled_statistics(with_folds=False))
+        # Tasks whose labels agree on every signal share their evidence: once per labelling.
+        labelling, representatives = history.labellings
+        statistics = history.pooled_statistics(with_folds=False, tasks=representatives)
+        self.log_likelihood[:] = log_evidence(statistics)[labelling]
 
 
 def make_likelihood(
