@@ -25,9 +25,9 @@ from calibration_free.likelihood import (
     CONFIDENCES,
     label_log_matches,
     normalised_likelihood,
-    power_log_ratio,
 )
 from calibration_free.planning import PlanningInputs, greedy_action, make_planner, random_action
+from calibration_free.power_prior import make_power_prior
 from calibration_free.shrinkage_choice import (
     CHOSEN_SHRINKAGE,
     FIRST_CHOICE_PERIOD,
@@ -412,8 +412,9 @@ class CalibrationFreeLearner(TaskLearner):
         )
         self._history: TaskHistory | None = None
         self._models: TaskModels | None = None
-        self._power_sums = np.zeros((world.n_tasks, self.frame.n_classes))
-        self._power_weights = np.zeros((world.n_tasks, self.frame.n_classes))
+        self._power_prior = make_power_prior(
+            self.config.power_prior_kind, world.n_tasks, self.frame.n_classes
+        )
         #: Whether the current task segment's evidence is calibrated
         #: (``calibrated_evidence``), and its temperature once measured (None until the
         #: segment's first signal: measured then, on the decoders fitted for it).
@@ -524,8 +525,7 @@ class CalibrationFreeLearner(TaskLearner):
         self._likelihood.take(expected, predicted, self.evidence_temperature)
         self._history.add(x, weights, frame_weights)
         self._models = None
-        self._power_sums += expected * float(x @ x)
-        self._power_weights += expected
+        self._power_prior.add(expected, x)
         self.n_signals += 1
         self._choose_first_target_shrinkage()
         target = self._take_target_reached(state, action)
@@ -593,8 +593,7 @@ class CalibrationFreeLearner(TaskLearner):
         assert self._history is not None
         self._history.relabel(task)
         self._choose_shrinkage(self._history, task)
-        self._power_sums[:] = self._power_sums[task]
-        self._power_weights[:] = self._power_weights[task]
+        self._power_prior.adopt(task)
         self._likelihood.restart()
         self._evidence_temperature = None
         self._calibrated_segment = (
@@ -615,7 +614,7 @@ class CalibrationFreeLearner(TaskLearner):
     def _scores(self) -> np.ndarray:
         if not self.uses_power_prior:
             return self.log_likelihood.copy()
-        return self.log_likelihood + power_log_ratio(self._power_sums, self._power_weights)
+        return self.log_likelihood + self._power_prior.scores()
 
     def _decision_rule(self) -> tuple[str, float]:
         if self._calibrated_segment:

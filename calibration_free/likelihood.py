@@ -1,5 +1,6 @@
-"""The matching pseudo-likelihood of method.md §3 (confusion correction, match, power
-prior) and the confidence rules read from the tasks' log scores."""
+"""The matching pseudo-likelihood of method.md §3 (confusion correction, match) and the
+confidence rules read from the tasks' log scores (the power prior:
+:mod:`calibration_free.power_prior`)."""
 
 from __future__ import annotations
 
@@ -90,28 +91,6 @@ def label_log_matches(corrected: np.ndarray, eps: float) -> np.ndarray:
         1.0 - np.eye(n_classes)
     )
     return log_match(expected[None], corrected[:, None])
-
-
-def power_log_ratio(power_sums: np.ndarray, weight_sums: np.ndarray) -> np.ndarray:
-    """The power prior ``log(P_error / P_correct)`` of every task (feedback frame).
-
-    Parameters
-    ----------
-    power_sums : ndarray, shape (n_tasks, 2)
-        ``sum_i w_ik ||e_i||^2`` for k = correct, error.
-    weight_sums : ndarray, shape (n_tasks, 2)
-        ``sum_i w_ik``.
-
-    Returns
-    -------
-    ndarray, shape (n_tasks,)
-        0 for a task while either class has no weight yet.
-    """
-    defined = np.all(weight_sums > 0, axis=1) & np.all(power_sums > 0, axis=1)
-    safe_weights = np.where(weight_sums > 0, weight_sums, 1.0)
-    safe_power = np.where(power_sums > 0, power_sums, 1.0)
-    mean_power = safe_power / safe_weights
-    return np.where(defined, np.log(mean_power[:, 1] / mean_power[:, 0]), 0.0)
 
 
 def pairwise_confidence(scores: np.ndarray) -> np.ndarray:
