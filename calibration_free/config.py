@@ -39,13 +39,10 @@ DEFAULT_NOVELTY_BONUS: dict[str, float] = {"feedback": 1.0, "guidance": 3.0}
 
 
 #: The confidence threshold of each frame when none is given (tuned on synthetic data,
-#: seeds 100-199). Feedback: the thesis's 0.9 until the power prior became evidence, then
-#: the lowest of 0.9, 0.93 and 0.95 that keeps the ErrP tuning rows' wrong-target rates
-#: within 0.2 points of the previous defaults' (the README's "The power prior as
-#: evidence"). Guidance, where the issue's bar on wrong targets is 1 %: the smallest
-#: threshold that keeps both 2-D guidance tuning rows under it with a margin (the README's
-#: "A stricter threshold in guidance").
-DEFAULT_BETA: dict[str, float] = {"feedback": 0.93, "guidance": 0.92}
+#: seeds 100-199: the README's "A stricter threshold in guidance"): the thesis's 0.9 in
+#: feedback; in guidance, where the issue's bar on wrong targets is 1 %, the smallest
+#: threshold that keeps both 2-D guidance tuning rows under it with a margin.
+DEFAULT_BETA: dict[str, float] = {"feedback": 0.9, "guidance": 0.92}
 
 
 #: The decoders' covariance shrinkage until the first target is reached, per frame, where it
@@ -156,10 +153,11 @@ class LearnerConfig:
         plain column normalisation.
     power_prior : bool, default True
         Add the ErrP power prior to the scores (feedback frame only).
-    power_prior_kind : {"evidence", "ratio"}, default "evidence"
-        Its form (:mod:`calibration_free.power_prior`): the signed likelihood ratio of the
-        signals' log powers under each task's labels (grows with the data), or method.md's
-        log ratio of the classes' mean powers (bounded).
+    power_prior_kind : {"evidence_then_ratio", "evidence", "ratio"}, default "evidence_then_ratio"
+        Its form (:mod:`calibration_free.power_prior`): "evidence", the signed likelihood
+        ratio of the signals' log powers under each task's labels (grows with the data);
+        "ratio", method.md's log ratio of the classes' mean powers (bounded); the default,
+        the evidence until the first target and the ratio from then on.
     calibrated_evidence : bool or None, default True in feedback where it applies
         At every target reached once the history holds ``calibration_signals`` signals,
         fit the temperature ``tau`` that makes the matches calibrated class probabilities
@@ -186,7 +184,7 @@ class LearnerConfig:
         likelihood and ``declare_targets``.
     evidence_beta : float, default 0.998
         The normalised-likelihood threshold of the Gaussian evidence, in (0.5, 1).
-    beta : float, default the frame's (:data:`DEFAULT_BETA`: 0.93 for feedback, 0.92 for
+    beta : float, default the frame's (:data:`DEFAULT_BETA`: 0.9 for feedback, 0.92 for
         guidance)
         Confidence threshold on the ``confidence`` rule, in (0.5, 1); the one in force is
         :attr:`frame_beta`.
@@ -258,7 +256,7 @@ class LearnerConfig:
     confusion_smoothing: float = DEFAULT_CONFUSION_SMOOTHING
     balanced_confusion: bool = True
     power_prior: bool = True
-    power_prior_kind: str = "evidence"
+    power_prior_kind: str = "evidence_then_ratio"
     calibrated_evidence: bool | None = None
     calibrated_beta: float = DEFAULT_CALIBRATED_BETA
     calibration_signals: int = DEFAULT_CALIBRATION_SIGNALS

@@ -17,6 +17,11 @@ the two apart. Two forms of the same premise, one interface:
   of variance's statistic in log form; ``S`` sums of squares of ``z``). A labelling and its
   complement get opposite values, so the complement of the user's task loses what the
   task gains. Being a log ratio of powers, it does not depend on the signals' units.
+- :class:`EvidenceThenRatio` (``"evidence_then_ratio"``, the default): the evidence until
+  the first target, where no label is adopted yet and a task and its complement are the
+  confusion that locks a session in; the ratio from the first target on, where the
+  adopted labels have settled the mapping and the evidence, uncalibrated, would make the
+  calibrated segments' posterior overconfident (README, "The power prior as evidence").
 
 Both keep per-task class sums of the label weights ``w_ik`` (with eps) and adopt one
 task's sums for every task at a target switch, as the decoders' statistics do.
@@ -24,81 +29,84 @@ task's sums for every task at a target switch, as the decoders' statistics do.
 
 from __future__ import annotations
 
+from abc import ABC, abstractmethod
+
 import numpy as np
 
 #: The forms of the power prior (``LearnerConfig.power_prior_kind``).
-POWER_PRIOR_KINDS = ("ratio", "evidence")
+POWER_PRIOR_KINDS = ("ratio", "evidence", "evidence_then_ratio")
 
 CORRECT, ERROR = 0, 1
 
 
-class PowerPrior:
-    """Per-task class sums of the label weights, and the scores of one form of the prior.
+class PowerPrior(ABC):
+    """One form of the prior: fed every signal with every task's label distribution,
+    told of target switches, read as a log score per task."""
 
-    Parameters
-    ----------
-    n_tasks : int
-    n_classes : int
-        2 (correct, error): the prior is for the feedback frame.
-    """
+    @abstractmethod
+    def add(self, expected: np.ndarray, x: np.ndarray) -> None:
+        """Count one signal ``x`` (n_features,) with every task's label distribution
+        ``expected`` (n_tasks, n_classes: correct, error)."""
+
+    @abstractmethod
+    def adopt(self, task: int) -> None:
+        """A target switch: every task takes ``task``'s sums (its labels are adopted)."""
+
+    @abstractmethod
+    def scores(self) -> np.ndarray:
+        """The prior's log score of every task, shape (n_tasks,)."""
+
+
+class _ClassSums(PowerPrior, ABC):
+    """Per task and class, the label weights' sum and the weighted sum of a function of
+    the signal's power ``||x||^2`` (:meth:`_of_power`)."""
 
     def __init__(self, n_tasks: int, n_classes: int = 2) -> None:
         self._weights = np.zeros((n_tasks, n_classes))
+        self._sums = np.zeros((n_tasks, n_classes))
+
+    @abstractmethod
+    def _of_power(self, power: float) -> float:
+        """The function of the signal's power that the sums add up."""
 
     def add(self, expected: np.ndarray, x: np.ndarray) -> None:
-        """Count one signal ``x`` (n_features,) with every task's label distribution
-        ``expected`` (n_tasks, n_classes)."""
         self._weights += expected
+        self._sums += expected * self._of_power(float(x @ x))
 
     def adopt(self, task: int) -> None:
-        """Give every task ``task``'s sums (a target switch adopts its labels)."""
         self._weights[:] = self._weights[task]
-
-    def scores(self) -> np.ndarray:
-        """The prior's log score of every task, shape (n_tasks,)."""
-        raise NotImplementedError
+        self._sums[:] = self._sums[task]
 
 
-class MeanPowerRatio(PowerPrior):
+class MeanPowerRatio(_ClassSums):
     """method.md's ``log(P_error / P_correct)``; 0 while either class has no weight."""
 
-    def __init__(self, n_tasks: int, n_classes: int = 2) -> None:
-        super().__init__(n_tasks, n_classes)
-        self._power_sums = np.zeros((n_tasks, n_classes))
-
-    def add(self, expected: np.ndarray, x: np.ndarray) -> None:
-        super().add(expected, x)
-        self._power_sums += expected * float(x @ x)
-
-    def adopt(self, task: int) -> None:
-        super().adopt(task)
-        self._power_sums[:] = self._power_sums[task]
+    def _of_power(self, power: float) -> float:
+        return power
 
     def scores(self) -> np.ndarray:
-        return power_log_ratio(self._power_sums, self._weights)
+        return power_log_ratio(self._sums, self._weights)
 
 
-class LogPowerEvidence(PowerPrior):
+class LogPowerEvidence(_ClassSums):
     """The signed profile likelihood ratio of the log powers' class order (module doc).
 
-    0 for every task until three signals with distinct powers have arrived. A signal of
-    zero power counts with the smallest positive double's log (it cannot occur with EEG).
+    0 for every task until three signals with distinct powers have arrived, and for a task
+    while either class has no weight. A signal of zero power counts with the smallest
+    positive double's log (it cannot occur with EEG).
     """
 
     def __init__(self, n_tasks: int, n_classes: int = 2) -> None:
         super().__init__(n_tasks, n_classes)
-        self._log_power_sums = np.zeros((n_tasks, n_classes))
         self._moments = np.zeros(3)  # count, sum and sum of squares of z, shared by all
+
+    def _of_power(self, power: float) -> float:
+        return float(np.log(max(power, np.finfo(float).tiny)))
 
     def add(self, expected: np.ndarray, x: np.ndarray) -> None:
         super().add(expected, x)
-        z = float(np.log(max(float(x @ x), np.finfo(float).tiny)))
-        self._log_power_sums += expected * z
+        z = self._of_power(float(x @ x))
         self._moments += (1.0, z, z * z)
-
-    def adopt(self, task: int) -> None:
-        super().adopt(task)
-        self._log_power_sums[:] = self._log_power_sums[task]
 
     def scores(self) -> np.ndarray:
         count, total, squares = self._moments
@@ -107,12 +115,33 @@ class LogPowerEvidence(PowerPrior):
             return np.zeros(len(self._weights))
         defined = np.all(self._weights > 0, axis=1)
         weights = np.where(defined[:, None], self._weights, 1.0)
-        means = self._log_power_sums / weights
-        between = np.where(defined, (self._log_power_sums * means).sum(axis=1), 0.0)
-        between -= np.where(defined, total * total / count, 0.0)
+        means = self._sums / weights
+        between = np.where(defined, (self._sums * means).sum(axis=1) - total * total / count, 0.0)
         within = np.clip(scatter - between, scatter * 1e-12, scatter)
         gain = 0.5 * count * np.log(scatter / within)
         return np.sign(means[:, ERROR] - means[:, CORRECT]) * gain
+
+
+class EvidenceThenRatio(PowerPrior):
+    """:class:`LogPowerEvidence` until the first target switch, :class:`MeanPowerRatio`
+    from then on (both kept from the first signal, so the ratio has the whole history)."""
+
+    def __init__(self, n_tasks: int, n_classes: int = 2) -> None:
+        self._evidence = LogPowerEvidence(n_tasks, n_classes)
+        self._ratio = MeanPowerRatio(n_tasks, n_classes)
+        self._switched = False
+
+    def add(self, expected: np.ndarray, x: np.ndarray) -> None:
+        self._evidence.add(expected, x)
+        self._ratio.add(expected, x)
+
+    def adopt(self, task: int) -> None:
+        self._evidence.adopt(task)
+        self._ratio.adopt(task)
+        self._switched = True
+
+    def scores(self) -> np.ndarray:
+        return (self._ratio if self._switched else self._evidence).scores()
 
 
 def power_log_ratio(power_sums: np.ndarray, weight_sums: np.ndarray) -> np.ndarray:
@@ -143,4 +172,6 @@ def make_power_prior(kind: str, n_tasks: int, n_classes: int = 2) -> PowerPrior:
         return MeanPowerRatio(n_tasks, n_classes)
     if kind == "evidence":
         return LogPowerEvidence(n_tasks, n_classes)
+    if kind == "evidence_then_ratio":
+        return EvidenceThenRatio(n_tasks, n_classes)
     raise ValueError(f"power_prior_kind must be one of {POWER_PRIOR_KINDS}; got {kind!r}")

@@ -137,7 +137,7 @@ def test_on_synthetic_errp_features_the_true_labels_gain_and_their_complement_lo
 
 
 def test_the_form_is_a_setting_and_an_unknown_one_is_refused():
-    assert LearnerConfig().power_prior_kind == "evidence"
+    assert LearnerConfig().power_prior_kind == "evidence_then_ratio"
     with pytest.raises(ValueError, match="power_prior_kind"):
         LearnerConfig(power_prior_kind="mean")
     with pytest.raises(ValueError, match="power_prior_kind"):
@@ -145,14 +145,29 @@ def test_the_form_is_a_setting_and_an_unknown_one_is_refused():
 
 
 def test_the_evidence_keeps_a_session_out_of_the_complementary_mapping():
-    # Synthetic ErrP 0.78, seed 35: with method.md's bounded ratio (and the threshold of
-    # its time, 0.9) the first target (step 22) is the complement-like task, and every later
-    # target follows its labels (0 correct, 43 wrong in 500 steps); with the evidence (at
-    # either threshold) the session never adopts them.
+    # Synthetic ErrP 0.78, seed 35: with method.md's bounded ratio the first target (step
+    # 22) is the complement-like task, and every later target follows its labels (0
+    # correct, 43 wrong in 500 steps); with the evidence until the first target (the
+    # default) or throughout, the session never adopts them.
     data = DataSpec(synthetic_accuracy=0.78).resolve("feedback")
-    before = LearnerConfig(power_prior_kind="ratio", beta=0.9)
-    ratio = run_session(35, SessionConfig(learner=before), data)
-    evidence = run_session(35, SessionConfig(learner=LearnerConfig(beta=0.9)), data)
-    assert run_session(35, SessionConfig(), data).correct_targets > 15
+    ratio = run_session(35, SessionConfig(learner=LearnerConfig(power_prior_kind="ratio")), data)
+    throughout = LearnerConfig(power_prior_kind="evidence")
+    assert run_session(35, SessionConfig(learner=throughout), data).correct_targets > 15
+    evidence = run_session(35, SessionConfig(), data)
     assert ratio.correct_targets == 0 and ratio.wrong_targets > 20
     assert evidence.correct_targets > 15 and evidence.wrong_targets <= 1
+
+
+def test_the_default_form_is_the_evidence_until_the_first_target_then_the_ratio():
+    rng = np.random.default_rng(7)
+    signals = signals_with_powers(rng, 40)
+    weights = one_hot((rng.random((4, 40)) < 0.4).astype(int))
+    forms = [make_power_prior(kind, 4) for kind in ("evidence_then_ratio", "evidence", "ratio")]
+    for prior in forms:
+        fed(prior, signals[:25], weights[:, :25])
+    np.testing.assert_array_equal(forms[0].scores(), forms[1].scores())
+    for prior in forms:
+        prior.adopt(1)
+        fed(prior, signals[25:], weights[:, 25:])
+    np.testing.assert_array_equal(forms[0].scores(), forms[2].scores())
+    assert not np.allclose(forms[1].scores(), forms[2].scores())

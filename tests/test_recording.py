@@ -39,7 +39,7 @@ CONFIG = {
     "learner": {"eps": 0.1, "decoder": "lda", "goal_pull": 0.5, "resplit_labels": True,
                 "first_target_shrinkage": 0.9, "shrinkage_floor": 0.01,
                 "shrinkage_margin": 0.5, "calibrated_evidence": True,
-                "first_target_evidence": "filter", "power_prior_kind": "evidence"},
+                "first_target_evidence": "filter", "power_prior_kind": "evidence_then_ratio"},
 }
 T0 = 1_700_000_000_123_456_789  # ns
 GRID = GridWorld(3)
@@ -377,7 +377,7 @@ def test_an_older_recording_reads_back_with_the_settings_it_ran_with(tmp_path: P
     }
     assert LearnerConfig().resplit_labels  # the defaults today differ
     assert LearnerConfig().uses_calibrated_evidence
-    assert LearnerConfig().power_prior_kind == "evidence"
+    assert LearnerConfig().power_prior_kind == "evidence_then_ratio"
     assert (LearnerConfig().shrinkage_floor, LearnerConfig().shrinkage_margin) != (0.05, 1.0)
     assert LearnerConfig().shrinkage_before_first_target != 0.5
     oas = {"grid": 3, "frame": "feedback", "learner": {"shrinkage": "oas"}}
