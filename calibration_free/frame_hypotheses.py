@@ -51,8 +51,10 @@ from calibration_free.world import World
 #: (``scipy.stats.norm.isf(0.01 / 800)``).
 CHANCE_MARGIN_Z = 4.21
 #: Learner settings frame hypotheses start from (the thesis code's): uniform actions, no
-#: power prior, the Student-t count of every class the total one.
-FRAME_DEFAULTS = {"planner": "random", "power_prior": False, "student_t_counts": "total"}
+#: power prior, the Student-t count of every class the total one, the pairwise threshold 0.9.
+FRAME_DEFAULTS = {
+    "planner": "random", "power_prior": False, "student_t_counts": "total", "beta": 0.9
+}
 
 
 @dataclass(frozen=True)

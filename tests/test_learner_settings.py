@@ -90,7 +90,7 @@ def test_the_decoders_take_the_shrinkage_after_the_first_target() -> None:
 
 def test_the_threshold_is_the_frames_and_is_recorded_resolved() -> None:
     feedback, guidance = LearnerConfig(), LearnerConfig(frame="guidance")
-    assert feedback.frame_beta == DEFAULT_BETA["feedback"] == 0.9  # the thesis's
+    assert feedback.frame_beta == DEFAULT_BETA["feedback"] == 0.93  # with the power evidence
     assert guidance.frame_beta == DEFAULT_BETA["guidance"] > 0.9
     assert replace(LearnerConfig(beta=0.95), frame="guidance").frame_beta == 0.95
     assert replace(feedback, frame="guidance").frame_beta == DEFAULT_BETA["guidance"]
@@ -103,17 +103,17 @@ def test_the_threshold_is_the_frames_and_is_recorded_resolved() -> None:
         LearnerConfig(frame="guidance", beta=1.0)
 
 
-def test_a_confidence_between_the_frames_thresholds_declares_in_feedback_only() -> None:
-    # Two tasks ahead of the rest, the best's pairwise confidence 0.91: above feedback's
-    # threshold, below guidance's.
+def test_a_confidence_between_the_frames_thresholds_declares_in_one_frame_only() -> None:
+    # Two tasks ahead of the rest, the best's pairwise confidence 0.925: above guidance's
+    # threshold (0.92), below feedback's (0.93).
     log_likelihood = np.full(WORLD.n_tasks, -50.0)
-    log_likelihood[3], log_likelihood[4] = np.log(0.91), np.log(0.09)
+    log_likelihood[3], log_likelihood[4] = np.log(0.925), np.log(0.075)
     confident = {}
     for frame in ("feedback", "guidance"):
         config = LearnerConfig(frame=frame, power_prior=False)
         learner = CalibrationFreeLearner(WORLD, config, rng=0)
         learner.log_likelihood[:] = log_likelihood  # the likelihood's own array
         beliefs = learner.beliefs()
-        assert beliefs.best_task == 3 and abs(beliefs.confidence[3] - 0.91) < 1e-9
+        assert beliefs.best_task == 3 and abs(beliefs.confidence[3] - 0.925) < 1e-9
         confident[frame] = beliefs.confident
-    assert confident == {"feedback": True, "guidance": False}
+    assert confident == {"feedback": False, "guidance": True}

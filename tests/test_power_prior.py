@@ -145,14 +145,15 @@ def test_the_form_is_a_setting_and_an_unknown_one_is_refused():
 
 
 def test_the_evidence_keeps_a_session_out_of_the_complementary_mapping():
-    # Synthetic ErrP 0.78, seed 35: with method.md's bounded ratio the first target (step
-    # 22) is the complement-like task, and every later target follows its labels (0
-    # correct, 43 wrong in 500 steps); with the evidence until the first target (the
-    # default) or throughout, the session never adopts them.
+    # Synthetic ErrP 0.78, seed 35: with method.md's bounded ratio (and the threshold of its
+    # time, 0.9) the first target (step 22) is the complement-like task, and every later
+    # target follows its labels (0 correct, 43 wrong in 500 steps); with the evidence, until
+    # the first target or throughout, at that threshold or the default's, it never adopts them.
     data = DataSpec(synthetic_accuracy=0.78).resolve("feedback")
-    ratio = run_session(35, SessionConfig(learner=LearnerConfig(power_prior_kind="ratio")), data)
-    throughout = LearnerConfig(power_prior_kind="evidence")
-    assert run_session(35, SessionConfig(learner=throughout), data).correct_targets > 15
+    before = LearnerConfig(power_prior_kind="ratio", beta=0.9)
+    ratio = run_session(35, SessionConfig(learner=before), data)
+    for other in (LearnerConfig(beta=0.9), LearnerConfig(power_prior_kind="evidence")):
+        assert run_session(35, SessionConfig(learner=other), data).correct_targets > 15
     evidence = run_session(35, SessionConfig(), data)
     assert ratio.correct_targets == 0 and ratio.wrong_targets > 20
     assert evidence.correct_targets > 15 and evidence.wrong_targets <= 1
