@@ -207,6 +207,12 @@ def _run_simulate(args: argparse.Namespace, console: Console) -> int:
         )
     if args.seeds < 1 or args.steps < 1:
         raise ValueError("--seeds and --steps must be at least 1")
+    if args.class_order is not None and args.world != "continuous":
+        raise ValueError(
+            "--class-order is an option of --world continuous only; to permute a "
+            "dataset's classes in another world, write them permuted to a file (README, "
+            "\"Finger guidance under another BLAS thread count and a permuted class order\")"
+        )
     if args.world in PLANE_WORLDS:
         report = simulate_plane_world(args, data_spec(args), console)
         print_plane_report(report, console)

@@ -40,3 +40,8 @@ def test_bad_plane_world_options_are_named(capsys) -> None:
     assert "--class-order must be a permutation" in capsys.readouterr().err
     assert main(["simulate", "--world", "puddle", "--dataset", "x.mat"]) == 2
     assert "leave --dataset and --synthetic out" in capsys.readouterr().err
+    # On the grid the option was silently ignored: a "permuted" finger run gave the
+    # dataset's order's sessions exactly.
+    for world in ("grid", "puddle"):
+        assert main(["simulate", "--world", world, "--class-order", "2,0,3,1", "--seeds", "1"]) == 2
+        assert "--class-order is an option of --world continuous only" in capsys.readouterr().err
