@@ -7,6 +7,7 @@ from pathlib import Path
 
 import pytest
 
+from calibration_free.config import DEFAULT_BETA
 from cfbci.cli import main
 from replay.calibration import (
     N_BINS,
@@ -74,16 +75,17 @@ def test_simulate_reports_a_curve_where_confidence_grows_with_being_right(
     assert filled[-1]["fraction_right"] >= 0.8 > filled[0]["fraction_right"] + 0.3
     for session in report["sessions"]:
         assert sum(n for n, _ in session["calibration_counts"]) == 150
-    # Per rule: the pairwise W against 0.9 before the evidence is calibrated, the
+    # Per rule: the pairwise W against its threshold before the evidence is calibrated, the
     # normalised likelihood against 0.995 in the segments after a target on 100 signals or
     # more; together they are every step, and the pairwise W of the best task is never
     # below 0.5 (the normalised likelihood often is).
     by_rule = {(r["rule"], r["threshold"]): r for r in
                report["summary"]["confidence_calibration_by_rule"]}
-    assert set(by_rule) == {("pairwise", 0.9), ("normalised", 0.995)}
+    pairwise_rule = ("pairwise", DEFAULT_BETA["feedback"])
+    assert set(by_rule) == {pairwise_rule, ("normalised", 0.995)}
     assert [b["steps"] for b in curve] == [
         sum(r["curve"][k]["steps"] for r in by_rule.values()) for k in range(N_BINS)]
-    pairwise, normalised = by_rule[("pairwise", 0.9)], by_rule[("normalised", 0.995)]
+    pairwise, normalised = by_rule[pairwise_rule], by_rule[("normalised", 0.995)]
     assert all(b["steps"] == 0 for b in pairwise["curve"][:5])
     assert sum(b["steps"] for b in normalised["curve"][:5]) > 0
     for rule in by_rule.values():

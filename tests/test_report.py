@@ -20,6 +20,7 @@ import pytest
 
 from acquisition.sources import DEFAULT_SYNTHETIC_ACCURACY, synthetic_epochs
 from acquisition.user import SimulatedUser
+from calibration_free.config import DEFAULT_BETA
 from calibration_free.learner import CalibrationFreeLearner
 from calibration_free.session import session_streams, start_cell
 from calibration_free.world import ACTIONS, GridWorld, transition_draws
@@ -214,7 +215,7 @@ def test_metrics_of_a_hand_built_recording(tmp_path: Path) -> None:
     assert (m.latency.n, m.latency.median_ms, m.latency.max_ms) == (5, 3.0, 10.0)
     assert m.latency.p90_ms == pytest.approx(4 + 0.6 * 6)
     assert m.latency.p99_ms == pytest.approx(4 + 0.96 * 6)
-    assert m.chance == 0.5 and m.beta == 0.9
+    assert m.chance == 0.5 and m.beta == DEFAULT_BETA["feedback"]  # none recorded: the default
     assert not m.truncated and m.warning is None
     # The hand-built moves are not the learner's: the re-run says so.
     assert m.replay_identical is False and "step 1" in (m.replay_note or "")
