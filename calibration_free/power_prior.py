@@ -3,7 +3,7 @@
 method.md's prior breaks the symmetry between hypotheses whose label sets are nearly
 complementary (opposite corners): a decoder fitted on a task's labels is as good as one
 fitted on the complementary labels, so only a premise about the signals themselves tells
-the two apart. Two forms of the same premise, one interface:
+the two apart. Forms of the same premise behind one interface (:class:`PowerPrior`):
 
 - :class:`MeanPowerRatio` (``"ratio"``, method.md's): ``log(P_error(t) / P_correct(t))``,
   the log ratio of each class's mean power ``||e||^2`` under task t's label weights,
@@ -20,11 +20,12 @@ the two apart. Two forms of the same premise, one interface:
 - :class:`EvidenceThenRatio` (``"evidence_then_ratio"``, the default): the evidence until
   the first target, where no label is adopted yet and a task and its complement are the
   confusion that locks a session in; the ratio from the first target on, where the
-  adopted labels have settled the mapping and the evidence, uncalibrated, would make the
-  calibrated segments' posterior overconfident (README, "The power prior as evidence").
+  adopted labels have settled the mapping and the evidence, added uncalibrated to the
+  calibrated segments' evidence, cost wrong targets on the tuning data (README, "The
+  power prior as evidence").
 
-Both keep per-task class sums of the label weights ``w_ik`` (with eps) and adopt one
-task's sums for every task at a target switch, as the decoders' statistics do.
+The first two keep per-task class sums of the label weights ``w_ik`` (with eps) and adopt
+one task's sums for every task at a target switch, as the decoders' statistics do.
 """
 
 from __future__ import annotations
