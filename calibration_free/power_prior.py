@@ -34,6 +34,8 @@ from abc import ABC, abstractmethod
 
 import numpy as np
 
+from decoding.validation import check_option
+
 #: The forms of the power prior (``LearnerConfig.power_prior_kind``).
 POWER_PRIOR_KINDS = ("ratio", "evidence", "evidence_then_ratio")
 
@@ -169,10 +171,12 @@ def power_log_ratio(power_sums: np.ndarray, weight_sums: np.ndarray) -> np.ndarr
 
 def make_power_prior(kind: str, n_tasks: int, n_classes: int = 2) -> PowerPrior:
     """The power prior of ``kind`` (one of :data:`POWER_PRIOR_KINDS`)."""
-    if kind == "ratio":
-        return MeanPowerRatio(n_tasks, n_classes)
-    if kind == "evidence":
-        return LogPowerEvidence(n_tasks, n_classes)
-    if kind == "evidence_then_ratio":
-        return EvidenceThenRatio(n_tasks, n_classes)
-    raise ValueError(f"power_prior_kind must be one of {POWER_PRIOR_KINDS}; got {kind!r}")
+    check_option("power_prior_kind", kind, POWER_PRIOR_KINDS)
+    return _FORMS[kind](n_tasks, n_classes)
+
+
+_FORMS: dict[str, type[PowerPrior]] = {
+    "ratio": MeanPowerRatio,
+    "evidence": LogPowerEvidence,
+    "evidence_then_ratio": EvidenceThenRatio,
+}
