@@ -525,7 +525,8 @@ class CalibrationFreeLearner(TaskLearner):
         self._likelihood.take(expected, predicted, self.evidence_temperature)
         self._history.add(x, weights, frame_weights)
         self._models = None
-        self._power_prior.add(expected, x)
+        if self.uses_power_prior:
+            self._power_prior.add(expected, float(x @ x))
         self.n_signals += 1
         self._choose_first_target_shrinkage()
         target = self._take_target_reached(state, action)
@@ -593,7 +594,8 @@ class CalibrationFreeLearner(TaskLearner):
         assert self._history is not None
         self._history.relabel(task)
         self._choose_shrinkage(self._history, task)
-        self._power_prior.adopt(task)
+        if self.uses_power_prior:
+            self._power_prior.adopt(task)
         self._likelihood.restart()
         self._evidence_temperature = None
         self._calibrated_segment = (

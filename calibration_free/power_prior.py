@@ -43,13 +43,13 @@ CORRECT, ERROR = 0, 1
 
 
 class PowerPrior(ABC):
-    """One form of the prior: fed every signal with every task's label distribution,
-    told of target switches, read as a log score per task."""
+    """One form of the prior: fed every signal's power with every task's label
+    distribution, told of target switches, read as a log score per task."""
 
     @abstractmethod
-    def add(self, expected: np.ndarray, x: np.ndarray) -> None:
-        """Count one signal ``x`` (n_features,) with every task's label distribution
-        ``expected`` (n_tasks, n_classes: correct, error)."""
+    def add(self, expected: np.ndarray, power: float) -> None:
+        """Count one signal of power ``||x||^2`` (its features' units squared) with every
+        task's label distribution ``expected`` (n_tasks, n_classes: correct, error)."""
 
     @abstractmethod
     def adopt(self, task: int) -> None:
@@ -61,20 +61,16 @@ class PowerPrior(ABC):
 
 
 class _ClassSums(PowerPrior, ABC):
-    """Per task and class, the label weights' sum and the weighted sum of a function of
-    the signal's power ``||x||^2`` (:meth:`_of_power`)."""
+    """Per task and class, the label weights' sum and the weighted sum of a value of each
+    signal (its power, or its log power)."""
 
     def __init__(self, n_tasks: int, n_classes: int = 2) -> None:
         self._weights = np.zeros((n_tasks, n_classes))
         self._sums = np.zeros((n_tasks, n_classes))
 
-    @abstractmethod
-    def _of_power(self, power: float) -> float:
-        """The function of the signal's power that the sums add up."""
-
-    def add(self, expected: np.ndarray, x: np.ndarray) -> None:
+    def _accumulate(self, expected: np.ndarray, value: float) -> None:
         self._weights += expected
-        self._sums += expected * self._of_power(float(x @ x))
+        self._sums += expected * value
 
     def adopt(self, task: int) -> None:
         self._weights[:] = self._weights[task]
@@ -84,8 +80,8 @@ class _ClassSums(PowerPrior, ABC):
 class MeanPowerRatio(_ClassSums):
     """method.md's ``log(P_error / P_correct)``; 0 while either class has no weight."""
 
-    def _of_power(self, power: float) -> float:
-        return power
+    def add(self, expected: np.ndarray, power: float) -> None:
+        self._accumulate(expected, power)
 
     def scores(self) -> np.ndarray:
         return power_log_ratio(self._sums, self._weights)
@@ -103,12 +99,9 @@ class LogPowerEvidence(_ClassSums):
         super().__init__(n_tasks, n_classes)
         self._moments = np.zeros(3)  # count, sum and sum of squares of z, shared by all
 
-    def _of_power(self, power: float) -> float:
-        return float(np.log(max(power, np.finfo(float).tiny)))
-
-    def add(self, expected: np.ndarray, x: np.ndarray) -> None:
-        super().add(expected, x)
-        z = self._of_power(float(x @ x))
+    def add(self, expected: np.ndarray, power: float) -> None:
+        z = float(np.log(max(power, np.finfo(float).tiny)))
+        self._accumulate(expected, z)
         self._moments += (1.0, z, z * z)
 
     def scores(self) -> np.ndarray:
@@ -127,19 +120,20 @@ class LogPowerEvidence(_ClassSums):
 
 class EvidenceThenRatio(PowerPrior):
     """:class:`LogPowerEvidence` until the first target switch, :class:`MeanPowerRatio`
-    from then on (both kept from the first signal, so the ratio has the whole history)."""
+    from then on (the ratio kept from the first signal, so that it has the whole history;
+    the evidence, never read again after the switch, no longer fed)."""
 
     def __init__(self, n_tasks: int, n_classes: int = 2) -> None:
         self._evidence = LogPowerEvidence(n_tasks, n_classes)
         self._ratio = MeanPowerRatio(n_tasks, n_classes)
         self._switched = False
 
-    def add(self, expected: np.ndarray, x: np.ndarray) -> None:
-        self._evidence.add(expected, x)
-        self._ratio.add(expected, x)
+    def add(self, expected: np.ndarray, power: float) -> None:
+        self._ratio.add(expected, power)
+        if not self._switched:
+            self._evidence.add(expected, power)
 
     def adopt(self, task: int) -> None:
-        self._evidence.adopt(task)
         self._ratio.adopt(task)
         self._switched = True
 

@@ -24,7 +24,7 @@ def signals_with_powers(rng: np.random.Generator, n: int, dims: int = 6) -> np.n
 def fed(prior, signals: np.ndarray, weights: np.ndarray):
     """``prior`` after every signal, with label weights (n_tasks, n_signals, 2)."""
     for i, x in enumerate(signals):
-        prior.add(weights[:, i], x)
+        prior.add(weights[:, i], float(x @ x))
     return prior
 
 
@@ -83,7 +83,7 @@ def test_nothing_before_three_signals_of_both_classes_and_no_nan_from_a_silent_s
     signals = np.array([[1.0, 0.0], [0.0, 3.0], [0.0, 0.0]])
     for i, x in enumerate(signals):
         assert np.all(prior.scores() == 0)
-        prior.add(weights[:, i], x)
+        prior.add(weights[:, i], float(x @ x))
     scores = prior.scores()
     assert np.all(np.isfinite(scores)) and scores[1] == 0  # task 1 has no error yet
 
@@ -129,7 +129,7 @@ def test_on_synthetic_errp_features_the_true_labels_gain_and_their_complement_lo
     weights = one_hot(np.concatenate([labels, 1 - labels]))
     true_scores = []
     for i, x in enumerate(data.features[order].astype(float)):
-        prior.add(weights[:, i], x)
+        prior.add(weights[:, i], float(x @ x))
         if i + 1 in (100, 200, 400):
             true_scores.append(prior.scores()[0])
             assert prior.scores()[1] == pytest.approx(-true_scores[-1])
