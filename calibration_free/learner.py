@@ -69,6 +69,17 @@ class Proposal:
     declares_target: bool
 
 
+def first_target_requirement(threshold: float, n_signals: int, signals: int) -> float:
+    """The confidence a first target needs after ``n_signals`` signals: ``1 - (1 -
+    threshold) min(1, n_signals / signals)``, relaxing from 1 to ``threshold`` over the
+    first ``signals`` (0: ``threshold`` throughout). While no target has confirmed any
+    label, a short history's confidence overstates (its decoders fit the few signals they
+    are judged on): the README's "A stricter first target while the history is short"."""
+    if signals == 0:
+        return threshold
+    return 1.0 - (1.0 - threshold) * min(1.0, n_signals / signals)
+
+
 @dataclass(frozen=True)
 class Beliefs:
     """What the learner currently believes about the tasks.
@@ -85,8 +96,7 @@ class Beliefs:
         default, see ``LearnerConfig.confidence``).
     best_task : int
     confident : bool
-        ``confidence[best_task]`` above the threshold (``beta``, or the one the
-        likelihood imposes: Bhattacharyya's 0.99 before its switch).
+        ``confidence[best_task]`` above ``required``.
     n_signals : int
         Signals observed so far.
     rule : str
@@ -94,8 +104,12 @@ class Beliefs:
         :data:`~calibration_free.likelihood.CONFIDENCES`): ``LearnerConfig.confidence``, or
         "normalised" while the evidence is calibrated.
     threshold : float
-        The threshold ``confident`` compares with (``beta``, ``calibrated_beta`` while the
-        evidence is calibrated, or the one the likelihood imposes).
+        The rule's threshold (``beta``, ``calibrated_beta`` while the evidence is
+        calibrated, or the one the likelihood imposes: Bhattacharyya's 0.99 before its
+        switch).
+    required : float
+        The confidence a target needs now: ``threshold``, or more until the first target
+        while the history is short (:func:`first_target_requirement`).
     """
 
     log_likelihood: np.ndarray
@@ -106,6 +120,7 @@ class Beliefs:
     n_signals: int
     rule: str
     threshold: float
+    required: float
 
     def normalised_likelihood(self) -> np.ndarray:
         """``L_t / sum_u L_u`` of :attr:`log_likelihood` (no power prior), shape (n_tasks,)."""
@@ -230,15 +245,21 @@ class TaskLearner:
         rule, threshold = self._decision_rule()
         confidence = CONFIDENCES[rule](scores)
         best = int(np.argmax(scores))
+        required = threshold
+        if self.n_targets == 0:
+            required = first_target_requirement(
+                threshold, self.n_signals, self.config.frame_first_target_signals
+            )
         return Beliefs(
             log_likelihood=self.log_likelihood.copy(),
             scores=scores,
             confidence=confidence,
             best_task=best,
-            confident=bool(confidence[best] > threshold),
+            confident=bool(confidence[best] > required),
             n_signals=self.n_signals,
             rule=rule,
             threshold=threshold,
+            required=required,
         )
 
     def propose(self, state: int) -> Proposal:

@@ -54,8 +54,10 @@ class Preset:
 
 
 #: The thesis's own choices shared by the experiments of chapters 4-7: no ErrP power prior
-#: (the signals are not ErrPs), none of the project's novelty bonus, planning discount 0.95.
-_THESIS = {"power_prior": False, "novelty_bonus": 0.0, "discount": 0.95}
+#: (the signals are not ErrPs), none of the project's novelty bonus nor of its stricter first
+#: target, planning discount 0.95.
+_THESIS = {"power_prior": False, "novelty_bonus": 0.0, "first_target_signals": 0,
+           "discount": 0.95}
 #: The thesis's shrinkage, 0.5, throughout: none of the project's heavier one before the first
 #: target (``first_target_shrinkage``).
 _THESIS_SHRINKAGE = {"shrinkage": 0.5, "first_target_shrinkage": 0.5}

@@ -12,7 +12,7 @@ from test_learner import run as drive
 
 from calibration_free.config import LearnerConfig
 from calibration_free.frames import Frame
-from calibration_free.learner import CalibrationFreeLearner
+from calibration_free.learner import CalibrationFreeLearner, first_target_requirement
 from calibration_free.likelihood import normalised_likelihood, pairwise_confidence
 from calibration_free.planning import SignalPlanner
 from calibration_free.task_decoders import TaskHistory, TaskModels
@@ -125,7 +125,9 @@ def run_through_a_first_phase(config, first_name, threshold, seed, steps, check_
         if learner.likelihood_in_use == first_name:
             normalised = normalised_likelihood(beliefs.scores)
             assert (beliefs.rule, beliefs.threshold) == ("normalised", threshold)
-            assert beliefs.confident == (normalised.max() > threshold)
+            required = first_target_requirement(threshold, learner.n_signals, 90)
+            assert beliefs.required == required  # stricter while the history is short
+            assert beliefs.confident == (normalised.max() > required)
             np.testing.assert_allclose(beliefs.confidence, normalised)
             check_first_phase(step, learner, beliefs)
         elif beliefs.rule == "pairwise":
@@ -183,7 +185,12 @@ def test_normalised_confidence_compares_the_normalised_likelihood_with_beta():
         normalised = normalised_likelihood(beliefs.scores)
         np.testing.assert_allclose(beliefs.confidence, normalised)
         assert normalised.sum() == pytest.approx(1.0)
-        assert beliefs.confident == (normalised[beliefs.best_task] > 0.95)
+        required = beliefs.threshold  # after a target: 0.95, or calibrated_beta
+        if not learner.n_targets:
+            assert beliefs.threshold == 0.95
+            required = first_target_requirement(0.95, learner.n_signals, 90)
+        assert beliefs.required == required
+        assert beliefs.confident == (normalised[beliefs.best_task] > required)
         seen["confident" if beliefs.confident else "unsure"] += 1
         np.testing.assert_allclose(
             learner.normalised_likelihood(), normalised_likelihood(beliefs.log_likelihood)

@@ -150,7 +150,7 @@ def test_the_evidence_keeps_a_session_out_of_the_complementary_mapping():
     # target follows its labels (0 correct, 43 wrong in 500 steps); with the evidence, until
     # the first target or throughout, at that threshold or the default's, it never adopts them.
     data = DataSpec(synthetic_accuracy=0.78).resolve("feedback")
-    before = LearnerConfig(power_prior_kind="ratio", beta=0.9)
+    before = LearnerConfig(power_prior_kind="ratio", beta=0.9, first_target_signals=0)
     ratio = run_session(35, SessionConfig(learner=before), data)
     for other in (LearnerConfig(beta=0.9), LearnerConfig(power_prior_kind="evidence")):
         assert run_session(35, SessionConfig(learner=other), data).correct_targets > 15
