@@ -276,7 +276,11 @@ SPECS: dict[str, KindSpec] = {
         "The learner's beliefs after its latest epoch, which chose the accompanying move.",
         {
             "best_task": Field("count", "most likely task"),
-            "confident": Field("bool", "best task's confidence exceeds beta"),
+            "confident": Field(
+                "bool",
+                "best task's confidence exceeds what a target needs (beta; more before the "
+                "first target on a short history)",
+            ),
             "n_signals": Field("count", "epochs the learner has observed"),
             "class_counts": Field(
                 "float[]", "signals per class under the best task's labels (may be weighted)"
