@@ -45,6 +45,7 @@ from cfbci.soak import add_soak_parser
 from cfbci.sweep import add_sweep_command
 from cfbci.view import add_view_command
 from cfbci.world_check import add_world_command
+from wire.messages import learner_settings
 from wire.plane import PLANE_FRAMES as LIVE_PLANE_WORLDS
 
 
@@ -172,7 +173,8 @@ def _simulate_frame_hypotheses(args: argparse.Namespace, console: Console) -> in
     from calibration_free.frame_hypotheses import FRAME_DEFAULTS
     from cfbci.frame_sessions import FrameJob, frame_hypotheses_report, run_frame_job
 
-    config = LearnerConfig.from_dict(_learner_settings(args, **FRAME_DEFAULTS))
+    settings = _learner_settings(args, **FRAME_DEFAULTS)
+    config = learner_settings(settings, settings.get("frame", LearnerConfig.frame))
     data = data_spec(args)
     data.resolve("guidance")  # fail early on a bad dataset
     jobs = [
@@ -226,7 +228,7 @@ def _run_simulate(args: argparse.Namespace, console: Console) -> int:
     config = SessionConfig(
         steps=args.steps,
         grid=args.grid,
-        learner=LearnerConfig.from_dict(settings),
+        learner=learner_settings(settings, args.frame),
         baseline=args.baseline,
         calibration_trials=args.calibration_trials,
         user_error_rate=args.user_error_rate,

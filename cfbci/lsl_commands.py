@@ -12,9 +12,9 @@ from typing import Any
 
 from rich.console import Console
 
-from calibration_free.config import LearnerConfig
 from calibration_free.frames import FRAMES
 from cfbci.cli import _add_data_options, _add_endpoints, data_spec, parse_settings
+from wire.messages import learner_settings
 
 
 def add_lsl_commands(commands: argparse._SubParsersAction) -> None:
@@ -112,7 +112,7 @@ def _run_bridge(args: argparse.Namespace, console: Console) -> int:
     if args.steps < 1 or args.timeout <= 0 or args.buffer <= 0:
         raise ValueError("--steps must be at least 1, --timeout and --buffer positive")
     learner = parse_settings(args.set)
-    LearnerConfig.from_dict({"frame": args.frame, **learner})  # fail early on a bad setting
+    learner_settings(learner, args.frame)  # fail early on a bad setting, as the service would
     settings = BridgeSettings(
         session=args.session, eeg=args.eeg, markers=args.markers, moves=args.moves,
         seed=args.seed, steps=args.steps, grid=args.grid, frame=args.frame, learner=learner,

@@ -24,13 +24,13 @@ from rich.console import Console
 from rich.table import Table
 
 from acquisition.sources import DataSpec
-from calibration_free.config import LearnerConfig
 from calibration_free.continuous_goals import PROBINGS, SAMPLINGS, ContinuousConfig
 from calibration_free.puddle import PuddleWorld
 from calibration_free.puddle_learner import EXPLORATIONS, PuddleConfig
 from cfbci.continuous import run_continuous_session
 from cfbci.parallel import Scheduler, run_parallel
 from cfbci.puddle import run_puddle_session
+from wire.messages import learner_settings
 from wire.plane import PLANE_FRAMES, plane_settings
 
 PLANE_WORLDS: tuple[str, ...] = ("continuous", "puddle")
@@ -115,7 +115,7 @@ def live_source_fields(
     if world != "continuous" and class_order is not None:
         raise ValueError("--class-order is an option of --world continuous only")
     if world not in PLANE_FRAMES:
-        LearnerConfig.from_dict({"frame": frame, **learner})
+        learner_settings(learner, frame)
         return {}
     plane_settings({"world": world, "frame": frame, "learner": learner})
     return {"class_order": _class_order(class_order)}

@@ -30,11 +30,11 @@ from rich.console import Console
 from rich.table import Table
 
 from acquisition.sources import DEFAULT_SYNTHETIC_ACCURACY, DataSpec
-from calibration_free.config import LearnerConfig
 from calibration_free.frames import FRAMES
 from cfbci.parallel import Scheduler, add_scheduler_options, run_parallel
 from cfbci.simulate import SimulationJob, run_job, simulation_report
 from cfbci.simulation import SessionConfig, SessionResult
+from wire.messages import learner_settings
 
 #: ``--datasets`` entry that stands for the synthetic generator (at ``--synthetic-accuracy``).
 SYNTHETIC = "synthetic"
@@ -155,7 +155,7 @@ def sweep_cells(
     for data, label in zip(datasets, labels, strict=True):
         for values in itertools.product(*(values for _, values in grid)):
             settings = dict(zip(keys, values, strict=True))
-            learner = LearnerConfig.from_dict({"frame": frame, **fixed, **settings})
+            learner = learner_settings({**fixed, **settings}, frame)
             config = SessionConfig(
                 steps=steps, grid=side, learner=learner, user_error_rate=user_error_rate
             )
