@@ -97,7 +97,10 @@ def _add_likelihood_option(p: argparse.ArgumentParser) -> None:
 
 def _learner_settings(args: argparse.Namespace, **defaults: Any) -> dict[str, Any]:
     """``defaults``, then the ``--set`` settings, then ``--likelihood`` if given."""
-    settings = {**defaults, **parse_settings(args.set)}
+    given = parse_settings(args.set)
+    if "frame" in given:
+        raise ValueError("--set frame=...: the frame is set with --frame")
+    settings = {**defaults, **given}
     if args.likelihood is not None:
         settings["likelihood"] = args.likelihood
     return settings
@@ -173,8 +176,8 @@ def _simulate_frame_hypotheses(args: argparse.Namespace, console: Console) -> in
     from calibration_free.frame_hypotheses import FRAME_DEFAULTS
     from cfbci.frame_sessions import FrameJob, frame_hypotheses_report, run_frame_job
 
-    settings = _learner_settings(args, **FRAME_DEFAULTS)
-    config = learner_settings(settings, settings.get("frame", LearnerConfig.frame))
+    # The pairs' learners share these settings; their own frames are the pairs'.
+    config = learner_settings(_learner_settings(args, **FRAME_DEFAULTS), LearnerConfig.frame)
     data = data_spec(args)
     data.resolve("guidance")  # fail early on a bad dataset
     jobs = [

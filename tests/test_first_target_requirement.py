@@ -35,7 +35,7 @@ def test_the_default_is_per_frame_recorded_resolved_and_absent_from_older_record
         LearnerConfig(first_target_signals=-1)
 
 
-def test_a_session_declares_only_above_the_requirement_and_the_threshold_after():
+def test_a_session_declares_only_above_the_requirement_and_the_threshold_after(monkeypatch):
     # Synthetic ErrP 0.78, seed 3: every step's decision compares the best task's
     # confidence with the requirement in force, stricter than beta until the first target.
     seen: list[tuple[int, int, float, float, float, bool]] = []
@@ -47,12 +47,8 @@ def test_a_session_declares_only_above_the_requirement_and_the_threshold_after()
                      float(b.confidence[b.best_task]), b.confident))
         return b
 
-    CalibrationFreeLearner.beliefs = beliefs
-    try:
-        result = run_session(3, SessionConfig(), DataSpec(synthetic_accuracy=0.78)
-                             .resolve("feedback"))
-    finally:
-        CalibrationFreeLearner.beliefs = original
+    monkeypatch.setattr(CalibrationFreeLearner, "beliefs", beliefs)
+    result = run_session(3, SessionConfig(), DataSpec(synthetic_accuracy=0.78).resolve("feedback"))
     assert result.first_target_step is not None and result.correct_targets > 5
     before = [s for s in seen if s[0] == 0]
     after = [s for s in seen if s[0] > 0]

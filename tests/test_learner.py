@@ -87,7 +87,9 @@ def test_proposals_and_beliefs_are_well_formed(make):
         assert beliefs.scores.shape == beliefs.confidence.shape == (WORLD.n_tasks,)
         assert np.all((beliefs.confidence > 0) & (beliefs.confidence < 1))
         best_confidence = beliefs.confidence[beliefs.best_task]
-        assert beliefs.confident == (best_confidence > learner.config.frame_beta)
+        assert beliefs.threshold == learner.config.frame_beta
+        assert beliefs.required >= beliefs.threshold  # stricter only before a first target
+        assert beliefs.confident == (best_confidence > beliefs.required)
         state = WORLD.step(state, proposal.action)
     assert learner.beliefs().n_signals == 50
 

@@ -105,15 +105,17 @@ def test_the_threshold_is_the_frames_and_is_recorded_resolved() -> None:
 
 def test_a_confidence_between_the_frames_thresholds_declares_in_one_frame_only() -> None:
     # Two tasks ahead of the rest, the best's pairwise confidence 0.925: above guidance's
-    # threshold (0.92), below feedback's (0.93).
+    # threshold (0.92), below feedback's (0.93). Without the stricter first target (which
+    # at 0 signals would require 1 in feedback), so that the thresholds alone decide.
     log_likelihood = np.full(WORLD.n_tasks, -50.0)
     log_likelihood[3], log_likelihood[4] = np.log(0.925), np.log(0.075)
     confident = {}
     for frame in ("feedback", "guidance"):
-        config = LearnerConfig(frame=frame, power_prior=False)
+        config = LearnerConfig(frame=frame, power_prior=False, first_target_signals=0)
         learner = CalibrationFreeLearner(WORLD, config, rng=0)
         learner.log_likelihood[:] = log_likelihood  # the likelihood's own array
         beliefs = learner.beliefs()
         assert beliefs.best_task == 3 and abs(beliefs.confidence[3] - 0.925) < 1e-9
+        assert beliefs.required == beliefs.threshold == DEFAULT_BETA[frame]
         confident[frame] = beliefs.confident
     assert confident == {"feedback": False, "guidance": True}

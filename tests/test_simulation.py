@@ -189,6 +189,7 @@ def test_simulate_on_a_local_dask_cluster_equals_one_process(tmp_path):
         (["--set", "beta=2"], "beta must be in"),
         (["--set", "beta=high"], "'beta' must be a number"),  # not a TypeError's traceback
         (["--set", "first_target_signals=1.5"], "'first_target_signals' must be an integer"),
+        (["--set", "frame=guidance"], "the frame is set with --frame"),
         (["--frame", "guidance"], "needs a 4-class dataset"),
         (["--synthetic-accuracy", "0.99"], "accuracy"),
         (["--dataset", "/nonexistent/file.mat"], "file.mat"),
