@@ -44,6 +44,7 @@ from calibration_free.config import LearnerConfig
 from calibration_free.learner import CalibrationFreeLearner, Proposal
 from calibration_free.likelihood import pairwise_confidence
 from calibration_free.planning import random_action
+from calibration_free.ties import first_best
 from calibration_free.world import World
 
 #: Standard errors by which a confident pair's decoder must beat chance: a one-sided 1 %
@@ -141,7 +142,7 @@ class FrameHypothesesLearner:
             for learner, chance in zip(self._learners, self._chance, strict=True)
         ])
         confidence = pairwise_confidence(scores)
-        best = int(np.argmax(scores))
+        best = first_best(scores)
         confident = bool(confidence[best] > self.config.frame_beta) and self._beats_chance(best)
         return PairBeliefs(scores, confidence, best, confident)
 

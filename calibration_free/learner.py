@@ -46,6 +46,7 @@ from calibration_free.task_decoders import (
     in_signal_order,
 )
 from calibration_free.task_likelihoods import make_likelihood
+from calibration_free.ties import first_best
 from calibration_free.world import World
 from decoding.scatter_eigen import refresh_period
 from decoding.validation import check_array
@@ -244,7 +245,7 @@ class TaskLearner:
         scores = self._scores()
         rule, threshold = self._decision_rule()
         confidence = CONFIDENCES[rule](scores)
-        best = int(np.argmax(scores))
+        best = first_best(scores)
         required = threshold
         if self.n_targets == 0:
             required = first_target_requirement(

@@ -22,6 +22,7 @@ from scipy.special import xlogy
 
 from calibration_free.frames import Frame
 from calibration_free.signal_space import signal_space_uncertainty
+from calibration_free.ties import near_best
 from calibration_free.world import World, optimal_action_values
 from decoding.validation import check_option, check_range
 
@@ -161,8 +162,7 @@ class RewardPlanner(Planner):
             scale = max(reward.max(), np.finfo(float).tiny)
             reward = reward / scale + inputs.state_bonus[:, None]
         q = optimal_action_values(reward, self.world.transitions, self.discount)[state]
-        best = np.flatnonzero(q >= q.max() - 1e-12 * max(1.0, abs(q.max())))
-        return int(rng.choice(best))
+        return int(rng.choice(np.flatnonzero(near_best(q))))
 
 
 class UncertaintyPlanner(RewardPlanner):

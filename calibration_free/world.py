@@ -37,6 +37,7 @@ from functools import cached_property
 
 import numpy as np
 
+from calibration_free.ties import near_best
 from decoding.validation import check_range
 
 ACTIONS: tuple[str, ...] = ("up", "down", "left", "right", "goal")
@@ -45,8 +46,6 @@ GOAL: int = ACTIONS.index("goal")
 _DELTAS = ((-1, 0), (1, 0), (0, -1), (0, 1), (0, 0))
 #: Tasks whose optimal actions are computed together (bounds the temporaries' size).
 _TASK_CHUNK_ELEMENTS = 1 << 22
-#: Relative tolerance under which two action values count as tied (optimal tables).
-_TIE_TOLERANCE = 1e-9
 #: Index of the world stream among the session seed's spawned streams (see
 #: :mod:`calibration_free.session`: 0 data, 1 user, 2 learner).
 WORLD_STREAM = 3
@@ -239,8 +238,7 @@ def optimal_actions(
         reward, transitions, discount=discount, tolerance=1e-13 * max(1.0, initial.max()),
         max_iterations=100_000, initial_values=initial,
     )
-    best = q.max(axis=-1, keepdims=True)
-    return q >= best - _TIE_TOLERANCE * np.maximum(1.0, np.abs(best))
+    return near_best(q)
 
 
 def transition_draws(seed: int) -> TransitionDraws:

@@ -21,6 +21,7 @@ from decoding.lda import DEFAULT_SHRINKAGE, MIN_CLASS_COUNT
 from decoding.statistics import (
     BatchedDecoders,
     ClassStatistics,
+    at_least,
     log_softmax,
     shrink_towards_identity,
 )
@@ -67,7 +68,7 @@ def fit_gaussian(
     covariances = shrink_towards_identity(covariances, shrinkage)
     eigenvalues, vectors = np.linalg.eigh(covariances)
     regular = eigenvalues[..., 0] > _SINGULAR * np.maximum(eigenvalues[..., -1], 0.0)
-    present = (statistics.counts >= MIN_CLASS_COUNT) & regular
+    present = at_least(statistics.counts, MIN_CLASS_COUNT) & regular
     eigenvalues = np.where(present[..., None], eigenvalues, 1.0)
     vectors = np.where(present[..., None, None], vectors, np.eye(n_features))
     precisions = (vectors / eigenvalues[..., None, :]) @ np.swapaxes(vectors, -1, -2)

@@ -33,6 +33,7 @@ from decoding.statistics import (
     BatchedDecoders,
     ClassStatistics,
     PooledStatistics,
+    at_least,
     log_softmax,
 )
 from decoding.validation import check_option
@@ -202,7 +203,7 @@ def _fit_in_basis(
     safe_diagonal = np.where(singular[..., None], 1.0, diagonal) if any_singular else diagonal
     scaled = projected / safe_diagonal[..., None, :]  # U^T A^-1
     gram = _symmetric_dots(scaled, projected)  # H = U^T A^-1 U
-    present = statistics.counts >= MIN_CLASS_COUNT
+    present = at_least(statistics.counts, MIN_CLASS_COUNT)
     n_present = present.sum(axis=-1, keepdims=True)
     # An uninformative decoder is never used: its system, which may be exactly singular
     # (every class one signal: no within-class spread), is not solved.

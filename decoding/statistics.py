@@ -20,6 +20,13 @@ from decoding.scatter_eigen import ScatterEigen
 EMPTY_WEIGHT = 1e-9
 
 
+def at_least(counts: np.ndarray, minimum: float) -> np.ndarray:
+    """Where the (weighted) ``counts`` reach ``minimum`` up to a rounding residue
+    (:data:`EMPTY_WEIGHT`): soft labels split in halves sum to a whole count in exact
+    arithmetic, and a decoder's classes must not turn on the last bit of that sum."""
+    return counts >= minimum - EMPTY_WEIGHT
+
+
 @dataclass(frozen=True)
 class ClassStatistics:
     """Weighted per-class statistics, with any leading batch shape ``B``.
