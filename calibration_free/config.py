@@ -69,6 +69,10 @@ DEFAULT_FIRST_TARGET_SIGNALS: dict[str, int] = {"feedback": 90, "guidance": 0}
 DEFAULT_FIRST_TARGET_SHRINKAGE: dict[str, float] = {"feedback": FIRST_TARGET_GRID[-1]}
 
 
+#: What a task expects of a signal whose label allows several classes but not all
+#: (``LearnerConfig.ambiguous_match``).
+AMBIGUOUS_MATCHES: tuple[str, ...] = ("resolved", "even")
+
 #: Settings added after recordings began to hold every learner setting, each with the value
 #: that reproduces the learner from before it existed: a recording that lacks one ran
 #: without it (:func:`wire.messages.recorded_config` fills them in when a recording is read;
@@ -78,6 +82,7 @@ DEFAULT_FIRST_TARGET_SHRINKAGE: dict[str, float] = {"feedback": FIRST_TARGET_GRI
 #: between that and the settings (from 0.01, half a standard error) re-runs with it and
 #: may diverge from its targets on, which the re-run's report shows.
 SETTINGS_BEFORE_THEY_EXISTED: dict[str, Any] = {
+    "ambiguous_match": "resolved",
     "calibrated_evidence": False,
     "first_target_evidence": "filter",
     "first_target_signals": 0,
@@ -251,6 +256,15 @@ class LearnerConfig:
         signals since the last target; False keeps the split made when each signal
         arrived. No effect in the feedback frame, nor with a likelihood that does not
         cross-validate ("simple", "batch": the split needs out-of-fold probabilities).
+    ambiguous_match : {"resolved", "even"}, default "resolved"
+        What a task expects of a signal whose label allows several classes but not all
+        (guidance: two optimal directions). "resolved": the split the decoder resolved
+        for that signal (:func:`~calibration_free.learner.expect_the_chosen_label`),
+        which spares the true task the mixture's cost of log 2 but lets a task whose
+        labels are mostly ambiguous (a corner's) fit a signal of either direction.
+        "even": the user picks either with equal probability, so the expected label is
+        the frame's even split and the match the mixture of the two classes' matches
+        (method.md's matching). README: "Ambiguous labels matched as the even mixture".
     n_planning_signals : int, default 20
         Past signals sampled per step by the uncertainty planner.
     discount : float, default 0.9
@@ -291,6 +305,7 @@ class LearnerConfig:
     novelty_bonus: float | None = None
     goal_pull: float = 0.0
     resplit_labels: bool = True
+    ambiguous_match: str = "resolved"
     n_planning_signals: int = 20
     discount: float = DEFAULT_DISCOUNT
     warmup_steps: int = 10
@@ -310,6 +325,7 @@ class LearnerConfig:
         check_option("planner", self.planner, PLANNERS)
         check_option("first_target_evidence", self.first_target_evidence, FIRST_TARGET_EVIDENCE)
         check_option("power_prior_kind", self.power_prior_kind, POWER_PRIOR_KINDS)
+        check_option("ambiguous_match", self.ambiguous_match, AMBIGUOUS_MATCHES)
         if self.first_target_evidence == "gaussian" and not self._matches_feedback_targets:
             raise ValueError(
                 "first_target_evidence 'gaussian' scores two-class labellings until a "

@@ -543,7 +543,8 @@ class CalibrationFreeLearner(TaskLearner):
                 history.resplit_own_labels(models.held_out_proba(history.n_adopted))
             predicted = self._likelihood.predict(models, x[None])[:, 0]
             weights = resolve_ambiguous_labels(weights, predicted)
-            expected = expect_the_chosen_label(expected, frame_weights, weights)
+            if self.config.ambiguous_match == "resolved":
+                expected = expect_the_chosen_label(expected, frame_weights, weights)
         self._likelihood.take(expected, predicted, self.evidence_temperature)
         self._history.add(x, weights, frame_weights)
         self._models = None
