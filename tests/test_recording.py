@@ -40,7 +40,7 @@ CONFIG = {
                 "first_target_shrinkage": 0.9, "shrinkage_floor": 0.01,
                 "shrinkage_margin": 0.5, "calibrated_evidence": True,
                 "first_target_evidence": "filter", "power_prior_kind": "evidence_then_ratio",
-                "first_target_signals": 90},
+                "first_target_signals": 90, "ambiguous_match": "even"},
 }
 T0 = 1_700_000_000_123_456_789  # ns
 GRID = GridWorld(3)
@@ -360,8 +360,8 @@ def test_a_killed_writer_loses_at_most_the_message_being_written(tmp_path: Path)
 def test_an_older_recording_reads_back_with_the_settings_it_ran_with(tmp_path: Path) -> None:
     # Made before goal_pull, resplit_labels, first_target_shrinkage, the shrinkage
     # choice's floor and margin, calibrated_evidence, first_target_evidence,
-    # power_prior_kind and first_target_signals existed: its learner ran without
-    # any, whatever today's defaults say, so that it replays as it ran (one shrinkage
+    # power_prior_kind, first_target_signals and ambiguous_match existed: its learner ran
+    # without any, whatever today's defaults say, so that it replays as it ran (one shrinkage
     # throughout: its own, or the default of the time). A plane world's settings are not
     # the grid learner's and are left alone.
     from calibration_free.config import LearnerConfig
@@ -376,6 +376,7 @@ def test_an_older_recording_reads_back_with_the_settings_it_ran_with(tmp_path: P
         "calibrated_evidence": False, "first_target_evidence": "filter",
         "power_prior_kind": "ratio",  # method.md's bounded ratio, the only form then
         "first_target_signals": 0,  # the threshold from the first signal
+        "ambiguous_match": "resolved",  # the seed code's match of ambiguous labels
     }
     assert LearnerConfig().resplit_labels  # the defaults today differ
     assert LearnerConfig().uses_calibrated_evidence
