@@ -31,6 +31,7 @@ from calibration_free.likelihood import confusion_matrices, corrected_proba, lab
 from calibration_free.task_decoders import TaskHistory, in_signal_order
 from decoding.lda import MIN_CLASS_COUNT, fit_pooled_lda
 from decoding.scatter_eigen import ScatterEigen
+from decoding.statistics import at_least
 
 #: The setting's value that asks for the choice.
 CHOSEN_SHRINKAGE = "cv"
@@ -108,7 +109,7 @@ def evidence_discriminability(
     """
     # The task's labelling once per shrinkage: every intensity fitted in one call.
     statistics = history.pooled_statistics(tasks=np.full(len(shrinkages), task))
-    if np.any(statistics.counts < MIN_CLASS_COUNT):
+    if not np.all(at_least(statistics.counts, MIN_CLASS_COUNT)):
         return np.full(len(shrinkages), np.nan)
     if statistics.eigen is None:  # decomposed once for every shrinkage
         eigenvalues, basis = np.linalg.eigh(statistics.scatter)

@@ -27,6 +27,13 @@ def at_least(counts: np.ndarray, minimum: float) -> np.ndarray:
     return counts >= minimum - EMPTY_WEIGHT
 
 
+def more_than(counts: np.ndarray, minimum: float) -> np.ndarray:
+    """Where the (weighted) ``counts`` exceed ``minimum`` by more than a rounding residue
+    (:data:`EMPTY_WEIGHT`): a count equal to it in exact arithmetic does not, whatever
+    its last bit (see :func:`at_least`)."""
+    return counts > minimum + EMPTY_WEIGHT
+
+
 @dataclass(frozen=True)
 class ClassStatistics:
     """Weighted per-class statistics, with any leading batch shape ``B``.

@@ -36,7 +36,9 @@ from decoding.lda import DEFAULT_SHRINKAGE
 from decoding.statistics import (
     BatchedDecoders,
     ClassStatistics,
+    at_least,
     log_softmax,
+    more_than,
     shrink_towards_identity,
     spd_inverse,
 )
@@ -113,10 +115,10 @@ def fit_student_t(
     n_features = means.shape[-1]
     own = statistics.counts
     if counts == "class":  # S: the class's scatter about its mean
-        counts, present, scatter_weight = own, own > n_features, own
+        counts, present, scatter_weight = own, more_than(own, n_features), own
     else:  # S = Sigma (N - 1), as the thesis code computes it
         counts = np.broadcast_to(own.sum(axis=-1, keepdims=True), own.shape)
-        present = (counts > n_features) & _has_own_covariance(
+        present = more_than(counts, n_features) & _has_own_covariance(
             statistics, covariances, shrinkage
         )
         scatter_weight = counts - 1.0
@@ -148,7 +150,9 @@ def _has_own_covariance(
     signals spread beyond :data:`MIN_RELATIVE_SPREAD`."""
     counts = statistics.counts
     n_features = covariances.shape[-1]
-    enough = counts >= MIN_CLASS_WEIGHT if shrinkage > 0 else counts > n_features
+    enough = (
+        at_least(counts, MIN_CLASS_WEIGHT) if shrinkage > 0 else more_than(counts, n_features)
+    )
     variance = np.trace(covariances, axis1=-2, axis2=-1)
     power = np.trace(statistics.scatters, axis1=-2, axis2=-1) / np.maximum(
         counts, np.finfo(float).tiny

@@ -20,7 +20,7 @@ from acquisition.sources import DataSpec
 from calibration_free.config import LearnerConfig
 from calibration_free.ties import TIE_TOLERANCE, first_best, near_best
 from cfbci.simulation import SessionConfig, run_session
-from decoding.statistics import EMPTY_WEIGHT, at_least
+from decoding.statistics import EMPTY_WEIGHT, at_least, more_than
 
 
 def test_values_equal_up_to_rounding_are_tied_and_the_lowest_index_wins() -> None:
@@ -38,6 +38,9 @@ def test_a_count_short_of_a_whole_by_rounding_reaches_it() -> None:
     assert np.cumsum(weights)[-1] < 2.0  # summed in order: short of 2 by rounding
     assert at_least(np.cumsum(weights)[-1:], 2.0).tolist() == [True]
     assert at_least(np.array([2.0 - 10 * EMPTY_WEIGHT]), 2.0).tolist() == [False]
+    # ... and a count a rounding above a whole does not exceed it (Student-t's d).
+    assert more_than(np.array([np.nextafter(11.0, 12.0), 11.0 + 10 * EMPTY_WEIGHT]), 11.0
+                     ).tolist() == [False, True]
 
 
 def _reversed_features(data: LabelledFeatures) -> LabelledFeatures:
