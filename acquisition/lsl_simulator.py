@@ -16,7 +16,7 @@
   replay source publishes it, so that the service's recording has ``/truth``.
 
 The user is :class:`acquisition.user.SimulatedUser` with the random streams of
-:func:`calibration_free.session.session_streams`, and synthetic epochs come from the data
+:func:`calibration_free.streams.session_streams`, and synthetic epochs come from the data
 stream as in :mod:`acquisition.replay_source`: with the bridge's ``--seed`` equal to the
 simulator's, a session over LSL makes the decisions of ``cfbci session`` with that seed.
 A move sent again (``repeat`` > 0, the bridge could not cut its epoch) is answered with
@@ -50,7 +50,7 @@ from acquisition.lsl_bridge import DEFAULT_MOVES
 from acquisition.lsl_streams import eeg_outlet, marker_outlet, parse_move_marker, resolve_inlet
 from acquisition.sources import DataSpec, synthetic_epochs
 from acquisition.user import SimulatedUser
-from calibration_free.session import session_streams
+from calibration_free.streams import session_streams
 from calibration_free.world import ACTIONS, GridWorld
 from replay.recording import decode_array, read_recording
 from wire import protocol

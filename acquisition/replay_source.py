@@ -5,7 +5,7 @@ service (docs/protocol.md): it publishes the session's ``config``, waits for
 ``session_started``, then answers every ``move`` with the ``epoch`` of that step and the
 step's ``truth``, until ``session_ended``.
 
-The random streams are those of the simulation (:func:`calibration_free.session.session_streams`):
+The random streams are those of the simulation (:func:`calibration_free.streams.session_streams`):
 the data stream makes the synthetic epochs, the user stream drives
 :class:`acquisition.user.SimulatedUser` with the same draws in the same order (the answer
 to a move, then a new target if the move declared one), and the service derives the
@@ -47,12 +47,12 @@ from acquisition.labelled import LabelledEpochs, LabelledFeatures
 from acquisition.mixed_teacher import MixedTeacher, gaussian_signals
 from acquisition.sources import DataSpec, synthetic_epochs
 from acquisition.user import SimulatedUser
-from calibration_free.session import StepRecord, session_streams
+from calibration_free.streams import StepRecord, session_streams
 from calibration_free.world import World
 from calibration_free.worlds import WORLDS, make_world
 from decoding.validation import check_option
+from session.plane import PLANE_FRAMES, PUDDLE_MOVES, plane_settings, puddle_world
 from wire import protocol
-from wire.plane import PLANE_FRAMES, PUDDLE_MOVES, plane_settings, puddle_world
 from wire.protocol import SequenceTracker
 from wire.services import QUERY_TIMEOUT, SERVICES, ask_for_offers, pick_service
 from wire.transport import (

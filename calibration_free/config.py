@@ -75,7 +75,7 @@ AMBIGUOUS_MATCHES: tuple[str, ...] = ("resolved", "even")
 
 #: Settings added after recordings began to hold every learner setting, each with the value
 #: that reproduces the learner from before it existed: a recording that lacks one ran
-#: without it (:func:`wire.messages.recorded_config` fills them in when a recording is read;
+#: without it (:func:`session.config.recorded_config` fills them in when a recording is read;
 #: a missing ``first_target_shrinkage`` becomes the recording's own ``shrinkage``). The
 #: shrinkage choice's floor and margin: the rule of its first day (2026-12-03 18:56 to
 #: 2026-12-04 17:18, grid from 0.05, one standard error); a recording of the two hours

@@ -47,7 +47,7 @@ _DELTAS = ((-1, 0), (1, 0), (0, -1), (0, 1), (0, 0))
 #: Tasks whose optimal actions are computed together (bounds the temporaries' size).
 _TASK_CHUNK_ELEMENTS = 1 << 22
 #: Index of the world stream among the session seed's spawned streams (see
-#: :mod:`calibration_free.session`: 0 data, 1 user, 2 learner).
+#: :mod:`calibration_free.streams`: 0 data, 1 user, 2 learner).
 WORLD_STREAM = 3
 
 
@@ -245,7 +245,7 @@ def transition_draws(seed: int) -> TransitionDraws:
     """The world stream of a session seed: ``SeedSequence(seed).spawn(4)[3]``.
 
     The first three spawned streams are the data, user and learner streams
-    (:func:`calibration_free.session.session_streams`); this fourth one is consumed only
+    (:func:`calibration_free.streams.session_streams`); this fourth one is consumed only
     by stochastic moves, so deterministic worlds' sessions are unchanged by it.
     """
     child = np.random.SeedSequence(seed).spawn(WORLD_STREAM + 1)[WORLD_STREAM]

@@ -49,7 +49,7 @@ from acquisition.sources import synthetic_features
 from acquisition.user import SimulatedUser
 from calibration_free.config import LearnerConfig
 from calibration_free.learner import CalibrationFreeLearner
-from calibration_free.session import session_streams
+from calibration_free.streams import session_streams
 from calibration_free.world import GridWorld
 from cfbci.bench_continuous import bench_continuous_step, print_continuous
 from cfbci.blas import single_threaded_blas

@@ -45,8 +45,8 @@ from cfbci.soak import add_soak_parser
 from cfbci.sweep import add_sweep_command
 from cfbci.view import add_view_command
 from cfbci.world_check import add_world_command
-from wire.messages import learner_settings
-from wire.plane import PLANE_FRAMES as LIVE_PLANE_WORLDS
+from session.config import learner_settings
+from session.plane import PLANE_FRAMES as LIVE_PLANE_WORLDS
 
 
 def parse_settings(pairs: Sequence[str]) -> dict[str, Any]:

@@ -1,6 +1,6 @@
 """Offline sessions of the continuous-goal world (method-extensions §3): learner and teacher.
 
-Random streams are those of :mod:`calibration_free.session`: the user stream drives the
+Random streams are those of :mod:`calibration_free.streams`: the user stream drives the
 :class:`acquisition.cardinal_teacher.CardinalTeacher` (goal, directions, pools), the
 learner stream the :class:`calibration_free.continuous_goals.ContinuousGoalLearner`.
 """
@@ -16,8 +16,8 @@ from threadpoolctl import threadpool_limits
 from acquisition.cardinal_teacher import CardinalTeacher
 from acquisition.labelled import LabelledFeatures
 from calibration_free.continuous_goals import ContinuousConfig, ContinuousGoalLearner
-from calibration_free.session import session_streams
-from wire.plane import ONE_BLAS_THREAD
+from calibration_free.streams import session_streams
+from session.plane import ONE_BLAS_THREAD
 
 
 @dataclass(frozen=True)
@@ -65,7 +65,7 @@ def run_continuous_session(
 
     The learner gets each signal as float32, the wire format (as
     :func:`cfbci.simulation.run_session` does), and computes with one BLAS thread (see
-    :mod:`wire.plane`), so that a live session equals this one.
+    :mod:`session.plane`), so that a live session equals this one.
     """
     with threadpool_limits(**ONE_BLAS_THREAD):
         return _run(seed, config, data, steps, class_order, on_step)

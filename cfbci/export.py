@@ -20,7 +20,7 @@ from rich.console import Console
 from acquisition.labelled import LabelledEpochs
 from acquisition.loaders import load_recording_dataset, save_epochs_fif
 from replay.recording import read_recording
-from wire.messages import config_world
+from session.config import config_world
 
 #: ``--format`` choices.
 FORMATS = ("fif",)

@@ -8,7 +8,7 @@ every answer is a signal drawn uniformly from the whole dataset (data stream) wh
 user's label: the signals then say nothing about the labels, the shuffled-label control of
 the page. (Permuting the dataset's labels once is not such a control: the user draws from
 fixed per-class pools without replacement, and a decoder learns the pools' members.)
-Random streams are those of :mod:`calibration_free.session`; the world stream drives the
+Random streams are those of :mod:`calibration_free.streams`; the world stream drives the
 line world's edge moves.
 """
 
@@ -23,7 +23,7 @@ from acquisition.sources import DataSpec
 from acquisition.user import SimulatedUser
 from calibration_free.config import LearnerConfig
 from calibration_free.frame_hypotheses import FrameHypothesesLearner
-from calibration_free.session import session_streams
+from calibration_free.streams import session_streams
 from calibration_free.world import World, transition_draws
 from calibration_free.worlds import make_world
 

@@ -13,7 +13,7 @@ from dataclasses import dataclass, fields
 
 from calibration_free.config import LearnerConfig
 from calibration_free.world import World
-from cfbci.memory_estimate import estimate
+from session.memory import estimate
 
 #: Bytes a message may hold besides its payload (the JSON header), for ``max_message_bytes``.
 HEADER_ALLOWANCE = 64 * 2**10
@@ -104,7 +104,7 @@ def world_memory_bytes(
 ) -> int:
     """Upper estimate of the memory a session's learner commits, bytes.
 
-    :func:`cfbci.memory_estimate.estimate`'s total (documented term by term there): the
+    :func:`session.memory.estimate`'s total (documented term by term there): the
     world's tables and their building, the history and every task's per-fold statistics,
     one step's fit, cross-validation and planning, as functions of the world's sizes, the
     learner settings (frame, decoder, likelihood, planner, folds), ``steps`` and

@@ -41,8 +41,8 @@ from calibration_free.puddle import puddle_tasks
 from calibration_free.world import GridWorld, World
 from cfbci.limits import ServiceLimits
 from cfbci.service import serve
+from session.plane import PLANE_FRAMES
 from wire import protocol
-from wire.plane import PLANE_FRAMES
 from wire.protocol import ProtocolError
 from wire.transport import Pump, Received
 from wire.zenoh_config import free_tcp_endpoint, peer_config

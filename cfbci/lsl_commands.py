@@ -14,7 +14,7 @@ from rich.console import Console
 
 from calibration_free.frames import FRAMES
 from cfbci.cli import _add_data_options, _add_endpoints, data_spec, parse_settings
-from wire.messages import learner_settings
+from session.config import learner_settings
 
 
 def add_lsl_commands(commands: argparse._SubParsersAction) -> None:

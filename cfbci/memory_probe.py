@@ -10,7 +10,7 @@ session: lazy imports, LAPACK workspaces), gives the heap's free memory back to 
 resets the kernel's peak-RSS counter (``/proc/self/clear_refs``), reads ``VmRSS`` and runs
 the session (:func:`cfbci.simulation.run_session`, the learner and a simulated user, no
 network) with the learner stepped as the service steps it: every observation is followed
-by the state message's fields (:func:`wire.messages.state_fields`, whose cross-validated
+by the state message's fields (:func:`session.config.state_fields`, whose cross-validated
 balanced accuracy fits the k-fold decoders even for a likelihood that needs none). The
 peak resident growth is ``VmHWM`` afterwards minus ``VmRSS`` before. Linux only.
 
@@ -46,8 +46,8 @@ from cfbci.limits import world_memory_bytes
 from cfbci.memory import keep_freed_memory
 from cfbci.puddle import run_puddle_session
 from cfbci.simulation import SessionConfig, run_session
-from wire.messages import state_fields
-from wire.plane import puddle_memory_bytes, puddle_world
+from session.config import state_fields
+from session.plane import puddle_memory_bytes, puddle_world
 
 #: Signals per class of a measured session's data set.
 SIGNALS_PER_CLASS = 600
@@ -206,7 +206,7 @@ def _peak_growth_mib(case: MemoryCase) -> float:
 def measure_puddle(steps: int, seed: int = 0) -> tuple[float, float]:
     """A puddle session of ``steps`` steps measured in a fresh spawned process, the world's
     policy tables built in it (what a service pays for its first puddle session), beside
-    :func:`wire.plane.puddle_memory_bytes`' estimate: ``(measured MiB, estimate MiB)``."""
+    :func:`session.plane.puddle_memory_bytes`' estimate: ``(measured MiB, estimate MiB)``."""
     with ProcessPoolExecutor(1, mp_context=_SPAWN) as pool:
         measured = pool.submit(_puddle_peak_growth_mib, steps, seed).result()
     estimate = puddle_memory_bytes(PuddleConfig(), steps, SIGNAL_DIMS) / 2**20

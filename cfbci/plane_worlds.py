@@ -30,8 +30,8 @@ from calibration_free.puddle_learner import EXPLORATIONS, PuddleConfig
 from cfbci.continuous import run_continuous_session
 from cfbci.parallel import Scheduler, run_parallel
 from cfbci.puddle import run_puddle_session
-from wire.messages import learner_settings
-from wire.plane import PLANE_FRAMES, plane_settings
+from session.config import learner_settings
+from session.plane import PLANE_FRAMES, plane_settings
 
 PLANE_WORLDS: tuple[str, ...] = ("continuous", "puddle")
 #: Steps at which the thesis reports the puddle world's curves.
@@ -104,7 +104,7 @@ def live_source_fields(
 ) -> dict[str, Any]:
     """The plane-world fields of a ``SourceSettings`` (``class_order``), after checking the
     learner settings as the service will (``LearnerConfig`` in a discrete world,
-    :func:`wire.plane.plane_settings` in a plane world: ``ContinuousConfig`` or
+    :func:`session.plane.plane_settings` in a plane world: ``ContinuousConfig`` or
     ``PuddleConfig`` settings).
 
     Raises

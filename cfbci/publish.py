@@ -53,8 +53,8 @@ from replay.rerun import (
     move_divergence,
     state_divergence,
 )
+from session.plane import is_plane
 from wire import protocol
-from wire.plane import is_plane
 from wire.protocol import SequenceTracker
 from wire.transport import (
     Outbox,

@@ -1,6 +1,6 @@
 """Offline sessions of the puddle world (method-extensions §2).
 
-Streams (:mod:`calibration_free.session`): the data stream generates the signals (six
+Streams (:mod:`calibration_free.streams`): the data stream generates the signals (six
 classes of the Gaussian generator, 20-D, nominal accuracy 0.95, as many per class as the
 ErrP synthetic pools), the user stream drives the teacher, the learner stream the learner,
 and the world stream the start state, the move lengths and the restarts: when the agent
@@ -23,7 +23,7 @@ from acquisition.mixed_teacher import (
 )
 from calibration_free.puddle import PuddleWorld
 from calibration_free.puddle_learner import PuddleConfig, PuddleLearner
-from calibration_free.session import session_streams, world_stream
+from calibration_free.streams import session_streams, world_stream
 
 __all__ = [
     "SIGNAL_ACCURACY", "SIGNAL_DIMS", "PuddleResult", "PuddleStep", "gaussian_signals",

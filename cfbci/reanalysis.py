@@ -47,8 +47,8 @@ import numpy as np
 from calibration_free.config import LearnerConfig
 from replay.recording import Recording, read_recording
 from replay.rerun import recorded_learner, recorded_signals
-from wire.messages import config_world, learner_settings
-from wire.plane import is_plane
+from session.config import config_world, learner_settings
+from session.plane import is_plane
 
 #: Name of the recording's own settings in the report.
 OWN = "own settings"

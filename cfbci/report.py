@@ -38,7 +38,7 @@ from replay.metrics import aggregate, session_metrics
 from replay.plane_report import plane_figures, plane_metrics
 from replay.puddle_report import puddle_figures, puddle_metrics
 from replay.recording import read_recording
-from wire.plane import is_plane
+from session.plane import is_plane
 
 #: File stem of the pooled figures of a report (``<stem>_confidence_calibration.png``).
 CALIBRATION_STEM = "all-sessions"

@@ -29,17 +29,17 @@ itself: a separate :class:`Recordings` object, which holds the session recorders
 learner, owns the only ``cfbci/*/truth`` subscription and writes what arrives there to the
 recordings. :class:`_Session`, the learner's side, is never given a truth message.
 
-The world is the config's (:func:`wire.messages.config_world`). The agent's start state
+The world is the config's (:func:`session.config.config_world`). The agent's start state
 is the world's :meth:`~calibration_free.world.World.start_state` on the session's *user*
-stream (:func:`calibration_free.session.session_streams` ``[1]``; the grid's: its first
+stream (:func:`calibration_free.streams.session_streams` ``[1]``; the grid's: its first
 draw), as :class:`acquisition.user.SimulatedUser` draws it, so that a live session replays
 ``cfbci simulate`` exactly; the learner's stream is ``session_streams(seed)[2]``, and a
 stochastic move (the line world's edges) takes the number of its step from the world
 stream (:func:`calibration_free.world.transition_draws`). A session of a world in the
-plane has no World: its learner is a :class:`wire.plane.PlaneStepper`. The continuous
-world's (:class:`~wire.plane.ContinuousStepper`: probe points and particles,
+plane has no World: its learner is a :class:`session.plane.PlaneStepper`. The continuous
+world's (:class:`~session.plane.ContinuousStepper`: probe points and particles,
 docs/protocol.md) is recorded with its particles on ``/particles``; the puddle world's
-(:class:`~wire.plane.PuddleStepper`) owns the agent's state and the world stream, draws
+(:class:`~session.plane.PuddleStepper`) owns the agent's state and the world stream, draws
 each move's outcome and, after an epoch that says ``reset``, the restart state, and is
 recorded with the goal cells' probabilities on ``/belief`` and the agent's moves on
 ``/position``.
@@ -62,7 +62,7 @@ import numpy as np
 import zenoh
 
 from calibration_free.learner import CalibrationFreeLearner
-from calibration_free.session import session_streams
+from calibration_free.streams import session_streams
 from calibration_free.world import TransitionDraws, World, transition_draws
 from cfbci.limits import ServiceLimits, world_memory_bytes
 from cfbci.memory import keep_freed_memory
@@ -76,9 +76,7 @@ from replay.rerun import (
     rerun_of,
     signal_extractor,
 )
-from wire import protocol
-from wire.intake import Intake, session_of
-from wire.messages import (
+from session.config import (
     config_world,
     learner_settings,
     move_fields,
@@ -88,7 +86,7 @@ from wire.messages import (
     target_text,
     world_text,
 )
-from wire.plane import (
+from session.plane import (
     TASK_CELLS,
     PlaneStepper,
     PuddleStepper,
@@ -99,6 +97,8 @@ from wire.plane import (
     puddle_world,
     puddle_world_built,
 )
+from wire import protocol
+from wire.intake import Intake, session_of
 from wire.protocol import NO_SESSION, ProtocolError, SequenceTracker
 from wire.services import ServiceRegistration, default_service_id
 from wire.transport import Outbox, Pump, Received
@@ -347,7 +347,7 @@ class _Session:
 
 
 class _PuddleTables:
-    """Builds the puddle world's policy tables (:func:`wire.plane.puddle_world`) on a
+    """Builds the puddle world's policy tables (:func:`session.plane.puddle_world`) on a
     daemon thread, once per process, so that the service's loop never waits for them."""
 
     def __init__(self) -> None:
@@ -668,7 +668,7 @@ class PipelineService:
     def _check_plane_memory(
         self, config: dict[str, Any], n_features: int, reject: Callable[[str], Rejection]
     ) -> None:
-        """Reject a plane-world session whose :func:`wire.plane.plane_memory_bytes` is over
+        """Reject a plane-world session whose :func:`session.plane.plane_memory_bytes` is over
         the limit."""
         needed = plane_memory_bytes(config, n_features)
         if needed > self.limits.max_session_mb * 2**20:

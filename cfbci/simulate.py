@@ -13,7 +13,7 @@ from rich.table import Table
 
 from acquisition.labelled import LabelledFeatures
 from acquisition.sources import DataFactory, DataSpec
-from calibration_free.session import StepRecord
+from calibration_free.streams import StepRecord
 from cfbci.parallel import Scheduler, run_parallel
 from cfbci.simulation import SessionConfig, SessionResult, run_session, summarise
 from replay.calibration import bin_of

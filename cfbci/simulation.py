@@ -5,7 +5,7 @@ reached when the device performs the world's declaration action (the grid's ``go
 while confident, in the state of the task it is confident about; the user then picks a
 new target.
 
-Random streams: :mod:`calibration_free.session` (data, user and learner streams of a
+Random streams: :mod:`calibration_free.streams` (data, user and learner streams of a
 session seed); stochastic moves (the line world's edges) draw from the seed's world stream
 (:func:`calibration_free.world.transition_draws`), one number per step.
 """
@@ -23,7 +23,7 @@ from acquisition.user import SimulatedUser
 from calibration_free.baseline import DEFAULT_CALIBRATION_TRIALS, CalibratedBaseline
 from calibration_free.config import LearnerConfig
 from calibration_free.learner import CalibrationFreeLearner, TaskLearner
-from calibration_free.session import StepRecord, session_streams
+from calibration_free.streams import StepRecord, session_streams
 from calibration_free.world import World, transition_draws
 from calibration_free.worlds import WORLDS, make_world
 from decoding.validation import check_option

@@ -61,11 +61,11 @@ from rich.table import Table
 
 from acquisition.replay_source import SourceSettings, replay_session
 from calibration_free.learner import CalibrationFreeLearner
-from calibration_free.session import StepRecord
+from calibration_free.streams import StepRecord
 from calibration_free.world import GridWorld
 from cfbci.service import serve
 from replay.recording import SessionRecorder, decode_array, read_recording
-from wire.messages import learner_settings
+from session.config import learner_settings
 from wire.zenoh_config import free_tcp_endpoint, peer_config
 
 #: Grid side of the soak sessions (T = GRID ** 2 tasks).

@@ -34,7 +34,7 @@ from calibration_free.frames import FRAMES
 from cfbci.parallel import Scheduler, add_scheduler_options, run_parallel
 from cfbci.simulate import SimulationJob, run_job, simulation_report
 from cfbci.simulation import SessionConfig, SessionResult
-from wire.messages import learner_settings
+from session.config import learner_settings
 
 #: ``--datasets`` entry that stands for the synthetic generator (at ``--synthetic-accuracy``).
 SYNTHETIC = "synthetic"

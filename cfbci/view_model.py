@@ -21,8 +21,8 @@ from typing import Any
 
 from calibration_free.config import LearnerConfig
 from calibration_free.world import ACTIONS
+from session.config import config_world, learner_settings
 from wire import protocol
-from wire.messages import config_world, learner_settings
 
 #: Cells of the agent's recent path kept (current cell included).
 PATH_LENGTH = 12

@@ -25,7 +25,7 @@ from matplotlib.patches import Rectangle
 from replay.calibration import CalibrationPanel
 from replay.metrics import SessionMetrics
 from replay.recording import RANKED, Recording, decode_array
-from wire.messages import config_world
+from session.config import config_world
 
 #: Resolution of the saved PNG files, dots per inch.
 DPI = 150

@@ -53,7 +53,7 @@ from calibration_free.world import GridWorld, World
 from replay.calibration import RuleCounts, calibration_counts, counts_by_rule
 from replay.recording import Recording
 from replay.rerun import first_divergence, recompute
-from wire.messages import config_world, learner_settings, world_text
+from session.config import config_world, learner_settings, world_text
 
 #: The scalar metrics :func:`aggregate` summarises, with their meaning (and unit).
 SCALAR_METRICS: dict[str, str] = {

@@ -63,7 +63,7 @@ from mcap.stream_reader import StreamReader
 from mcap.writer import CompressionType, Writer
 
 from calibration_free.world import GridWorld, World
-from wire.messages import recorded_config
+from session.config import recorded_config
 
 _MAGIC = b"\x89MCAP0\r\n"
 #: Metadata record holding ``{"session": name, "config": JSON of the configuration}``.

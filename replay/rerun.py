@@ -20,11 +20,11 @@ import numpy as np
 
 from calibration_free.config import LearnerConfig
 from calibration_free.learner import CalibrationFreeLearner
-from calibration_free.session import session_streams
+from calibration_free.streams import session_streams
 from calibration_free.world import World, transition_draws
 from decoding.features import ErrPFeatures
 from replay.recording import Recording, decode_array, read_recording
-from wire.messages import (
+from session.config import (
     config_world,
     learner_settings,
     move_fields,
@@ -32,7 +32,7 @@ from wire.messages import (
     state_fields,
     target_text,
 )
-from wire.plane import PlaneStepper, is_plane, plane_stepper
+from session.plane import PlaneStepper, is_plane, plane_stepper
 
 MOVE_FIELDS = ("step", "from_state", "action", "to_state", "target_reached")
 STATE_FIELDS = ("best_task", "confident", "n_signals", "class_counts", "balanced_accuracy")
@@ -188,7 +188,7 @@ class Rerun:
 class PlaneRerun:
     """The learner of a recorded plane-world configuration, stepped as the service steps
     it: :class:`Rerun`'s interface (``world`` and ``draws`` None, ``learner`` the world's
-    :class:`wire.plane.PlaneStepper`, ``action`` 0)."""
+    :class:`session.plane.PlaneStepper`, ``action`` 0)."""
 
     world = None
     draws = None

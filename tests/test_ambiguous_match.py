@@ -9,7 +9,7 @@ from calibration_free.config import SETTINGS_BEFORE_THEY_EXISTED, LearnerConfig
 from calibration_free.learner import CalibrationFreeLearner
 from calibration_free.likelihood import log_match
 from calibration_free.world import GridWorld
-from wire.messages import learner_settings, recorded_config
+from session.config import learner_settings, recorded_config
 
 WORLD = GridWorld(5)
 TARGET = 12  # the middle cell: every other cell off its row and column is diagonal to it

@@ -14,7 +14,7 @@ from calibration_free.evidence_temperature import TEMPERATURE_BOUNDS, fit_temper
 from calibration_free.learner import CalibrationFreeLearner
 from calibration_free.likelihood import label_log_matches, normalised_likelihood
 from calibration_free.world import GOAL
-from wire.messages import learner_settings, recorded_config
+from session.config import learner_settings, recorded_config
 
 
 def labels_drawn_at(temperature: float, n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:

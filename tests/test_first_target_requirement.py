@@ -9,7 +9,7 @@ from acquisition.sources import DataSpec
 from calibration_free.config import SETTINGS_BEFORE_THEY_EXISTED, LearnerConfig
 from calibration_free.learner import CalibrationFreeLearner, first_target_requirement
 from cfbci.simulation import SessionConfig, run_session
-from wire.messages import learner_settings, recorded_config
+from session.config import learner_settings, recorded_config
 
 
 def test_the_requirement_relaxes_linearly_from_one_to_the_threshold():

@@ -15,7 +15,7 @@ from calibration_free.config import (
     LearnerConfig,
 )
 from calibration_free.learner import CalibrationFreeLearner
-from wire.messages import learner_settings
+from session.config import learner_settings
 
 
 def test_every_setting_written_by_to_dict_is_read_back() -> None:

@@ -18,11 +18,11 @@ from calibration_free.config import LearnerConfig
 from calibration_free.learner import CalibrationFreeLearner
 from calibration_free.world import GridWorld
 from calibration_free.worlds import make_world
-from cfbci import memory_estimate
 from cfbci.limits import ServiceLimits, add_options, from_args, world_memory_bytes
 from cfbci.memory_probe import MemoryCase, measure
 from cfbci.service import serve, unfinished
 from replay.recording import read_recording
+from session import memory as memory_estimate
 from wire import protocol
 from wire.transport import Outbox, Pump, Received, wait_for_subscribers
 from wire.zenoh_config import free_tcp_endpoint, peer_config

@@ -25,7 +25,7 @@ from mcap.reader import make_reader
 
 from acquisition.replay_source import SourceSettings, SourceSummary, run_source
 from acquisition.sources import DataSpec
-from calibration_free.session import StepRecord
+from calibration_free.streams import StepRecord
 from calibration_free.world import ACTIONS, GridWorld
 from cfbci.cli import main
 from cfbci.service import serve

@@ -34,14 +34,14 @@ from acquisition.mixed_teacher import gaussian_signals
 from acquisition.replay_source import SourceSettings, run_source
 from calibration_free.puddle import ACTIONS
 from calibration_free.puddle_learner import PuddleConfig
-from calibration_free.session import session_streams
+from calibration_free.streams import session_streams
 from cfbci.cli import main
 from cfbci.memory_probe import measure_puddle
 from cfbci.puddle import PuddleResult, PuddleStep, run_puddle_session
 from replay.recording import read_recording
 from replay.rerun import replay_check
+from session.plane import PuddleStepper, goal_probabilities, puddle_world
 from wire import protocol
-from wire.plane import PuddleStepper, goal_probabilities, puddle_world
 from wire.transport import Outbox, Pump, Received, reliable_publisher, wait_for_subscribers
 from wire.zenoh_config import free_tcp_endpoint, peer_config
 

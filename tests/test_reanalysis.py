@@ -29,7 +29,7 @@ from cfbci.reanalysis import (
 )
 from replay.recording import Recording, decode_array, read_recording
 from replay.rerun import replay_check
-from wire.messages import learner_settings
+from session.config import learner_settings
 from wire.zenoh_config import free_tcp_endpoint
 
 #: The learner's defaults, which the recording below runs with.

@@ -17,7 +17,7 @@ from acquisition.labelled import LabelledEpochs, LabelledFeatures
 from acquisition.loaders import load_epochs, load_labelled, load_recording_dataset
 from acquisition.replay_source import SourceSettings, run_source
 from acquisition.sources import DEFAULT_SYNTHETIC_ACCURACY, DataSpec, synthetic_features
-from calibration_free.session import StepRecord
+from calibration_free.streams import StepRecord
 from cfbci.cli import main
 from cfbci.simulation import SessionConfig, run_session
 from replay.recording import Recording, decode_array, read_recording

@@ -22,7 +22,7 @@ from acquisition.sources import DEFAULT_SYNTHETIC_ACCURACY, synthetic_epochs
 from acquisition.user import SimulatedUser
 from calibration_free.config import DEFAULT_BETA
 from calibration_free.learner import CalibrationFreeLearner
-from calibration_free.session import session_streams, start_cell
+from calibration_free.streams import session_streams, start_cell
 from calibration_free.world import ACTIONS, GridWorld, transition_draws
 from cfbci.cli import main
 from decoding.features import ErrPFeatures
@@ -31,7 +31,7 @@ from replay.html_report import SessionReport, render_html
 from replay.metrics import aggregate, latency_summary, session_metrics
 from replay.recording import SessionRecorder, read_recording
 from replay.rerun import replay_check
-from wire.messages import learner_settings, move_fields, state_fields
+from session.config import learner_settings, move_fields, state_fields
 
 KINDS = ("confidence", "belief", "accuracy", "erp", "latency")
 

@@ -11,8 +11,8 @@ from acquisition.labelled import LabelledFeatures
 from acquisition.sources import DataSpec
 from acquisition.user import SimulatedUser
 from calibration_free.config import LearnerConfig
-from calibration_free.session import StepRecord
 from calibration_free.shrinkage_choice import SHRINKAGE_GRID
+from calibration_free.streams import StepRecord
 from calibration_free.world import ACTIONS, GOAL, MOVES, GridWorld
 from cfbci.cli import main
 from cfbci.simulation import SessionConfig, SessionResult, run_session, summarise

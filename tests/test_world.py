@@ -5,7 +5,7 @@ import pytest
 
 from calibration_free.frames import CORRECT, ERROR, Frame
 from calibration_free.learner import CalibrationFreeLearner
-from calibration_free.session import session_streams
+from calibration_free.streams import session_streams
 from calibration_free.world import (
     ACTIONS,
     GOAL,

@@ -25,7 +25,7 @@ from mcap.reader import make_reader
 from acquisition.replay_source import SourceSettings, run_source
 from acquisition.sources import DataSpec
 from calibration_free.config import LearnerConfig
-from calibration_free.session import StepRecord
+from calibration_free.streams import StepRecord
 from calibration_free.worlds import make_world
 from cfbci.cli import main
 from cfbci.simulation import SessionConfig, SessionResult, run_session

@@ -23,7 +23,7 @@ from acquisition.loaders import load_labelled
 from acquisition.user import SimulatedUser
 from calibration_free.config import LearnerConfig
 from calibration_free.learner import CalibrationFreeLearner
-from calibration_free.session import session_streams
+from calibration_free.streams import session_streams
 from calibration_free.world import GridWorld
 from cfbci.blas import single_threaded_blas
 from cfbci.cli import parse_settings

@@ -25,7 +25,7 @@ import numpy as np
 
 from calibration_free.frames import FRAMES
 from calibration_free.worlds import WORLDS, make_world
-from wire.plane import PLANE_FRAMES, PROBE, PUDDLE_MOVES
+from session.plane import PLANE_FRAMES, PROBE, PUDDLE_MOVES
 
 VERSION: int = 6
 PREFIX: str = "cfbci"

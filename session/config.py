@@ -16,12 +16,12 @@ import numpy as np
 
 from calibration_free.config import SETTINGS_BEFORE_THEY_EXISTED, LearnerConfig
 from calibration_free.learner import Beliefs, CalibrationFreeLearner, Proposal
-from calibration_free.session import session_streams
+from calibration_free.streams import session_streams
 from calibration_free.world import GridWorld, TransitionDraws, World
 from calibration_free.worlds import make_world
 from decoding.lda import DEFAULT_SHRINKAGE
-from wire.plane import is_plane, plane_settings
-from wire.settings import check_setting_kinds
+from session.plane import is_plane, plane_settings
+from session.settings import check_setting_kinds
 
 
 def config_world(config: dict[str, Any]) -> World:
@@ -105,7 +105,7 @@ def resolved_config(config: dict[str, Any]) -> dict[str, Any]:
     Raises
     ------
     ValueError
-        As :func:`learner_settings` and :func:`wire.plane.plane_settings`.
+        As :func:`learner_settings` and :func:`session.plane.plane_settings`.
     """
     if is_plane(config):
         settings = dataclasses.asdict(plane_settings(config))

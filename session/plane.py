@@ -24,7 +24,7 @@ A config of ``world`` "puddle" (frame "mixed") carries the
 :class:`calibration_free.puddle_learner.PuddleConfig` settings in its ``learner`` object.
 :class:`PuddleStepper` runs the :class:`~calibration_free.puddle_learner.PuddleLearner` in
 the order of :func:`cfbci.puddle.run_puddle_session`, and owns the agent's state and the
-session's world stream (:func:`calibration_free.session.world_stream`), which the source
+session's world stream (:func:`calibration_free.streams.world_stream`), which the source
 never sees: the start state is its first draw (``uniform(size=2)``); ``move`` proposes the
 action at the state and draws its outcome at once (:meth:`PuddleWorld.move`), so that the
 ``move`` carries ``from_state``, ``action`` (north, south, east or west) and ``to_state``;
@@ -52,8 +52,8 @@ from calibration_free.continuous_goals import ContinuousConfig, ContinuousGoalLe
 from calibration_free.puddle import ACTIONS as PUDDLE_ACTIONS
 from calibration_free.puddle import MIXED_LABELS, TASK_CELLS, PuddleWorld, puddle_tasks
 from calibration_free.puddle_learner import PuddleConfig, PuddleLearner
-from calibration_free.session import session_streams, world_stream
-from wire.settings import check_setting_kinds
+from calibration_free.streams import session_streams, world_stream
+from session.settings import check_setting_kinds
 
 #: The plane worlds the live path runs, and the frame each requires.
 PLANE_FRAMES: dict[str, str] = {"continuous": "cardinal", "puddle": "mixed"}
