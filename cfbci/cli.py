@@ -7,6 +7,7 @@ import argparse
 import json
 import sys
 from collections.abc import Sequence
+from importlib import metadata
 from pathlib import Path
 from typing import Any
 
@@ -692,6 +693,7 @@ def build_parser(chosen: Preset | None = None) -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="cfbci", description="Calibration-free brain-computer interface."
     )
+    parser.add_argument("--version", action="version", version=metadata.version("cfbci"))
     parser.add_argument(
         "--blas-threads", type=int, default=1, metavar="N",
         help="BLAS threads of this process and its children (default 1: the learner's "
