@@ -46,8 +46,8 @@ from cfbci.limits import world_memory_bytes
 from cfbci.memory import keep_freed_memory
 from cfbci.puddle import run_puddle_session
 from cfbci.simulation import SessionConfig, run_session
-from session.config import state_fields
 from session.plane import puddle_memory_bytes, puddle_world
+from session.tasks import state_fields
 
 #: Signals per class of a measured session's data set.
 SIGNALS_PER_CLASS = 600

@@ -46,9 +46,10 @@ import numpy as np
 
 from calibration_free.config import LearnerConfig
 from replay.recording import Recording, read_recording
-from replay.rerun import recorded_learner, recorded_signals
+from replay.rerun import recorded_signals
 from session.config import config_world, learner_settings
 from session.plane import is_plane
+from session.sessions import open_loop
 
 #: Name of the recording's own settings in the report.
 OWN = "own settings"
@@ -310,7 +311,7 @@ def rescore(history: RecordedHistory, settings: LearnerConfig) -> Trajectory:
     The learner observes every recorded step in order and follows the recorded
     declarations (see the module docstring); it never proposes an action.
     """
-    learner = recorded_learner(history.config, settings)
+    learner = open_loop(history.config, settings)
     confidence, best, confident = [], [], []
 
     def keep() -> None:
@@ -322,9 +323,7 @@ def rescore(history: RecordedHistory, settings: LearnerConfig) -> Trajectory:
     keep()
     for k in range(history.n_steps):
         state, action = int(history.states[k]), int(history.actions[k])
-        if history.declared[k]:
-            learner.follow_declaration(state)
-        learner.observe(state, action, history.signals[k])
+        learner.observe(state, action, history.signals[k], bool(history.declared[k]))
         keep()
     return Trajectory(np.array(confidence), np.array(best, dtype=np.int64), np.array(confident))
 

@@ -11,7 +11,6 @@ the computation is deterministic; timing fields are not compared.
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -19,31 +18,16 @@ from typing import Any
 import numpy as np
 
 from calibration_free.config import LearnerConfig
-from calibration_free.learner import CalibrationFreeLearner
-from calibration_free.streams import session_streams
-from calibration_free.world import World, transition_draws
-from decoding.features import ErrPFeatures
 from replay.recording import Recording, decode_array, read_recording
-from session.config import (
-    config_world,
-    learner_settings,
-    move_fields,
-    start_state,
-    state_fields,
-    target_text,
-)
-from session.plane import PlaneStepper, is_plane, plane_stepper
+from session.core import Observer, SignalPath, Step
+from session.plane import is_plane
+from session.sessions import open_session
 
 MOVE_FIELDS = ("step", "from_state", "action", "to_state", "target_reached")
 STATE_FIELDS = ("best_task", "confident", "n_signals", "class_counts", "balanced_accuracy")
 #: A state message's fields (protocol version 4): the compared ones and the particles
 #: (compared too in a plane world's recording; empty, and absent before version 4, elsewhere).
 STATE_MESSAGE_FIELDS = (*STATE_FIELDS, "points")
-
-#: ``on_observe(step, learner)``: called after the learner has observed the epoch of
-#: ``step`` (1-based), before it proposes the next move.
-Observer = Callable[[int, CalibrationFreeLearner], None]
-
 
 @dataclass(frozen=True)
 class Divergence:
@@ -73,28 +57,11 @@ class ReplayResult:
     divergence: Divergence | None
 
 
-def recorded_learner(
-    config: dict[str, Any], settings: LearnerConfig | None = None
-) -> CalibrationFreeLearner:
-    """The learner the service built for a recorded configuration (``.world`` its world).
-
-    ``settings`` replaces the recorded learner settings (open-loop re-analysis); the
-    learner's random stream is the session's all the same.
-    """
-    if settings is None:
-        settings = learner_settings(config["learner"], config["frame"])
-    return CalibrationFreeLearner(
-        config_world(config), settings, session_streams(config["seed"])[2]
-    )
-
-
-def signal_extractor(config: dict[str, Any], first_epoch: np.ndarray) -> ErrPFeatures | None:
-    """The feature extractor of a session of raw epochs, fitted on its first epoch (as the
-    service fits it); None for a session of feature vectors."""
-    if config.get("signal") != "epochs":
-        return None
-    extractor = ErrPFeatures(config["sfreq"], config["tmin"], config["ch_names"])
-    return extractor.fit(first_epoch[None])
+def recorded_signals(recording: Recording) -> list[np.ndarray]:
+    """The learner's inputs, float32, from the accepted recorded epochs (raw or features),
+    through the session's :class:`session.core.SignalPath` as the service computed them."""
+    path = SignalPath(recording.config)
+    return [path(decode_array(message)) for message in recording.accepted_epochs()]
 
 
 def recorded_resets(recording: Recording) -> list[bool]:
@@ -102,134 +69,55 @@ def recorded_resets(recording: Recording) -> list[bool]:
     return [bool(message.get("reset", False)) for message in recording.accepted_epochs()]
 
 
-def recorded_signals(recording: Recording) -> list[np.ndarray]:
-    """The learner's inputs, float32, from the accepted recorded epochs (raw or features)."""
-    epochs = [decode_array(message) for message in recording.accepted_epochs()]
-    if not epochs:
-        return []
-    extractor = signal_extractor(recording.config, epochs[0])
-    if extractor is None:
-        return [np.asarray(e, dtype=np.float32) for e in epochs]
-    return [extractor.transform(e[None])[0].astype(np.float32) for e in epochs]
-
-
 class Rerun:
-    """The learner of a recorded configuration, stepped as the service steps it.
+    """The session of a recorded configuration, stepped as the service steps it, and the
+    messages it produced.
 
     Built, it has chosen the move of step 1; each :meth:`observe` takes the epoch of the
     last move's step and chooses the next move (none after the session's last step).
 
     Attributes
     ----------
-    learner : CalibrationFreeLearner
-    world : World
-    draws : TransitionDraws
-        The session's world stream (stochastic moves).
-    state : int
-        The agent's state before the last move (after it, once the session is over).
-    action : int
-        The last move's action.
-    moves, states : list of dict
-        Moves and states (with ``confidence``) so far, as the service sends them.
+    session : Session
+        Opened from the configuration (:func:`session.sessions.open_session`).
+    states : list of dict
+        The state messages so far (with ``confidence``; outside the plane also the
+        decision ``rule`` and ``threshold`` in force), one per move and one at the end.
     events : list of str
         Texts of the target events so far.
     """
 
     def __init__(self, config: dict[str, Any], settings: LearnerConfig | None = None) -> None:
+        self.session = open_session(config, settings)
         self.steps = config["steps"]
-        self.learner = recorded_learner(config, settings)
-        self.world: World = self.learner.world
-        self.draws = transition_draws(config["seed"])
-        self.state = start_state(config["seed"], self.world)
-        self.moves: list[dict] = []
-        self.states: list[dict] = []
+        self.states: list[dict[str, Any]] = []
         self.events: list[str] = []
-        self.action = self._move()
+        self._take(self.session.start())
+
+    @property
+    def moves(self) -> list[dict[str, Any]]:
+        return self.session.moves
 
     @property
     def finished(self) -> bool:
         """Every step's epoch has been observed."""
-        return self.learner.n_signals >= self.steps
-
-    def _record_state(self) -> None:
-        """The state message's fields and confidences, and the decision rule in force
-        (``rule``, ``threshold``: not in the message; the report's calibration per rule)."""
-        beliefs = self.learner.beliefs()
-        fields, confidence = state_fields(self.learner, beliefs)
-        self.states.append({**fields, "confidence": [float(x) for x in confidence],
-                            "rule": beliefs.rule, "threshold": beliefs.threshold})
-
-    def _move(self) -> int:
-        proposal = self.learner.propose(self.state)
-        step = len(self.moves) + 1
-        self.moves.append(move_fields(self.world, step, self.state, proposal, self.draws))
-        self._record_state()
-        if proposal.declares_target:
-            self.events.append(target_text(self.world, step, self.state))
-        return proposal.action
+        return self.session.finished
 
     def observe(
         self, signal: np.ndarray, on_observe: Observer | None = None, reset: bool = False
     ) -> None:
-        """Observe the epoch of the last move's step; choose the next move if one is due
-        (``reset``: never true in these worlds)."""
-        if reset:
-            raise ValueError("only the puddle world's epochs may say reset")
-        self.learner.observe(self.state, self.action, signal)
-        if on_observe is not None:
-            on_observe(self.learner.n_signals, self.learner)
-        self.state = self.world.step(self.state, self.action, self.draws.uniform(len(self.moves)))
-        if self.finished:
-            self._record_state()
-        else:
-            self.action = self._move()
+        """Observe the epoch of the last move's step (and its ``reset`` flag); choose the
+        next move if one is due."""
+        self._take(self.session.observe(signal, reset, on_observe))
 
-
-class PlaneRerun:
-    """The learner of a recorded plane-world configuration, stepped as the service steps
-    it: :class:`Rerun`'s interface (``world`` and ``draws`` None, ``learner`` the world's
-    :class:`session.plane.PlaneStepper`, ``action`` 0)."""
-
-    world = None
-    draws = None
-    action = 0
-
-    def __init__(self, config: dict[str, Any]) -> None:
-        self.learner: PlaneStepper = plane_stepper(config)
-        self.steps = config["steps"]
-        self.events: list[str] = []
-        self.states: list[dict] = []
-        self._record_state()
-        self.learner.move()
-
-    @property
-    def moves(self) -> list[dict]:
-        return self.learner.moves
-
-    @property
-    def finished(self) -> bool:
-        return self.learner.finished
-
-    def _record_state(self) -> None:
-        fields, confidence = self.learner.state
-        self.states.append({**fields, "confidence": [float(x) for x in confidence]})
-
-    def observe(
-        self, signal: np.ndarray, on_observe: Observer | None = None, reset: bool = False
-    ) -> None:
-        """Observe the epoch of the last move (and its ``reset`` flag); choose the next
-        move if one is due."""
-        self.learner.observe(signal, reset)
-        if on_observe is not None:
-            on_observe(self.learner.n_signals, self.learner)  # type: ignore[arg-type]
-        self._record_state()
-        if not self.finished:
-            self.learner.move()
-
-
-def rerun_of(config: dict[str, Any]) -> Rerun | PlaneRerun:
-    """The re-run of a recorded configuration: :class:`PlaneRerun` in a plane world."""
-    return PlaneRerun(config) if is_plane(config) else Rerun(config)
+    def _take(self, step: Step) -> None:
+        state = self.session.state()
+        decision = {} if state.rule is None else {
+            "rule": state.rule, "threshold": state.threshold}
+        self.states.append(
+            {**state.fields, "confidence": [float(x) for x in state.confidence], **decision}
+        )
+        self.events.extend(step.events)
 
 
 def recompute(
@@ -248,7 +136,7 @@ def recompute(
         learner as the service had it then (if the re-run is identical). It must not
         change the learner.
     """
-    rerun = rerun_of(recording.config)
+    rerun = Rerun(recording.config)
     inputs = zip(recorded_signals(recording), recorded_resets(recording), strict=True)
     for signal, reset in list(inputs)[: rerun.steps]:
         rerun.observe(signal, on_observe, reset)

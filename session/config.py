@@ -1,8 +1,8 @@
-"""Message fields the service publishes and replay recomputes: one definition for both.
+"""From a session config's fields to the objects a session runs with.
 
 ``config_world`` builds a config's world and ``learner_settings`` reads its ``learner``
-object; ``move_fields``, ``state_fields`` and ``target_text`` build a ``move``, a ``state``
-and a ``target_reached`` event's text from the learner's proposal and beliefs
+object; ``resolved_config`` completes a config with every setting's default and
+``recorded_config`` an older recording's with the settings it predates
 (docs/protocol.md).
 """
 
@@ -12,12 +12,9 @@ import dataclasses
 import functools
 from typing import Any
 
-import numpy as np
-
 from calibration_free.config import SETTINGS_BEFORE_THEY_EXISTED, LearnerConfig
-from calibration_free.learner import Beliefs, CalibrationFreeLearner, Proposal
 from calibration_free.streams import session_streams
-from calibration_free.world import GridWorld, TransitionDraws, World
+from calibration_free.world import GridWorld, World
 from calibration_free.worlds import make_world
 from decoding.lda import DEFAULT_SHRINKAGE
 from session.plane import is_plane, plane_settings
@@ -112,54 +109,3 @@ def resolved_config(config: dict[str, Any]) -> dict[str, Any]:
     else:
         settings = learner_settings(config["learner"], config["frame"]).to_dict()
     return {**config, "learner": settings}
-
-
-def move_fields(
-    world: World, step: int, state: int, proposal: Proposal, draws: TransitionDraws
-) -> dict[str, Any]:
-    """The fields of the ``move`` message of ``proposal`` taken in ``state`` at ``step``.
-
-    ``draws`` is the session's world stream (:func:`calibration_free.world.transition_draws`):
-    a stochastic move takes its outcome from the stream's number of ``step``.
-    """
-    return {
-        "step": step,
-        "from_state": state,
-        "action": world.action_names[proposal.action],
-        "to_state": world.step(state, proposal.action, draws.uniform(step)),
-        "target_reached": proposal.declares_target,
-    }
-
-
-def target_text(world: World, step: int, state: int) -> str:
-    """The message of the ``target_reached`` event of a target declared in ``state``."""
-    if isinstance(world, GridWorld):  # the text of protocol version 2's recordings
-        return f"step {step}: target reached in cell {state}"
-    return f"step {step}: target reached in state {state} ({world.state_name(state)})"
-
-
-def state_fields(
-    learner: CalibrationFreeLearner, beliefs: Beliefs | None = None
-) -> tuple[dict[str, Any], np.ndarray]:
-    """The fields of a ``state`` message, and its payload: the confidence of every task
-    (float32, shape (n_tasks,)); ``beliefs``: the learner's current ones, if the caller
-    has them already."""
-    beliefs = learner.beliefs() if beliefs is None else beliefs
-    counts = (
-        learner.history.task_label_weights(beliefs.best_task).sum(axis=0)
-        if beliefs.n_signals
-        else np.zeros(learner.frame.n_classes)
-    )
-    fields = {
-        "best_task": beliefs.best_task,
-        "confident": beliefs.confident,
-        "n_signals": beliefs.n_signals,
-        "class_counts": [float(c) for c in counts],
-        "balanced_accuracy": (
-            learner.balanced_accuracy(beliefs.best_task) if beliefs.n_signals else None
-        ),
-        "points": [],  # the continuous world's particles; none here
-    }
-    return fields, beliefs.confidence.astype(np.float32)
-
-

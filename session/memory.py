@@ -56,11 +56,14 @@ resident growth in a fresh process, :mod:`cfbci.memory_probe`).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 from calibration_free.config import LearnerConfig
 from calibration_free.frames import Frame
 from calibration_free.planning import KEPT_INDICATOR_BYTES
 from calibration_free.world import GridWorld, World
+from session.config import config_world, learner_settings, world_text
+from session.plane import is_plane, plane_memory_bytes
 
 _FLOAT = 8
 #: The first capacity of :class:`~calibration_free.task_decoders.TaskHistory`'s arrays.
@@ -229,3 +232,32 @@ def estimate(world: World, learner: LearnerConfig, steps: int, n_features: int) 
         cross_validation=_FLOAT * cross_validation,
         planning=planning,
     )
+
+
+def config_memory_bytes(config: dict[str, Any], n_features: int = 0) -> tuple[int, str]:
+    """Upper estimate of the memory a session of a config commits, in bytes, and a short
+    description of what it is of (for a rejection's message): every world's estimate in
+    one place (:func:`estimate` for the discrete worlds,
+    :func:`session.plane.plane_memory_bytes` in the plane).
+
+    Parameters
+    ----------
+    config : dict
+        A config message's fields.
+    n_features : int
+        Features of the session's signals; 0 when not known yet (at the config).
+
+    Raises
+    ------
+    ValueError
+        As :func:`session.config.learner_settings`.
+    """
+    what = f"{n_features} features, " if n_features else ""
+    if is_plane(config):
+        needed = plane_memory_bytes(config, n_features)
+        return needed, f"{what}{config['world']} world, {config['steps']} steps"
+    world = config_world(config)
+    learner = learner_settings(config["learner"], config["frame"])
+    needed = estimate(world, learner, config["steps"], n_features).total
+    return needed, (
+        f"{what}{world_text(world)}, {config['steps']} steps, {learner.decoder} decoder")

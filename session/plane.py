@@ -1,9 +1,9 @@
-"""The worlds in the plane through the live path: one stepper per world for the service and
-replay (:class:`ContinuousStepper`, :class:`PuddleStepper`; :func:`plane_stepper`).
+"""The sessions of the worlds in the plane (:class:`ContinuousSession`,
+:class:`PuddleSession`; :func:`plane_session`), their settings and memory estimates.
 
 A session config of ``world`` "continuous" (frame "cardinal") carries the
 :class:`calibration_free.continuous_goals.ContinuousConfig` settings in its ``learner``
-object (``n_hypotheses``, ``sampling``, ``probing``, ...). :class:`ContinuousStepper` runs
+object (``n_hypotheses``, ``sampling``, ``probing``, ...). :class:`ContinuousSession` runs
 the :class:`~calibration_free.continuous_goals.ContinuousGoalLearner` on the session's
 learner stream (``session_streams(seed)[2]``) in the order of
 :func:`cfbci.continuous.run_continuous_session`: ``move`` proposes the next probe point
@@ -22,7 +22,7 @@ thread (:data:`ONE_BLAS_THREAD`), whatever the process's setting, as
 
 A config of ``world`` "puddle" (frame "mixed") carries the
 :class:`calibration_free.puddle_learner.PuddleConfig` settings in its ``learner`` object.
-:class:`PuddleStepper` runs the :class:`~calibration_free.puddle_learner.PuddleLearner` in
+:class:`PuddleSession` runs the :class:`~calibration_free.puddle_learner.PuddleLearner` in
 the order of :func:`cfbci.puddle.run_puddle_session`, and owns the agent's state and the
 session's world stream (:func:`calibration_free.streams.world_stream`), which the source
 never sees: the start state is its first draw (``uniform(size=2)``); ``move`` proposes the
@@ -43,6 +43,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import threading
+from abc import abstractmethod
 from typing import Any
 
 import numpy as np
@@ -53,6 +54,7 @@ from calibration_free.puddle import ACTIONS as PUDDLE_ACTIONS
 from calibration_free.puddle import MIXED_LABELS, TASK_CELLS, PuddleWorld, puddle_tasks
 from calibration_free.puddle_learner import PuddleConfig, PuddleLearner
 from calibration_free.streams import session_streams, world_stream
+from session.core import Observer, Session, State, Step
 from session.settings import check_setting_kinds
 
 #: The plane worlds the live path runs, and the frame each requires.
@@ -165,45 +167,43 @@ def _built_puddle_world() -> PuddleWorld:
     return world
 
 
-class PlaneStepper:
-    """A plane world's learner, stepped as the service steps it (the interface of
-    :class:`ContinuousStepper` and :class:`PuddleStepper`).
+class _PlaneSession(Session):
+    """What the plane worlds' sessions share: the state accompanying a move is the one
+    the latest signal left (before the move's own proposal), computed when the signal is
+    observed."""
 
-    Attributes
-    ----------
-    steps : int
-        Steps of the session.
-    moves : list of dict
-        The ``move`` fields so far.
-    state : tuple of (dict, ndarray)
-        The ``state`` fields and float32 payload after the latest epoch (before any: the
-        initial beliefs).
-    """
+    learner: Any
+    _state: State
 
-    steps: int
-    moves: list[dict[str, Any]]
-    state: tuple[dict[str, Any], np.ndarray]
+    def start(self) -> Step:
+        return Step(self._move())
 
-    @property
-    def n_signals(self) -> int:
-        raise NotImplementedError
+    def observe(
+        self, signal: np.ndarray, reset: bool = False, on_observe: Observer | None = None
+    ) -> Step:
+        self._take(signal, reset)
+        if on_observe is not None:
+            on_observe(self.n_signals, self.learner)
+        self._state = self._snapshot()
+        return Step(None) if self.finished else Step(self._move())
 
-    @property
-    def finished(self) -> bool:
-        """Every step's epoch has been observed."""
-        return self.n_signals >= self.steps
+    def state(self) -> State:
+        return self._state
 
-    def move(self) -> dict[str, Any]:
+    @abstractmethod
+    def _move(self) -> dict[str, Any]:
         """Choose the move of the next step; its ``move`` fields."""
-        raise NotImplementedError
 
-    def observe(self, signal: np.ndarray, reset: bool = False) -> None:
-        """The epoch (feature vector, shape (d,)) answering the last move, and its
-        ``reset`` flag (False where the epoch has none)."""
-        raise NotImplementedError
+    @abstractmethod
+    def _take(self, signal: np.ndarray, reset: bool) -> None:
+        """Give the learner the signal answering the last move."""
+
+    @abstractmethod
+    def _snapshot(self) -> State:
+        """The ``state`` message of the learner now."""
 
 
-class ContinuousStepper(PlaneStepper):
+class ContinuousSession(_PlaneSession):
     """The continuous learner of a config, stepped as the service steps it.
 
     Parameters
@@ -218,9 +218,9 @@ class ContinuousStepper(PlaneStepper):
         Steps of the session.
     moves : list of dict
         The ``move`` fields so far.
-    state : tuple of (dict, ndarray)
-        The ``state`` fields and payload (confidence of every particle, float32, shape
-        (n_hypotheses,)) after the latest epoch (before any: the initial pool).
+
+    The state's payload is the confidence of every particle (float32, shape
+    (n_hypotheses,)) after the latest signal (before any: the initial pool).
     """
 
     def __init__(self, config: dict[str, Any]) -> None:
@@ -231,14 +231,13 @@ class ContinuousStepper(PlaneStepper):
             )
         self.moves: list[dict[str, Any]] = []
         self._point: np.ndarray | None = None
-        self.state = self._state_fields()
+        self._state = self._snapshot()
 
     @property
     def n_signals(self) -> int:
         return self.learner.n_signals
 
-    def move(self) -> dict[str, Any]:
-        """Propose the probe of the next step; its ``move`` fields."""
+    def _move(self) -> dict[str, Any]:
         with threadpool_limits(**ONE_BLAS_THREAD):
             self._point = self.learner.propose()
         point = [float(x) for x in self._point]
@@ -249,18 +248,15 @@ class ContinuousStepper(PlaneStepper):
         self.moves.append(fields)
         return fields
 
-    def observe(self, signal: np.ndarray, reset: bool = False) -> None:
-        """The epoch (feature vector, shape (d,)) answering the last probe (``reset``:
-        never true in this world)."""
+    def _take(self, signal: np.ndarray, reset: bool) -> None:
         if self._point is None:
             raise ValueError("an epoch before the first move")
         if reset:
             raise ValueError("the continuous world has no reset")
         with threadpool_limits(**ONE_BLAS_THREAD):
             self.learner.observe(self._point, signal)
-        self.state = self._state_fields()
 
-    def _state_fields(self) -> tuple[dict[str, Any], np.ndarray]:
+    def _snapshot(self) -> State:
         learner = self.learner
         fields = {
             "best_task": int(np.argmax(learner.confidence)),
@@ -270,10 +266,10 @@ class ContinuousStepper(PlaneStepper):
             "balanced_accuracy": None,
             "points": [[float(x), float(y)] for x, y in learner.particles],
         }
-        return fields, learner.confidence.astype(np.float32)
+        return State(fields, learner.confidence.astype(np.float32))
 
 
-class PuddleStepper(PlaneStepper):
+class PuddleSession(_PlaneSession):
     """The puddle learner of a config, the agent's state and the world stream, stepped as
     the service steps them (see the module docstring).
 
@@ -289,12 +285,12 @@ class PuddleStepper(PlaneStepper):
     learner : PuddleLearner
     agent : ndarray, shape (2,)
         The agent's state: where the next move starts (after the last move, before its
-        epoch: where it started).
+        signal: where it started).
     restarts : list of int
-        Steps whose epoch said ``reset`` (the agent restarted after them).
-    state : tuple of (dict, ndarray)
-        The ``state`` fields and payload (every task's normalised likelihood, float32,
-        shape (660,)) after the latest epoch.
+        Steps whose signal said ``reset`` (the agent restarted after them).
+
+    The state's payload is every task's normalised likelihood (float32, shape (660,))
+    after the latest signal.
     """
 
     def __init__(self, config: dict[str, Any]) -> None:
@@ -309,14 +305,14 @@ class PuddleStepper(PlaneStepper):
         self.restarts: list[int] = []
         self._pending: tuple[np.ndarray, int, np.ndarray] | None = None
         self._observed = 0
-        self.state = self._state_fields()
+        self._state = self._snapshot()
 
     @property
     def n_signals(self) -> int:
         return self._observed
 
-    def move(self) -> dict[str, Any]:
-        """Propose the action at the agent's state and draw its outcome; the ``move``."""
+    def _move(self) -> dict[str, Any]:
+        """Propose the action at the agent's state and draw its outcome."""
         if self._pending is not None:
             raise ValueError(f"the move of step {len(self.moves)} has no epoch yet")
         with threadpool_limits(**ONE_BLAS_THREAD):
@@ -331,9 +327,9 @@ class PuddleStepper(PlaneStepper):
         self.moves.append(fields)
         return fields
 
-    def observe(self, signal: np.ndarray, reset: bool = False) -> None:
-        """The epoch answering the last move; ``reset``: the agent restarts from a uniform
-        state of the world stream instead of the move's outcome."""
+    def _take(self, signal: np.ndarray, reset: bool) -> None:
+        """``reset``: the agent restarts from a uniform state of the world stream instead
+        of the move's outcome."""
         if self._pending is None:
             raise ValueError("an epoch before its move")
         state, action, outcome = self._pending
@@ -346,9 +342,8 @@ class PuddleStepper(PlaneStepper):
             self.agent = self._draws.uniform(size=2)
         else:
             self.agent = outcome
-        self.state = self._state_fields()
 
-    def _state_fields(self) -> tuple[dict[str, Any], np.ndarray]:
+    def _snapshot(self) -> State:
         probabilities = self.learner.probabilities
         fields = {
             "best_task": int(np.argmax(probabilities)),
@@ -358,7 +353,7 @@ class PuddleStepper(PlaneStepper):
             "balanced_accuracy": None,
             "points": [],
         }
-        return fields, probabilities.astype(np.float32)
+        return State(fields, probabilities.astype(np.float32))
 
 
 @functools.cache
@@ -374,9 +369,9 @@ def goal_probabilities(probabilities: np.ndarray) -> np.ndarray:
                        minlength=TASK_CELLS**2)
 
 
-def plane_stepper(config: dict[str, Any]) -> ContinuousStepper | PuddleStepper:
-    """The stepper of a plane world's config."""
-    return PuddleStepper(config) if config["world"] == "puddle" else ContinuousStepper(config)
+def plane_session(config: dict[str, Any]) -> ContinuousSession | PuddleSession:
+    """The session of a plane world's config."""
+    return PuddleSession(config) if config["world"] == "puddle" else ContinuousSession(config)
 
 
 def plane_memory_bytes(config: dict[str, Any], n_features: int = 0) -> int:

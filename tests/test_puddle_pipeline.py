@@ -40,7 +40,7 @@ from cfbci.memory_probe import measure_puddle
 from cfbci.puddle import PuddleResult, PuddleStep, run_puddle_session
 from replay.recording import read_recording
 from replay.rerun import replay_check
-from session.plane import PuddleStepper, goal_probabilities, puddle_world
+from session.plane import PuddleSession, goal_probabilities, puddle_world
 from wire import protocol
 from wire.transport import Outbox, Pump, Received, reliable_publisher, wait_for_subscribers
 from wire.zenoh_config import free_tcp_endpoint, peer_config
@@ -358,15 +358,15 @@ def test_cfbci_source_options_of_the_puddle_world_are_checked(
         assert problem in capsys.readouterr().err
 
 
-def test_the_service_steppers_share_one_world_and_keep_the_loop_order() -> None:
+def test_the_puddle_sessions_share_one_world_and_keep_the_loop_order() -> None:
     """Every puddle session of a process shares the world whose policy tables were built
-    once; a stepper refuses a second move before the epoch of the first, and an epoch
+    once; a session refuses a second move before the epoch of the first, and an epoch
     before its move."""
     config = {"seed": 3, "world": "puddle", "frame": "mixed", "steps": 2, "learner": {}}
-    first, second = PuddleStepper(config), PuddleStepper({**config, "seed": 4})
+    first, second = PuddleSession(config), PuddleSession({**config, "seed": 4})
     assert first.world is second.world is puddle_world()
     with pytest.raises(ValueError, match="an epoch before its move"):
         first.observe(np.zeros(20, dtype=np.float32))
-    first.move()
+    first.start()
     with pytest.raises(ValueError, match="has no epoch yet"):
-        first.move()
+        first.start()

@@ -31,7 +31,8 @@ from replay.html_report import SessionReport, render_html
 from replay.metrics import aggregate, latency_summary, session_metrics
 from replay.recording import SessionRecorder, read_recording
 from replay.rerun import replay_check
-from session.config import learner_settings, move_fields, state_fields
+from session.config import learner_settings
+from session.tasks import move_fields, state_fields
 
 KINDS = ("confidence", "belief", "accuracy", "erp", "latency")
 

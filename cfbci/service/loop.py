@@ -1,0 +1,554 @@
+"""The service's loop: intake, dispatch, housekeeping, events and rejections.
+
+:class:`PipelineService` subscribes to ``cfbci/*/config``, ``cfbci/*/truth`` and
+``cfbci/*/epoch`` and keeps one :class:`cfbci.service.running.RunningSession` per session
+id. Messages wait in a :class:`wire.intake.Intake` (bounded, one FIFO per running session
+served round-robin, per-session rate limit); the loop never blocks on anything but the
+intake. A config is admitted (:mod:`cfbci.service.admission`) and starts once its source
+listens; an epoch goes down its session's path (:meth:`RunningSession.signal`, then
+:meth:`RunningSession.take`); a truth goes to the recordings
+(:class:`cfbci.service.recordings.Recordings`), never to a session. Every message the
+service cannot accept gets an ``error`` event; a session it cannot run, or stops running
+(a limit exceeded, no subscriber, idle), a ``session_rejected`` event.
+"""
+
+from __future__ import annotations
+
+import logging
+import signal
+import time
+from collections import Counter
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+import zenoh
+
+from cfbci.limits import ServiceLimits
+from cfbci.memory import keep_freed_memory
+from cfbci.service.admission import (
+    Pending,
+    PuddleTables,
+    Rejection,
+    check_config,
+    check_memory,
+)
+from cfbci.service.recordings import Recordings
+from cfbci.service.resume import (
+    EndedAtResume,
+    answer_again,
+    recorded_state,
+    rerun_recording,
+    resumed_session,
+    unfinished,
+)
+from cfbci.service.running import RunningSession
+from replay.recording import Recording, read_recording
+from session.config import resolved_config, world_text
+from session.sessions import open_session
+from wire import protocol
+from wire.intake import Intake, session_of
+from wire.protocol import NO_SESSION, ProtocolError
+from wire.services import ServiceRegistration, default_service_id
+from wire.transport import Outbox, Pump, Received
+from wire.zenoh_config import peer_config
+
+log = logging.getLogger("cfbci.service")
+
+#: Seconds the loop waits for a message while a session waits for its source to subscribe.
+TICK = 0.02
+#: Seconds the loop waits for a message otherwise (between two idle checks).
+IDLE_TICK = 0.5
+#: Error events published per session id per second; further ones are only counted.
+ERRORS_PER_SECOND = 20
+#: Error and rejection events published per second in all.
+EVENTS_PER_SECOND = 200
+#: Configs that may wait for their source to subscribe, per session of ``max_sessions``.
+PENDING_PER_SESSION = 4
+#: foxglove.Log levels of the event kinds.
+_LOG_LEVELS = {"error": 4, "session_rejected": 4, "info": 2}
+
+
+#: Called with a session's id, its :attr:`RunningSession.update_ns` and its
+#: :attr:`RunningSession.queued_ms` when the session ends.
+SessionEndHook = Callable[[str, list[int], list[float]], None]
+
+
+class _ErrorBudget:
+    """At most :data:`ERRORS_PER_SECOND` error and rejection events per session id per
+    second, and :data:`EVENTS_PER_SECOND` in all; the others are only counted (and the
+    count logged)."""
+
+    def __init__(self) -> None:
+        self._window = 0
+        self._counts: Counter[str] = Counter()
+        self._total = self._suppressed = 0
+
+    def allows(self, session: str) -> bool:
+        window = int(time.monotonic())
+        if window != self._window:
+            if self._suppressed:
+                log.warning("%d error events suppressed in the last second", self._suppressed)
+            self._window, self._total, self._suppressed = window, 0, 0
+            self._counts.clear()
+        self._counts[session] += 1
+        self._total += 1
+        allowed = self._counts[session] <= ERRORS_PER_SECOND and self._total <= EVENTS_PER_SECOND
+        self._suppressed += not allowed
+        return allowed
+
+
+class PipelineService:
+    """Runs sessions for any number of sources; see the module docstring.
+
+    Parameters
+    ----------
+    session : zenoh.Session
+        An open Zenoh session (the caller closes it, after :meth:`close`).
+    record_dir : Path or None
+        Directory of the recordings, ``<session>.mcap``; None: no recording. The
+        unfinished sessions recorded there are resumed (:meth:`resume`).
+    limits : ServiceLimits
+    on_end : callable or None
+        Called with ``(session id, update_ns, queued_ms)`` when a session ends normally:
+        the learner's time per epoch in ns and each epoch's queueing delay in ms, as
+        :attr:`RunningSession.update_ns` and :attr:`RunningSession.queued_ms`
+        (``cfbci bench latency``).
+    resume : bool
+        Resume the unfinished sessions of ``record_dir`` (:meth:`resume`).
+    service_id : str or None
+        This service's id among several (:mod:`wire.services`; default ``<host>-<pid>``):
+        it answers the offers query and runs the configs that name it or no service.
+
+    Use :meth:`run` to serve until :meth:`stop`; :meth:`handle` processes one message.
+    """
+
+    def __init__(
+        self,
+        session: zenoh.Session,
+        record_dir: Path | None = None,
+        limits: ServiceLimits | None = None,
+        on_end: SessionEndHook | None = None,
+        resume: bool = True,
+        service_id: str | None = None,
+    ) -> None:
+        self.limits = limits or ServiceLimits()
+        self.intake = Intake(self.limits.rate, self.limits.max_message_bytes)
+        self.recordings = Recordings(record_dir)
+        self.on_end = on_end
+        self._outbox = Outbox(session)
+        self._sessions: dict[str, RunningSession] = {}
+        self._pending: dict[str, Pending] = {}
+        # Sessions whose last epoch was recorded before a kill and which ended at the
+        # resumption, before their source could hear the end: a re-send of that epoch is
+        # answered with the last state and session_ended again (at most max_sessions).
+        self._ended_at_resume: dict[str, EndedAtResume] = {}
+        self._errors = _ErrorBudget()
+        self._puddle_tables = PuddleTables()
+        self._stopped = False
+        self.registration = ServiceRegistration(
+            session, service_id or default_service_id(),
+            lambda: (len(self._sessions) + len(self._pending), self.limits.max_sessions),
+        )
+        if record_dir is not None and resume:
+            self.resume(record_dir)
+        prefix = protocol.PREFIX
+        self._pumps = [
+            Pump(session, f"{prefix}/*/{kind}", kind, self.intake, self.intake.accepts_size)
+            # Recorder-only: truth goes to self.recordings, never to a session. Truth is
+            # declared before epoch, so that a source (re)discovering this service knows the
+            # truth subscriber before its epochs are delivered: the truth re-sent with an
+            # epoch after a restart is then not lost while the epoch gets through.
+            for kind in ("config", "truth", "epoch")
+        ]
+
+    @property
+    def sessions(self) -> tuple[str, ...]:
+        """Ids of the running sessions."""
+        return tuple(self._sessions)
+
+    def stop(self) -> None:
+        """Make :meth:`run` return (safe to call from a signal handler)."""
+        self._stopped = True
+        self.intake.stop()
+
+    def run(self) -> None:
+        """Handle messages fairly (:class:`wire.intake.Intake`) until :meth:`stop`; start
+        the sessions whose source has subscribed, end idle ones; then :meth:`close`."""
+        try:
+            while not self._stopped:
+                received = self.intake.get(TICK if self._pending else IDLE_TICK)
+                if received is not None:
+                    self.handle(received)
+                self.housekeeping()
+        finally:
+            self.close()
+
+    def close(self) -> None:
+        """Stop receiving, record the truths already received (a source's last truth may
+        still be queued when a stop comes right after its session ended), close every
+        recording and undeclare the publishers."""
+        for pump in self._pumps:
+            pump.close()
+        for received in self.intake.drain():
+            if received.tag == "truth":
+                self.handle(received)
+        self.recordings.close()
+        self.registration.close()
+        self._outbox.close()
+
+    def handle(self, received: Received) -> None:
+        """Process one received message; a bad one yields an ``error`` event, nothing else."""
+        try:
+            if received.tag == "truth":
+                running = self._sessions.get(session_of(received.key_expr) or "")
+                self.recordings.truth(received, running.step if running is not None else 0)
+            elif received.tag == "config":
+                self._on_config(received)
+            else:
+                self._on_epoch(received, (time.monotonic_ns() - received.t_ns) / 1e6)
+        except ProtocolError as error:
+            self._reject(error)
+        except Exception as exc:  # a bug must not stop the other sessions: report it
+            log.exception("internal error on a message of %s", received.key_expr)
+            session = session_of(received.key_expr)
+            session = session if protocol.TYPES["session"][1](session) else None
+            self._reject(ProtocolError(f"internal error: {exc!r}", session))
+
+    def housekeeping(self) -> None:
+        """Start the pending sessions whose source has subscribed, reject those that waited
+        too long, end the idle sessions, and log the messages the intake dropped."""
+        now = time.monotonic_ns()
+        for sid, pending in list(self._pending.items()):
+            if pending.publisher.matching_status.matching:
+                try:
+                    if not self._world_ready(pending.message.fields):
+                        continue  # its world's tables are being built: no deadline for that
+                except RuntimeError as error:
+                    del self._pending[sid]
+                    self._outbox.forget(sid)
+                    self._reject(Rejection(str(error), sid, pending.message.seq,
+                                           pending.message.t_ns))
+                    continue
+                del self._pending[sid]
+                self._guarded(sid, lambda p=pending: self._start(p.message, p.publisher))
+            elif now >= pending.deadline_ns:
+                del self._pending[sid]
+                self._outbox.forget(sid)
+                self._reject(Rejection(
+                    f"no subscriber to the session's events within "
+                    f"{self.limits.subscriber_timeout:g} s", sid, pending.message.seq,
+                    pending.message.t_ns,
+                ))
+        for sid, keeper in self.registration.take_conflicts().items():
+            self._give_up(sid, f"session {sid!r} is also claimed by service {keeper!r}, which "
+                          "keeps it (the smaller id)")
+        idle_ns = int(self.limits.idle_timeout * 1e9)
+        for session in [s for s in self._sessions.values() if now - s.active_ns > idle_ns]:
+            self._abort(session, f"no epoch for {self.limits.idle_timeout:g} s: session ended")
+        self.recordings.close_overdue()
+        drops = self.intake.take_drops()
+        if drops:
+            log.warning("intake dropped %s", dict(drops))
+
+    def _give_up(self, sid: str, problem: str) -> None:
+        """End a running or waiting session with ``problem``; its claim is withdrawn first,
+        before the rejection is published."""
+        self.registration.release(sid)
+        running, pending = self._sessions.get(sid), self._pending.pop(sid, None)
+        if running is not None:
+            self._abort(running, problem)
+        elif pending is not None:
+            self._reject(Rejection(problem, sid, pending.message.seq, pending.message.t_ns))
+
+    def _guarded(self, session: str, action: Callable[[], None]) -> None:
+        """Run ``action``; a rejection or a bug is reported on ``session``."""
+        try:
+            action()
+        except ProtocolError as error:
+            self._reject(error)
+        except Exception as exc:
+            log.exception("internal error on session %r", session)
+            self._reject(ProtocolError(f"internal error: {exc!r}", session))
+
+    # -- sessions ---------------------------------------------------------------------
+
+    def _on_config(self, received: Received) -> None:
+        message = protocol.decode(
+            received.data, key_expr=received.key_expr, max_bytes=self.limits.max_message_bytes
+        )
+        sid, config = message.session, message.fields
+        chosen = config.get("service")
+        if chosen is not None and chosen != self.registration.service:
+            return  # the source chose another service
+
+        def reject(problem: str) -> Rejection:
+            return Rejection(problem, sid, message.seq, message.t_ns)
+
+        running = self._sessions.get(sid)
+        if running is not None:
+            if running.config_t_ns == message.t_ns and running.config == _resolved(config):
+                self._event(sid, "session_started", "session already started (config re-sent)",
+                            message.t_ns)
+                return
+            raise reject("a session with this id is already running")
+        if sid in self._pending:
+            if self._pending[sid].message.t_ns == message.t_ns:
+                return  # a re-send: the pending session starts once its source subscribes
+            raise reject("a session with this id is already waiting for its source")
+        limits = self.limits
+        check_config(config, limits, reject)
+        if len(self._sessions) >= limits.max_sessions:
+            raise reject(f"the service runs its maximum of {limits.max_sessions} sessions")
+        if len(self._pending) >= PENDING_PER_SESSION * limits.max_sessions:
+            raise reject(f"{len(self._pending)} sessions already wait for their source")
+        try:
+            ready = self._world_ready(config)
+        except RuntimeError as error:
+            raise reject(str(error)) from None
+        holder = self.registration.claim(sid) if chosen is not None else None
+        if holder is not None:
+            raise reject(f"session {sid!r} is already served by service {holder!r}")
+        publisher = self._outbox.publisher(protocol.key(sid, "event"))
+        if publisher.matching_status.matching and ready:
+            self._start(message, publisher)
+        else:  # never wait here: the loop starts it once its source subscribes (and its
+            # world's tables are built)
+            deadline = time.monotonic_ns() + int(limits.subscriber_timeout * 1e9)
+            self._pending[sid] = Pending(message, publisher, deadline)
+
+    def _world_ready(self, config: dict[str, Any]) -> bool:
+        """Whether a config's world can start now: always, but for the puddle world while
+        its tables are being built (see :class:`cfbci.service.admission.PuddleTables`)."""
+        return config.get("world") != "puddle" or self._puddle_tables.ready()
+
+    def _start(self, message: protocol.Message, publisher: zenoh.Publisher) -> None:
+        """Open the session and the recording of a config; publish the first move."""
+        sid, config = message.session, resolved_config(message.fields)
+        if len(self._sessions) >= self.limits.max_sessions:
+            raise Rejection(
+                f"the service runs its maximum of {self.limits.max_sessions} sessions", sid,
+                message.seq, message.t_ns,
+            )
+        # Recorded with every learner setting it runs with (defaults included).
+        recorder = self.recordings.open(sid, {"seq": message.seq, "t_ns": message.t_ns, **config})
+        session = RunningSession(
+            sid, config, message.t_ns, open_session(config), recorder, self._outbox,
+            self._event, time.monotonic_ns(),
+        )
+        self._sessions[sid] = session
+        self._ended_at_resume.pop(sid, None)  # the id is reused: its old end is over
+        self.intake.open(sid)
+        self._event(
+            sid,
+            "session_started",
+            f"session {sid!r}: {config['steps']} steps, {_world_text(session)}, "
+            f"{config['frame']} frame, {config['signal']}",
+            message.t_ns,
+        )
+        session.start()
+
+    def resume(self, record_dir: Path) -> None:
+        """Resume every unfinished session recorded in ``record_dir``
+        (:mod:`cfbci.service.resume`); a recording that cannot be resumed is named in the
+        log and left as is."""
+        for path in sorted(record_dir.glob("*.mcap")):
+            if len(self._sessions) >= self.limits.max_sessions:
+                log.warning("not resuming %s: the service runs its maximum of sessions", path)
+                continue
+            try:
+                recording = read_recording(path)
+                if path.name == f"{recording.session}.mcap" and unfinished(recording):
+                    self._resume(recording)
+            except (ValueError, KeyError, TypeError) as exc:
+                log.warning("cannot resume %s: %s", path, exc)
+
+    def _resume(self, recording: Recording) -> None:
+        """Rebuild a session by re-running it over its recording, and go on."""
+        config, rerun = rerun_recording(recording)
+        sid = recording.session
+        if config.get("service") is not None and (
+            holder := self.registration.claim(sid, ask=True)  # just started: ask the network
+        ):
+            raise ValueError(f"session {sid!r} is already served by service {holder!r}")
+        recorder = self.recordings.resume(recording)
+        session = resumed_session(recording, config, rerun, recorder, self._outbox, self._event)
+        self._sessions[sid] = session
+        self.intake.open(sid)
+        self._event(sid, "info", f"session {sid!r} resumed at step {session.step} after a "
+                    f"restart, from its recording")
+        if rerun.finished:
+            state = recorded_state(rerun, -1)
+            recorded_states = len(recording.messages.get("/state", []))
+            session.send_state(record=recorded_states < len(rerun.states), state=state)
+            self._finish(session)
+            self._ended_at_resume[sid] = EndedAtResume(
+                sid, session.step, session.last_epoch, state
+            )
+            return
+        answer_again(session, recording, rerun)
+
+    def _on_epoch(self, received: Received, queued_ms: float) -> None:
+        message = protocol.decode(
+            received.data, key_expr=received.key_expr, max_bytes=self.limits.max_message_bytes
+        )
+        where = {"session": message.session, "seq": message.seq}
+        session = self._sessions.get(message.session)
+        identity = (message.fields["step"], message.seq, message.t_ns)
+        ended = self._ended_at_resume.get(message.session)
+        if session is None and ended is not None and ended.last_epoch == identity:
+            self._end_again(ended)
+            return
+        if session is None:
+            problem = "before session_started" if message.session in self._pending else (
+                "for an unknown session (no running session has this id)")
+            raise ProtocolError(f"epoch {problem}", **where)
+        if session.last_epoch == identity:
+            session.answer_again()
+            return
+        if session.answer_unheard:
+            session.answer_again()
+        signal_ = session.signal(message, self.limits)
+        problem = session.epochs.check(message.seq)
+        if problem is not None and not problem.startswith("gap"):
+            raise ProtocolError(problem, **where)  # a duplicate or a late epoch
+        if problem is not None:
+            self._event(session.id, "info", problem)
+        if session.shape is None:
+            check_memory(
+                session.config, signal_.shape[0], self.limits,
+                lambda problem: Rejection(problem, session.id, message.seq, session.config_t_ns),
+            )
+        if session.take(message, signal_, received.t_ns, queued_ms):
+            self._finish(session)
+
+    def _end_again(self, ended: EndedAtResume) -> None:
+        """The re-sent last epoch of a session that ended at its resumption: publish its
+        last state and ``session_ended`` again (unrecorded: its recording is closed)."""
+        self._outbox.send("state", ended.id, ended.state.fields, ended.state.confidence)
+        self._event(
+            ended.id, "session_ended", f"session {ended.id!r} ended after {ended.step} "
+            "steps (sent again: it ended when the service resumed it)"
+        )
+        self._outbox.forget(ended.id)
+
+    def _finish(self, session: RunningSession) -> None:
+        """The session's last epoch is in: ``session_ended``, and forget it."""
+        self._event(
+            session.id, "session_ended", f"session {session.id!r} ended after {session.step} steps"
+        )
+        if self.on_end is not None:
+            self.on_end(session.id, session.update_ns, session.queued_ms)
+        self._end(session, session.step)
+
+    def _abort(self, session: RunningSession, problem: str) -> None:
+        """End a session before its last step, with a ``session_rejected`` event."""
+        self._reject(Rejection(problem, session.id, None, session.config_t_ns))
+
+    def _end(self, session: RunningSession, last_epoch_step: int) -> None:
+        del self._sessions[session.id]
+        self.registration.release(session.id)
+        self.intake.close(session.id)
+        self.recordings.end(session.id, last_epoch_step)
+        self._outbox.forget(session.id)
+
+    # -- events -----------------------------------------------------------------------
+
+    def _event(
+        self, session: str, event: str, text: str, config_t_ns: int | None = None
+    ) -> None:
+        """Publish an event on ``cfbci/<session>/event``; record and log it."""
+        fields = {"event": event, "message": text, "config_t_ns": config_t_ns}
+        message = self._outbox.send("event", session, fields)
+        (log.warning if event in ("error", "session_rejected") else log.info)(
+            "%s: %s", event, text
+        )
+        recorder = self.recordings.get(session)
+        if recorder is not None:
+            recorder.record("/event", {"seq": message.seq, "t_ns": message.t_ns, **fields},
+                            message.t_ns)
+            recorder.record_log(_LOG_LEVELS.get(event, 2), f"{event}: {text}", message.t_ns)
+
+    def _reject(self, error: ProtocolError) -> None:
+        """Report a rejected message where the protocol says (its session, else ``_``);
+        a :class:`Rejection` of a running session (the one its ``config_t_ns`` names) ends
+        it. A session that neither runs nor waits for its source holds no claim (say its
+        start failed): the claim is withdrawn before the rejection is published, so that a
+        source told of it may pick another service at once."""
+        session = error.session if error.session is not None else NO_SESSION
+        running = self._sessions.get(session)
+        if running is None and session not in self._pending:
+            self.registration.release(session)
+        ends = running is not None and running.config_t_ns == getattr(error, "config_t_ns", -1)
+        if isinstance(error, Rejection) and (ends or self._errors.allows(session)):
+            self._event(session, "session_rejected", str(error), error.config_t_ns)
+            if ends:
+                assert running is not None
+                self._end(running, running.step - 1)
+        elif self._errors.allows(session):
+            self._event(session, "error", str(error))
+        if session not in self._sessions and session not in self._pending:
+            never_ran = session != NO_SESSION and self.recordings.get(session) is None
+            self._outbox.forget(session, numbering=never_ran)
+
+
+def _resolved(config: dict[str, Any]) -> dict[str, Any] | None:
+    """:func:`resolved_config`, or None for a config whose learner settings are bad."""
+    try:
+        return resolved_config(config)
+    except (ValueError, TypeError):
+        return None
+
+
+def _world_text(session: RunningSession) -> str:
+    world = getattr(session.core, "world", None)
+    if world is None or session.config["world"] == "puddle":
+        return f"{session.config['world']} world"
+    return world_text(world)
+
+
+def serve(
+    listen: Sequence[str] = (),
+    connect: Sequence[str] = (),
+    record_dir: Path | None = None,
+    on_end: SessionEndHook | None = None,
+    limits: ServiceLimits | None = None,
+    zenoh_config: Path | None = None,
+    resume: bool = True,
+    service_id: str | None = None,
+) -> None:
+    """Run a :class:`PipelineService` until SIGINT or SIGTERM, then shut down cleanly.
+
+    Recordings are closed and the Zenoh session is closed before returning. Meant as the
+    main function of ``cfbci serve`` or of a spawned process.
+
+    Parameters
+    ----------
+    listen, connect : sequence of str
+        Zenoh endpoints (see :func:`wire.zenoh_config.peer_config`).
+    record_dir : Path or None
+        Directory of the recordings (``<session>.mcap``); None records nothing. Unfinished
+        sessions recorded there are resumed.
+    on_end : callable or None
+        See :class:`PipelineService`.
+    limits : ServiceLimits or None
+        Default :class:`cfbci.limits.ServiceLimits`.
+    zenoh_config : Path or None
+        Zenoh JSON5 configuration merged over the defaults (``--zenoh-config``).
+    resume : bool
+        Resume the unfinished sessions recorded in ``record_dir``.
+    service_id : str or None
+        See :class:`PipelineService`.
+    """
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
+    keep_freed_memory()
+    with zenoh.open(peer_config(listen, connect, zenoh_config)) as session:
+        service = PipelineService(
+            session, record_dir, limits, on_end=on_end, resume=resume, service_id=service_id
+        )
+        for signum in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(signum, lambda *_: service.stop())
+        log.info("service %s serving on listen=%s connect=%s", service.registration.service,
+                 list(listen), list(connect))
+        service.run()
+    log.info("stopped")

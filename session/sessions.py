@@ -1,0 +1,86 @@
+"""A session from a config: :func:`open_session`, the one way a session is built.
+
+The config is a ``config`` message's fields (docs/protocol.md), as the service receives
+them and a recording holds them, its ``learner`` object complete
+(:func:`session.config.resolved_config`). Offline callers that hold the objects already
+(a simulated user's target for the calibrated baseline) build their learner with
+:func:`task_learner` and a :class:`session.tasks.TaskSession` around it.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from calibration_free.baseline import CalibratedBaseline
+from calibration_free.config import LearnerConfig
+from calibration_free.learner import CalibrationFreeLearner, TaskLearner
+from calibration_free.streams import session_streams
+from calibration_free.world import World
+from session.config import config_world, learner_settings
+from session.core import Session
+from session.plane import is_plane, plane_session
+from session.tasks import OpenLoop, TaskSession
+
+
+def task_learner(
+    world: World,
+    settings: LearnerConfig,
+    rng: np.random.Generator,
+    calibration: tuple[int, int] | None = None,
+) -> TaskLearner:
+    """The calibration-free learner of ``world``, or the calibrated baseline.
+
+    Parameters
+    ----------
+    world : World
+    settings : LearnerConfig
+    rng : Generator
+        The session's learner stream.
+    calibration : (int, int), optional
+        ``(target, trials)``: the calibrated baseline, told the user's first target and
+        calibrated on that many actions (its only calibration input, given here and
+        nowhere else); None for the calibration-free learner.
+    """
+    if calibration is None:
+        return CalibrationFreeLearner(world, settings, rng)
+    target, trials = calibration
+    return CalibratedBaseline(world, target, trials, settings, rng)
+
+
+def open_session(
+    config: dict[str, Any], settings: LearnerConfig | None = None, decisions: bool = False
+) -> Session:
+    """The session of a config's fields, before its first move.
+
+    Parameters
+    ----------
+    config : dict
+        The config's fields, its ``learner`` object complete.
+    settings : LearnerConfig, optional
+        Replaces the config's learner settings (open-loop re-analysis of a recording under
+        other settings); the session's streams are the config's all the same. Discrete
+        worlds only.
+    decisions : bool
+        Keep the beliefs each move was chosen with (:attr:`session.core.Step.decision`).
+
+    Raises
+    ------
+    ValueError
+        On an unknown world, a grid side out of range or invalid learner settings.
+    """
+    if is_plane(config):
+        return plane_session(config)
+    world = config_world(config)
+    if settings is None:
+        settings = learner_settings(config["learner"], config["frame"])
+    learner = task_learner(world, settings, session_streams(config["seed"])[2])
+    return TaskSession(world, learner, config["seed"], config["steps"], decisions)
+
+
+def open_loop(config: dict[str, Any], settings: LearnerConfig) -> OpenLoop:
+    """The open-loop re-analysis of a recorded discrete-world config under ``settings``
+    (the learner on the session's own learner stream)."""
+    learner = task_learner(config_world(config), settings, session_streams(config["seed"])[2])
+    return OpenLoop(learner)
