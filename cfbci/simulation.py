@@ -12,6 +12,7 @@ session seed); stochastic moves (the line world's edges) draw from the seed's wo
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from typing import Any
@@ -22,9 +23,9 @@ from acquisition.labelled import LabelledFeatures
 from acquisition.user import SimulatedUser
 from calibration_free.baseline import DEFAULT_CALIBRATION_TRIALS, CalibratedBaseline
 from calibration_free.config import LearnerConfig
-from calibration_free.learner import CalibrationFreeLearner, TaskLearner
+from calibration_free.learner import TaskLearner
 from calibration_free.streams import StepRecord, session_streams
-from calibration_free.world import World, transition_draws
+from calibration_free.world import World
 from calibration_free.worlds import WORLDS, make_world
 from decoding.validation import check_option
 from replay.calibration import (
@@ -36,6 +37,8 @@ from replay.calibration import (
     pool_counts_by_rule,
     rule_summary,
 )
+from session.sessions import task_learner
+from session.tasks import TaskSession
 
 BASELINES: tuple[str, ...] = ("calibrated",)
 
@@ -131,17 +134,6 @@ class SessionResult:
     temperatures: list[float] = field(default_factory=list)
 
 
-def make_learner(
-    config: SessionConfig, world: World, user: SimulatedUser, rng: np.random.Generator
-) -> TaskLearner:
-    """The calibration-free learner, or the calibrated baseline told the user's first target."""
-    if config.baseline is None:
-        return CalibrationFreeLearner(world, config.learner, rng)
-    return CalibratedBaseline(
-        world, user.target, config.calibration_trials, config.learner, rng
-    )
-
-
 def run_session(
     seed: int,
     config: SessionConfig,
@@ -149,7 +141,8 @@ def run_session(
     on_step: Callable[[StepRecord], None] | None = None,
     after_observe: Callable[[TaskLearner], None] | None = None,
 ) -> SessionResult:
-    """Run one closed-loop session.
+    """Run one closed-loop session: a simulated user answering a
+    :class:`session.tasks.TaskSession`.
 
     Parameters
     ----------
@@ -168,12 +161,14 @@ def run_session(
     dataset = data(data_rng) if callable(data) else data
     signals = np.asarray(dataset.features, dtype=np.float32)
     world = config.make_world()
-    draws = transition_draws(seed)
     user = SimulatedUser(
         world, config.learner.frame, dataset.labels, user_rng, config.user_error_rate
     )
-    learner = make_learner(config, world, user, learner_rng)
-    state = user.start_state
+    calibration = None if config.baseline is None else (
+        user.target, config.calibration_trials)
+    learner = task_learner(world, config.learner, learner_rng, calibration)
+    session = TaskSession(world, learner, seed, config.steps, decisions=True)
+    observer = None if after_observe is None else (lambda _, learner: after_observe(learner))
     first_target = first_correct = first_confident = confident_correct = None
     correct = wrong = 0
     user_likelihood: list[float] = []
@@ -182,18 +177,18 @@ def run_session(
     rules: list[tuple[str, float]] = []
     shrinkages: list[float | str] = []
     temperatures: list[float] = []
+    move = session.start()
     for step in range(1, config.steps + 1):
-        beliefs = learner.beliefs()
+        beliefs, state, action = move.decision, session.agent, session.action
+        assert move.move is not None
         best_confidence.append(float(beliefs.confidence[beliefs.best_task]))
         best_is_target.append(beliefs.best_task == user.target)
         rules.append((beliefs.rule, beliefs.threshold))
         if beliefs.confident and first_confident is None:
             first_confident, confident_correct = step, beliefs.best_task == user.target
-        proposal = learner.propose(state)
-        index, _ = user.answer(state, proposal.action)
-        next_state = world.step(state, proposal.action, draws.uniform(step))
+        index, _ = user.answer(state, action)
         event = None
-        if proposal.declares_target:
+        if move.move["target_reached"]:
             reached = state == world.task_states[user.target]
             event = "correct_target" if reached else "wrong_target"
             temperatures.append(learner.evidence_temperature)  # the segment it ends
@@ -204,24 +199,20 @@ def run_session(
             else:
                 wrong += 1
             user.new_target()
-        learner.observe(state, proposal.action, signals[index])
-        if after_observe is not None:
-            after_observe(learner)
+        record = StepRecord(
+            seed, step, state, move.move["action"], move.move["to_state"],
+            beliefs.confident, beliefs.best_task, event,
+        )
+        move = session.observe(signals[index], on_observe=observer)
         if isinstance(learner, CalibratedBaseline) and step == learner.n_calibration:
-            event = "calibration_done"
+            record = dataclasses.replace(record, event="calibration_done")
             user.new_target()
-        if event in ("correct_target", "wrong_target", "calibration_done"):
+        if record.event in ("correct_target", "wrong_target", "calibration_done"):
             shrinkages.append(learner.shrinkage_in_use)
         if on_step is not None:
-            on_step(
-                StepRecord(
-                    seed, step, state, world.action_names[proposal.action], next_state,
-                    beliefs.confident, beliefs.best_task, event,
-                )
-            )
+            on_step(record)
         if step % LIKELIHOOD_EVERY == 0:
             user_likelihood.append(float(normalised(learner.beliefs().log_likelihood)[user.target]))
-        state = next_state
     return SessionResult(
         seed, config.steps, first_target, first_correct, correct, wrong, first_confident,
         confident_correct, user_likelihood, calibration_counts(best_confidence, best_is_target),
