@@ -56,13 +56,10 @@ from calibration_free.puddle_learner import PuddleConfig, PuddleLearner
 from calibration_free.streams import session_streams, world_stream
 from session.core import Observer, Session, State, Step
 from session.settings import check_setting_kinds
+from session.vocabulary import PLANE_FRAMES, PROBE
 
-#: The plane worlds the live path runs, and the frame each requires.
-PLANE_FRAMES: dict[str, str] = {"continuous": "cardinal", "puddle": "mixed"}
 #: The learner settings (``learner`` object) of each plane world.
 PLANE_SETTINGS: dict[str, type] = {"continuous": ContinuousConfig, "puddle": PuddleConfig}
-#: The continuous world's only action: teleport to the probe point.
-PROBE = "probe"
 #: The puddle world's actions, in its order (a move's ``action``).
 PUDDLE_MOVES: tuple[str, ...] = PUDDLE_ACTIONS
 #: ``threadpool_limits`` arguments of every plane-learner computation.

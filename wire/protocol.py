@@ -23,9 +23,7 @@ from typing import Any
 
 import numpy as np
 
-from calibration_free.frames import FRAMES
-from calibration_free.worlds import WORLDS, make_world
-from session.plane import PLANE_FRAMES, PROBE, PUDDLE_MOVES
+from session.vocabulary import DISCRETE_ACTIONS, FRAMES, PLANE_FRAMES, PROBE, PUDDLE_MOVES, WORLDS
 
 VERSION: int = 6
 PREFIX: str = "cfbci"
@@ -37,11 +35,7 @@ EVENTS: tuple[str, ...] = (
 )
 
 #: Every world's action names, in world order then action order (a move's ``action``).
-ACTION_NAMES: tuple[str, ...] = (
-    *dict.fromkeys(name for world in WORLDS for name in make_world(world).action_names),
-    PROBE,
-    *PUDDLE_MOVES,
-)
+ACTION_NAMES: tuple[str, ...] = (*DISCRETE_ACTIONS, PROBE, *PUDDLE_MOVES)
 #: The worlds of a config: the discrete ones, then those of the plane.
 CONFIG_WORLDS: tuple[str, ...] = (*WORLDS, *PLANE_FRAMES)
 
