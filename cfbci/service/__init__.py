@@ -3,7 +3,8 @@
 A package of small parts, one job each:
 
 - :mod:`cfbci.service.loop`: :class:`PipelineService` (intake, dispatch, housekeeping,
-  events and rejections) and :func:`serve`, the main function of ``cfbci serve``;
+  rejections); :mod:`cfbci.service.events` its events; :mod:`cfbci.service.main`
+  :func:`serve`, the main function of ``cfbci serve``;
 - :mod:`cfbci.service.admission`: the checks a config passes before anything is built
   (limits, learner settings, one memory estimate for every world) and the configs waiting
   for their source;
@@ -21,7 +22,8 @@ stochastic move takes the number of its step from the world stream, as ``cfbci s
 takes them, so that a live session replays a simulated one exactly.
 """
 
-from cfbci.service.loop import PipelineService, serve
+from cfbci.service.loop import PipelineService
+from cfbci.service.main import serve
 from cfbci.service.resume import unfinished
 
 __all__ = ["PipelineService", "serve", "unfinished"]

@@ -44,6 +44,15 @@ class Rejection(ProtocolError):
 Reject = Callable[[str], Rejection]
 
 
+def resolved_or_none(config: dict[str, Any]) -> dict[str, Any] | None:
+    """:func:`session.config.resolved_config`, or None for a config whose learner settings
+    are bad."""
+    try:
+        return resolved_config(config)
+    except (ValueError, TypeError):
+        return None
+
+
 def check_config(config: dict[str, Any], limits: ServiceLimits, reject: Reject) -> None:
     """Raise ``reject(problem)`` for a config the service cannot run within ``limits``."""
     if "grid" in config and not 2 <= config["grid"] <= limits.max_grid:

@@ -15,43 +15,36 @@ service cannot accept gets an ``error`` event; a session it cannot run, or stops
 from __future__ import annotations
 
 import logging
-import signal
 import time
-from collections import Counter
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import zenoh
 
 from cfbci.limits import ServiceLimits
-from cfbci.memory import keep_freed_memory
 from cfbci.service.admission import (
     Pending,
     PuddleTables,
     Rejection,
     check_config,
     check_memory,
+    resolved_or_none,
 )
+from cfbci.service.events import ErrorBudget, Events
 from cfbci.service.recordings import Recordings
 from cfbci.service.resume import (
     EndedAtResume,
-    answer_again,
-    recorded_state,
-    rerun_recording,
-    resumed_session,
-    unfinished,
+    resume_recorded,
 )
 from cfbci.service.running import RunningSession
-from replay.recording import Recording, read_recording
-from session.config import resolved_config, world_text
+from session.config import resolved_config
 from session.sessions import open_session
 from wire import protocol
 from wire.intake import Intake, session_of
 from wire.protocol import NO_SESSION, ProtocolError
 from wire.services import ServiceRegistration, default_service_id
 from wire.transport import Outbox, Pump, Received
-from wire.zenoh_config import peer_config
 
 log = logging.getLogger("cfbci.service")
 
@@ -59,43 +52,13 @@ log = logging.getLogger("cfbci.service")
 TICK = 0.02
 #: Seconds the loop waits for a message otherwise (between two idle checks).
 IDLE_TICK = 0.5
-#: Error events published per session id per second; further ones are only counted.
-ERRORS_PER_SECOND = 20
-#: Error and rejection events published per second in all.
-EVENTS_PER_SECOND = 200
 #: Configs that may wait for their source to subscribe, per session of ``max_sessions``.
 PENDING_PER_SESSION = 4
-#: foxglove.Log levels of the event kinds.
-_LOG_LEVELS = {"error": 4, "session_rejected": 4, "info": 2}
 
 
 #: Called with a session's id, its :attr:`RunningSession.update_ns` and its
 #: :attr:`RunningSession.queued_ms` when the session ends.
 SessionEndHook = Callable[[str, list[int], list[float]], None]
-
-
-class _ErrorBudget:
-    """At most :data:`ERRORS_PER_SECOND` error and rejection events per session id per
-    second, and :data:`EVENTS_PER_SECOND` in all; the others are only counted (and the
-    count logged)."""
-
-    def __init__(self) -> None:
-        self._window = 0
-        self._counts: Counter[str] = Counter()
-        self._total = self._suppressed = 0
-
-    def allows(self, session: str) -> bool:
-        window = int(time.monotonic())
-        if window != self._window:
-            if self._suppressed:
-                log.warning("%d error events suppressed in the last second", self._suppressed)
-            self._window, self._total, self._suppressed = window, 0, 0
-            self._counts.clear()
-        self._counts[session] += 1
-        self._total += 1
-        allowed = self._counts[session] <= ERRORS_PER_SECOND and self._total <= EVENTS_PER_SECOND
-        self._suppressed += not allowed
-        return allowed
 
 
 class PipelineService:
@@ -107,7 +70,8 @@ class PipelineService:
         An open Zenoh session (the caller closes it, after :meth:`close`).
     record_dir : Path or None
         Directory of the recordings, ``<session>.mcap``; None: no recording. The
-        unfinished sessions recorded there are resumed (:meth:`resume`).
+        unfinished sessions recorded there are resumed
+        (:func:`cfbci.service.resume.resume_recorded`).
     limits : ServiceLimits
     on_end : callable or None
         Called with ``(session id, update_ns, queued_ms)`` when a session ends normally:
@@ -115,7 +79,7 @@ class PipelineService:
         :attr:`RunningSession.update_ns` and :attr:`RunningSession.queued_ms`
         (``cfbci bench latency``).
     resume : bool
-        Resume the unfinished sessions of ``record_dir`` (:meth:`resume`).
+        Resume the unfinished sessions of ``record_dir``.
     service_id : str or None
         This service's id among several (:mod:`wire.services`; default ``<host>-<pid>``):
         it answers the offers query and runs the configs that name it or no service.
@@ -143,15 +107,16 @@ class PipelineService:
         # resumption, before their source could hear the end: a re-send of that epoch is
         # answered with the last state and session_ended again (at most max_sessions).
         self._ended_at_resume: dict[str, EndedAtResume] = {}
-        self._errors = _ErrorBudget()
+        self._errors = ErrorBudget()
         self._puddle_tables = PuddleTables()
         self._stopped = False
+        self.events = Events(self._outbox, self.recordings)
         self.registration = ServiceRegistration(
             session, service_id or default_service_id(),
             lambda: (len(self._sessions) + len(self._pending), self.limits.max_sessions),
         )
         if record_dir is not None and resume:
-            self.resume(record_dir)
+            resume_recorded(self, record_dir)
         prefix = protocol.PREFIX
         self._pumps = [
             Pump(session, f"{prefix}/*/{kind}", kind, self.intake, self.intake.accepts_size)
@@ -287,9 +252,11 @@ class PipelineService:
 
         running = self._sessions.get(sid)
         if running is not None:
-            if running.config_t_ns == message.t_ns and running.config == _resolved(config):
-                self._event(sid, "session_started", "session already started (config re-sent)",
-                            message.t_ns)
+            if running.config_t_ns == message.t_ns and running.config == resolved_or_none(config):
+                self.events.publish(
+                    sid, "session_started", "session already started (config re-sent)",
+                    message.t_ns,
+                )
                 return
             raise reject("a session with this id is already running")
         if sid in self._pending:
@@ -334,59 +301,19 @@ class PipelineService:
         recorder = self.recordings.open(sid, {"seq": message.seq, "t_ns": message.t_ns, **config})
         session = RunningSession(
             sid, config, message.t_ns, open_session(config), recorder, self._outbox,
-            self._event, time.monotonic_ns(),
+            self.events.publish, time.monotonic_ns(),
         )
         self._sessions[sid] = session
         self._ended_at_resume.pop(sid, None)  # the id is reused: its old end is over
         self.intake.open(sid)
-        self._event(
+        self.events.publish(
             sid,
             "session_started",
-            f"session {sid!r}: {config['steps']} steps, {_world_text(session)}, "
+            f"session {sid!r}: {config['steps']} steps, {session.world_text()}, "
             f"{config['frame']} frame, {config['signal']}",
             message.t_ns,
         )
         session.start()
-
-    def resume(self, record_dir: Path) -> None:
-        """Resume every unfinished session recorded in ``record_dir``
-        (:mod:`cfbci.service.resume`); a recording that cannot be resumed is named in the
-        log and left as is."""
-        for path in sorted(record_dir.glob("*.mcap")):
-            if len(self._sessions) >= self.limits.max_sessions:
-                log.warning("not resuming %s: the service runs its maximum of sessions", path)
-                continue
-            try:
-                recording = read_recording(path)
-                if path.name == f"{recording.session}.mcap" and unfinished(recording):
-                    self._resume(recording)
-            except (ValueError, KeyError, TypeError) as exc:
-                log.warning("cannot resume %s: %s", path, exc)
-
-    def _resume(self, recording: Recording) -> None:
-        """Rebuild a session by re-running it over its recording, and go on."""
-        config, rerun = rerun_recording(recording)
-        sid = recording.session
-        if config.get("service") is not None and (
-            holder := self.registration.claim(sid, ask=True)  # just started: ask the network
-        ):
-            raise ValueError(f"session {sid!r} is already served by service {holder!r}")
-        recorder = self.recordings.resume(recording)
-        session = resumed_session(recording, config, rerun, recorder, self._outbox, self._event)
-        self._sessions[sid] = session
-        self.intake.open(sid)
-        self._event(sid, "info", f"session {sid!r} resumed at step {session.step} after a "
-                    f"restart, from its recording")
-        if rerun.finished:
-            state = recorded_state(rerun, -1)
-            recorded_states = len(recording.messages.get("/state", []))
-            session.send_state(record=recorded_states < len(rerun.states), state=state)
-            self._finish(session)
-            self._ended_at_resume[sid] = EndedAtResume(
-                sid, session.step, session.last_epoch, state
-            )
-            return
-        answer_again(session, recording, rerun)
 
     def _on_epoch(self, received: Received, queued_ms: float) -> None:
         message = protocol.decode(
@@ -413,7 +340,7 @@ class PipelineService:
         if problem is not None and not problem.startswith("gap"):
             raise ProtocolError(problem, **where)  # a duplicate or a late epoch
         if problem is not None:
-            self._event(session.id, "info", problem)
+            self.events.publish(session.id, "info", problem)
         if session.shape is None:
             check_memory(
                 session.config, signal_.shape[0], self.limits,
@@ -426,7 +353,7 @@ class PipelineService:
         """The re-sent last epoch of a session that ended at its resumption: publish its
         last state and ``session_ended`` again (unrecorded: its recording is closed)."""
         self._outbox.send("state", ended.id, ended.state.fields, ended.state.confidence)
-        self._event(
+        self.events.publish(
             ended.id, "session_ended", f"session {ended.id!r} ended after {ended.step} "
             "steps (sent again: it ended when the service resumed it)"
         )
@@ -434,7 +361,7 @@ class PipelineService:
 
     def _finish(self, session: RunningSession) -> None:
         """The session's last epoch is in: ``session_ended``, and forget it."""
-        self._event(
+        self.events.publish(
             session.id, "session_ended", f"session {session.id!r} ended after {session.step} steps"
         )
         if self.on_end is not None:
@@ -452,23 +379,6 @@ class PipelineService:
         self.recordings.end(session.id, last_epoch_step)
         self._outbox.forget(session.id)
 
-    # -- events -----------------------------------------------------------------------
-
-    def _event(
-        self, session: str, event: str, text: str, config_t_ns: int | None = None
-    ) -> None:
-        """Publish an event on ``cfbci/<session>/event``; record and log it."""
-        fields = {"event": event, "message": text, "config_t_ns": config_t_ns}
-        message = self._outbox.send("event", session, fields)
-        (log.warning if event in ("error", "session_rejected") else log.info)(
-            "%s: %s", event, text
-        )
-        recorder = self.recordings.get(session)
-        if recorder is not None:
-            recorder.record("/event", {"seq": message.seq, "t_ns": message.t_ns, **fields},
-                            message.t_ns)
-            recorder.record_log(_LOG_LEVELS.get(event, 2), f"{event}: {text}", message.t_ns)
-
     def _reject(self, error: ProtocolError) -> None:
         """Report a rejected message where the protocol says (its session, else ``_``);
         a :class:`Rejection` of a running session (the one its ``config_t_ns`` names) ends
@@ -481,74 +391,12 @@ class PipelineService:
             self.registration.release(session)
         ends = running is not None and running.config_t_ns == getattr(error, "config_t_ns", -1)
         if isinstance(error, Rejection) and (ends or self._errors.allows(session)):
-            self._event(session, "session_rejected", str(error), error.config_t_ns)
+            self.events.publish(session, "session_rejected", str(error), error.config_t_ns)
             if ends:
                 assert running is not None
                 self._end(running, running.step - 1)
         elif self._errors.allows(session):
-            self._event(session, "error", str(error))
+            self.events.publish(session, "error", str(error))
         if session not in self._sessions and session not in self._pending:
             never_ran = session != NO_SESSION and self.recordings.get(session) is None
             self._outbox.forget(session, numbering=never_ran)
-
-
-def _resolved(config: dict[str, Any]) -> dict[str, Any] | None:
-    """:func:`resolved_config`, or None for a config whose learner settings are bad."""
-    try:
-        return resolved_config(config)
-    except (ValueError, TypeError):
-        return None
-
-
-def _world_text(session: RunningSession) -> str:
-    world = getattr(session.core, "world", None)
-    if world is None or session.config["world"] == "puddle":
-        return f"{session.config['world']} world"
-    return world_text(world)
-
-
-def serve(
-    listen: Sequence[str] = (),
-    connect: Sequence[str] = (),
-    record_dir: Path | None = None,
-    on_end: SessionEndHook | None = None,
-    limits: ServiceLimits | None = None,
-    zenoh_config: Path | None = None,
-    resume: bool = True,
-    service_id: str | None = None,
-) -> None:
-    """Run a :class:`PipelineService` until SIGINT or SIGTERM, then shut down cleanly.
-
-    Recordings are closed and the Zenoh session is closed before returning. Meant as the
-    main function of ``cfbci serve`` or of a spawned process.
-
-    Parameters
-    ----------
-    listen, connect : sequence of str
-        Zenoh endpoints (see :func:`wire.zenoh_config.peer_config`).
-    record_dir : Path or None
-        Directory of the recordings (``<session>.mcap``); None records nothing. Unfinished
-        sessions recorded there are resumed.
-    on_end : callable or None
-        See :class:`PipelineService`.
-    limits : ServiceLimits or None
-        Default :class:`cfbci.limits.ServiceLimits`.
-    zenoh_config : Path or None
-        Zenoh JSON5 configuration merged over the defaults (``--zenoh-config``).
-    resume : bool
-        Resume the unfinished sessions recorded in ``record_dir``.
-    service_id : str or None
-        See :class:`PipelineService`.
-    """
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
-    keep_freed_memory()
-    with zenoh.open(peer_config(listen, connect, zenoh_config)) as session:
-        service = PipelineService(
-            session, record_dir, limits, on_end=on_end, resume=resume, service_id=service_id
-        )
-        for signum in (signal.SIGINT, signal.SIGTERM):
-            signal.signal(signum, lambda *_: service.stop())
-        log.info("service %s serving on listen=%s connect=%s", service.registration.service,
-                 list(listen), list(connect))
-        service.run()
-    log.info("stopped")

@@ -11,14 +11,16 @@ already answered (same step, ``seq`` and ``t_ns``) is answered again, unrecorded
 
 from __future__ import annotations
 
+import logging
 import time
 from dataclasses import dataclass
-from typing import Any
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from cfbci.service.running import EventSink, RunningSession
-from replay.recording import Recording, SessionRecorder, decode_array
+from replay.recording import Recording, SessionRecorder, decode_array, read_recording
 from replay.rerun import (
     STATE_MESSAGE_FIELDS,
     Rerun,
@@ -29,6 +31,11 @@ from replay.rerun import (
 from session.config import resolved_config
 from session.core import State
 from wire.transport import Outbox
+
+if TYPE_CHECKING:
+    from cfbci.service.loop import PipelineService
+
+log = logging.getLogger("cfbci.service")
 
 
 @dataclass(frozen=True)
@@ -127,3 +134,44 @@ def answer_again(session: RunningSession, recording: Recording, rerun: Rerun) ->
         session.record_position(fields, sent.t_ns)
     session.send_state(record=recorded_states < len(rerun.moves), state=state)
     session.answer_unheard = True
+
+
+def resume_recorded(service: PipelineService, record_dir: Path) -> None:
+    """Resume every unfinished session recorded in ``record_dir`` into ``service``; a
+    recording that cannot be resumed is named in the log and left as is."""
+    for path in sorted(record_dir.glob("*.mcap")):
+        if len(service._sessions) >= service.limits.max_sessions:
+            log.warning("not resuming %s: the service runs its maximum of sessions", path)
+            continue
+        try:
+            recording = read_recording(path)
+            if path.name == f"{recording.session}.mcap" and unfinished(recording):
+                _resume(service, recording)
+        except (ValueError, KeyError, TypeError) as exc:
+            log.warning("cannot resume %s: %s", path, exc)
+
+
+def _resume(service: PipelineService, recording: Recording) -> None:
+    """Rebuild a session by re-running it over its recording, and go on."""
+    config, rerun = rerun_recording(recording)
+    sid = recording.session
+    if config.get("service") is not None and (
+        holder := service.registration.claim(sid, ask=True)  # just started: ask the network
+    ):
+        raise ValueError(f"session {sid!r} is already served by service {holder!r}")
+    recorder = service.recordings.resume(recording)
+    session = resumed_session(
+        recording, config, rerun, recorder, service._outbox, service.events.publish
+    )
+    service._sessions[sid] = session
+    service.intake.open(sid)
+    service.events.publish(sid, "info", f"session {sid!r} resumed at step {session.step} "
+                           "after a restart, from its recording")
+    if rerun.finished:
+        state = recorded_state(rerun, -1)
+        recorded_states = len(recording.messages.get("/state", []))
+        session.send_state(record=recorded_states < len(rerun.states), state=state)
+        service._finish(session)
+        service._ended_at_resume[sid] = EndedAtResume(sid, session.step, session.last_epoch, state)
+        return
+    answer_again(session, recording, rerun)

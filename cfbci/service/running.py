@@ -20,6 +20,7 @@ import numpy as np
 
 from cfbci.service.recordings import record_beliefs
 from replay.recording import SessionRecorder
+from session.config import world_text
 from session.core import Session, SignalPath, State, Step
 from wire import protocol
 from wire.protocol import ProtocolError, SequenceTracker
@@ -95,6 +96,13 @@ class RunningSession:
     def step(self) -> int:
         """The last move's step (1-based): the step the next epoch must carry."""
         return self.core.step
+
+    def world_text(self) -> str:
+        """A short description of the session's world, e.g. ``5 x 5 grid``."""
+        world = getattr(self.core, "world", None)
+        if world is None or self.config["world"] == "puddle":
+            return f"{self.config['world']} world"
+        return world_text(world)
 
     def start(self) -> None:
         """Publish the first move and its state."""
