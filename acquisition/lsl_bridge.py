@@ -80,7 +80,7 @@ class BridgeSettings:
     moves : str
         Name of the move stream the bridge creates.
     seed, steps, grid, frame, learner
-        The session's config (see :class:`acquisition.replay_source.SourceSettings`).
+        The session's config (see :class:`acquisition.simulated_source.SourceSettings`).
     tmin, tmax : float
         Epoch limits around the onset, s (rounded to samples as MNE does).
     baseline : (float or None, float or None) or None

@@ -17,7 +17,7 @@
 
 The user is :class:`acquisition.user.SimulatedUser` with the random streams of
 :func:`calibration_free.streams.session_streams`, and synthetic epochs come from the data
-stream as in :mod:`acquisition.replay_source`: with the bridge's ``--seed`` equal to the
+stream as in :mod:`acquisition.simulated_source`: with the bridge's ``--seed`` equal to the
 simulator's, a session over LSL makes the decisions of ``cfbci session`` with that seed.
 A move sent again (``repeat`` > 0, the bridge could not cut its epoch) is answered with
 the same epoch, and its truth is not sent again.

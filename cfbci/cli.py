@@ -382,7 +382,7 @@ def _add_source_options(p: argparse.ArgumentParser) -> None:
 
 
 def _source_settings(args: argparse.Namespace, session: str) -> Any:
-    from acquisition.replay_source import SourceSettings
+    from acquisition.simulated_source import SourceSettings
 
     if args.steps < 1 or args.interval < 0:
         raise ValueError("--steps must be at least 1 and --interval at least 0")
@@ -418,7 +418,7 @@ def _add_source(commands: argparse._SubParsersAction) -> None:
 
 
 def _run_source(args: argparse.Namespace, console: Console) -> int:
-    from acquisition.replay_source import run_source
+    from acquisition.simulated_source import run_source
 
     summary = run_source(
         _source_settings(args, args.session), args.listen, args.connect, args.zenoh_config

@@ -34,7 +34,7 @@ import zenoh
 from rich.console import Console
 from rich.table import Table
 
-from acquisition.replay_source import SourceSettings, SourceSummary, run_source
+from acquisition.simulated_source import SourceSettings, SourceSummary, run_source
 from acquisition.sources import DataSpec
 from calibration_free.config import LearnerConfig
 from calibration_free.world import GridWorld

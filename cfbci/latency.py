@@ -43,7 +43,7 @@ import zenoh
 from rich.console import Console
 from rich.table import Table
 
-from acquisition.replay_source import SourceSettings, SourceSummary, replay_session
+from acquisition.simulated_source import SourceSettings, SourceSummary, replay_session
 from cfbci.limits import ServiceLimits
 from cfbci.service import serve
 from wire import protocol

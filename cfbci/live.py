@@ -36,7 +36,7 @@ from rich.live import Live
 from rich.table import Table
 from rich.text import Text
 
-from acquisition.replay_source import SourceSettings, SourceSummary, run_source
+from acquisition.simulated_source import SourceSettings, SourceSummary, run_source
 from calibration_free.puddle import puddle_tasks
 from calibration_free.world import GridWorld, World
 from cfbci.limits import ServiceLimits

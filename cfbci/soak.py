@@ -59,7 +59,7 @@ from mcap.reader import make_reader
 from rich.console import Console
 from rich.table import Table
 
-from acquisition.replay_source import SourceSettings, replay_session
+from acquisition.simulated_source import SourceSettings, replay_session
 from calibration_free.learner import CalibrationFreeLearner
 from calibration_free.streams import StepRecord
 from calibration_free.world import GridWorld

@@ -22,7 +22,7 @@ import pytest
 from live import TIMEOUT, service_process
 from mcap.reader import make_reader
 
-from acquisition.replay_source import SourceSettings, run_source
+from acquisition.simulated_source import SourceSettings, run_source
 from replay.recording import read_recording, recover
 from wire.zenoh_config import free_tcp_endpoint
 

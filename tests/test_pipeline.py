@@ -23,7 +23,7 @@ from jsonschema import Draft202012Validator
 from live import SPAWN, TIMEOUT, rewrite, service_process
 from mcap.reader import make_reader
 
-from acquisition.replay_source import SourceSettings, SourceSummary, run_source
+from acquisition.simulated_source import SourceSettings, SourceSummary, run_source
 from acquisition.sources import DataSpec
 from calibration_free.streams import StepRecord
 from calibration_free.world import ACTIONS, GridWorld

@@ -30,7 +30,7 @@ from test_world_pipeline import check_republished, next_event_of
 
 from acquisition.gaussian import generate_gaussian_features
 from acquisition.loaders import save_features_npz
-from acquisition.replay_source import SourceSettings, run_source
+from acquisition.simulated_source import SourceSettings, run_source
 from acquisition.sources import DataSpec
 from calibration_free.continuous_goals import ContinuousConfig, ContinuousGoalLearner
 from cfbci.cli import main

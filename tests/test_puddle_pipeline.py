@@ -31,7 +31,7 @@ from test_world_pipeline import check_republished, next_event_of
 from threadpoolctl import threadpool_limits
 
 from acquisition.mixed_teacher import gaussian_signals
-from acquisition.replay_source import SourceSettings, run_source
+from acquisition.simulated_source import SourceSettings, run_source
 from calibration_free.puddle import ACTIONS
 from calibration_free.puddle_learner import PuddleConfig
 from calibration_free.streams import session_streams

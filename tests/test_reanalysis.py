@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 from live import TIMEOUT, rewrite, service_process
 
-from acquisition.replay_source import SourceSettings, run_source
+from acquisition.simulated_source import SourceSettings, run_source
 from calibration_free.config import LearnerConfig
 from cfbci.cli import main
 from cfbci.reanalysis import (

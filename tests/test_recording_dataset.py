@@ -15,7 +15,7 @@ from live import TIMEOUT, rewrite, service_process
 
 from acquisition.labelled import LabelledEpochs, LabelledFeatures
 from acquisition.loaders import load_epochs, load_labelled, load_recording_dataset
-from acquisition.replay_source import SourceSettings, run_source
+from acquisition.simulated_source import SourceSettings, run_source
 from acquisition.sources import DEFAULT_SYNTHETIC_ACCURACY, DataSpec, synthetic_features
 from calibration_free.streams import StepRecord
 from cfbci.cli import main

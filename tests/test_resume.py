@@ -15,7 +15,7 @@ import zenoh
 from live import SPAWN, TIMEOUT, rewrite, service_process
 from test_pipeline import GRID, STEPS, simulated, source_process
 
-from acquisition.replay_source import SourceSettings, SourceSummary
+from acquisition.simulated_source import SourceSettings, SourceSummary
 from cfbci.cli import main
 from cfbci.service import serve, unfinished
 from replay.recording import decode_array, read_recording

@@ -16,7 +16,7 @@ import zenoh
 from live import SPAWN, TIMEOUT
 from test_pipeline import GRID, STEPS, simulated
 
-from acquisition.replay_source import SourceSettings, SourceSummary, run_source
+from acquisition.simulated_source import SourceSettings, SourceSummary, run_source
 from cfbci.limits import ServiceLimits
 from cfbci.router import run_router
 from cfbci.service import serve

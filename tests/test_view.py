@@ -35,7 +35,7 @@ from selenium.webdriver.chrome.service import Service as DriverService
 from selenium.webdriver.common.by import By
 from selenium.webdriver.support.ui import Select, WebDriverWait
 
-from acquisition.replay_source import SourceSettings, SourceSummary, run_source
+from acquisition.simulated_source import SourceSettings, SourceSummary, run_source
 from cfbci.publish import publish_recording
 from cfbci.view_model import SessionBook, SessionView, layout_of
 from cfbci.view_server import STATIC, run_view

@@ -22,7 +22,7 @@ from jsonschema import Draft202012Validator
 from live import SPAWN, TIMEOUT, service_process
 from mcap.reader import make_reader
 
-from acquisition.replay_source import SourceSettings, run_source
+from acquisition.simulated_source import SourceSettings, run_source
 from acquisition.sources import DataSpec
 from calibration_free.config import LearnerConfig
 from calibration_free.streams import StepRecord
