@@ -27,6 +27,26 @@ log = logging.getLogger("cfbci.service")
 TRUTH_WAIT = 10.0
 
 
+def recording_path(directory: Path, session: str) -> Path:
+    """Where a new recording of ``session`` goes in ``directory``: ``<session>.mcap``, or
+    ``<session>.<n>.mcap`` with the smallest ``n >= 2`` that names no file, directory or
+    link (a dangling link included), so that no recording is ever written over another or
+    through a link."""
+    path, n = directory / f"{session}.mcap", 2
+    while os.path.lexists(path):
+        path, n = directory / f"{session}.{n}.mcap", n + 1
+    return path
+
+
+def is_recording_name(name: str, session: str) -> bool:
+    """Whether a file name is one :func:`recording_path` gives ``session``'s recordings."""
+    stem = name.removesuffix(".mcap")
+    if stem == session:
+        return name.endswith(".mcap")
+    number = stem.removeprefix(f"{session}.")
+    return name.endswith(".mcap") and number != stem and number.isdigit() and int(number) >= 2
+
+
 def record_beliefs(
     recorder: SessionRecorder, config: dict[str, Any], core: Session, state: State, t_ns: int
 ) -> None:
@@ -47,7 +67,10 @@ def record_beliefs(
 class Recordings:
     """The session recorders, and the only reader of ``truth``.
 
-    One MCAP file per session, ``<directory>/<session>.mcap``. A recording is closed when
+    One MCAP file per session, ``<directory>/<session>.mcap``; never over an existing
+    file: a session whose id already names a file there (an earlier session's recording,
+    or anything else, a link included) is recorded to ``<session>.<n>.mcap``, the first
+    ``n`` from 2 that names no file (:func:`recording_path`). A recording is closed when
     its session has ended and the truth of its last step has been recorded (at once if no
     truth arrived at all; after :data:`TRUTH_WAIT` seconds at the latest), or by
     :meth:`close`.
@@ -72,7 +95,7 @@ class Recordings:
         self.directory.mkdir(parents=True, exist_ok=True)
         if session in self._recorders:  # an ended session's id reused before its last truth
             self._close(session)
-        recorder = SessionRecorder(self.directory / f"{session}.mcap", session, config)
+        recorder = SessionRecorder(recording_path(self.directory, session), session, config)
         self._recorders[session] = recorder
         return recorder
 
@@ -84,7 +107,7 @@ class Recordings:
         """
         if self.directory is None:
             return None
-        path = self.directory / f"{recording.session}.mcap"
+        path = Path(recording.path)  # its own file, whichever name it was given
         partial = path.with_suffix(".mcap.resuming")
         recorder = SessionRecorder(partial, recording.session, recording.config)
         # An epoch recorded without its features was not accepted (killed in between):

@@ -19,6 +19,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from cfbci.service.recordings import is_recording_name
 from cfbci.service.running import EventSink, RunningSession
 from replay.recording import Recording, SessionRecorder, decode_array, read_recording
 from replay.rerun import (
@@ -145,7 +146,12 @@ def resume_recorded(service: PipelineService, record_dir: Path) -> None:
             continue
         try:
             recording = read_recording(path)
-            if path.name == f"{recording.session}.mcap" and unfinished(recording):
+            if (
+                is_recording_name(path.name, recording.session)
+                and not path.is_symlink()
+                and unfinished(recording)
+                and recording.session not in service._sessions
+            ):
                 _resume(service, recording)
         except (ValueError, KeyError, TypeError) as exc:
             log.warning("cannot resume %s: %s", path, exc)
