@@ -218,8 +218,9 @@ class TaskLearner:
         return decoder_fit(self.config.decoder, chosen, self.config.student_t_counts)
 
     def _scores(self) -> np.ndarray:
-        """Log scores of the tasks, shape (n_tasks,)."""
-        return self.log_likelihood
+        """Log scores of the tasks, shape (n_tasks,): a copy (the beliefs keep it, and the
+        log-likelihood is updated in place)."""
+        return self.log_likelihood.copy()
 
     def _predicted_samples(self) -> np.ndarray | None:
         """Predictions ``q_t(e)`` of sampled past signals (n_tasks, n, K), or None before
