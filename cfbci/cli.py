@@ -399,8 +399,11 @@ def _source_settings(args: argparse.Namespace, session: str) -> Any:
 def _add_source(commands: argparse._SubParsersAction) -> None:
     p = commands.add_parser(
         "source",
-        help="the replay source: a simulated user answering a running service",
-        description="Replay one session against a running `cfbci serve` over Zenoh.",
+        help="the simulated source: a simulated user answering a running service",
+        description="Run one session of a simulated user against a running `cfbci serve` "
+        "over Zenoh. Exit status: 0 when the session has ended; 1 when the service rejected "
+        "it or kept the source waiting longer than --timeout (the reason on one line of "
+        "stderr); 2 on bad options or data.",
     )
     p.add_argument("--session", required=True, help="session id ([A-Za-z0-9_-], 1-64)")
     _add_source_options(p)
@@ -408,6 +411,10 @@ def _add_source(commands: argparse._SubParsersAction) -> None:
         "--pick-service", action="store_true",
         help="ask the services on the network for their load and name the least loaded one "
         "in the config, so that exactly one serves the session (wire/services.py)",
+    )
+    p.add_argument(
+        "--timeout", type=float, default=30.0,
+        help="seconds the service may keep the source waiting before it gives up (default 30)",
     )
     _add_endpoints(
         p, "Zenoh endpoint to listen on (repeatable)",
@@ -418,11 +425,16 @@ def _add_source(commands: argparse._SubParsersAction) -> None:
 
 
 def _run_source(args: argparse.Namespace, console: Console) -> int:
+    from dataclasses import replace
+
     from acquisition.simulated_source import run_source
 
-    summary = run_source(
-        _source_settings(args, args.session), args.listen, args.connect, args.zenoh_config
-    )
+    settings = replace(_source_settings(args, args.session), timeout=args.timeout)
+    try:
+        summary = run_source(settings, args.listen, args.connect, args.zenoh_config)
+    except (TimeoutError, RuntimeError) as error:  # as replay --publish and lsl-bridge
+        Console(stderr=True).print(f"[bold red]error:[/] {error}", soft_wrap=True)
+        return 1
     console.print(
         f"session {summary.session!r}: {summary.steps} steps, first target "
         f"{summary.first_target_step or '-'}, correct {summary.correct_targets}, "
@@ -441,6 +453,10 @@ def _add_session(commands: argparse._SubParsersAction) -> None:
     _add_source_options(p)
     p.add_argument(
         "--record", type=Path, help="MCAP recording to write (default runs/<timestamp>.mcap)"
+    )
+    p.add_argument(
+        "--overwrite", action="store_true",
+        help="replace the --record file if it exists (else an existing file is an error)",
     )
     p.add_argument("--json", type=Path, help="write the summary as JSON")
     _add_endpoints(
@@ -468,8 +484,11 @@ def _run_session(args: argparse.Namespace, console: Console) -> int:
     try:
         result = run_live_session(
             settings, record, listen=args.listen, connect=args.connect, console=console,
-            zenoh_config=args.zenoh_config,
+            zenoh_config=args.zenoh_config, overwrite=args.overwrite,
         )
+    except FileExistsError as error:
+        Console(stderr=True).print(f"[bold red]error:[/] {error}")
+        return 2
     except (TimeoutError, RuntimeError) as error:
         Console(stderr=True).print(f"[bold red]error:[/] {error}")
         return 1

@@ -22,6 +22,7 @@ import multiprocessing
 import os
 import queue
 import re
+import tempfile
 import time
 from collections.abc import Sequence
 from concurrent.futures import Future, ProcessPoolExecutor
@@ -164,6 +165,7 @@ def run_live_session(
     connect: Sequence[str] = (),
     console: Console,
     zenoh_config: Path | None = None,
+    overwrite: bool = False,
 ) -> dict[str, Any]:
     """Run one live session with a display; return the JSON summary.
 
@@ -182,6 +184,17 @@ def run_live_session(
     zenoh_config : Path or None
         Zenoh JSON5 configuration merged over the defaults, for the service, the source
         and the display alike (the endpoints stay the ones above).
+    overwrite : bool
+        Replace ``record`` if it exists (else an existing ``record`` is kept: the
+        recording stays in a folder beside it and the error says where).
+
+    The service records into a folder of its own beside ``record``, then the recording
+    is moved to ``record``: nothing else in that folder is touched.
+
+    Raises
+    ------
+    FileExistsError
+        When ``record`` exists and ``overwrite`` is false.
 
     Returns
     -------
@@ -193,14 +206,16 @@ def run_live_session(
     context = multiprocessing.get_context("spawn")
     service_endpoints = list(listen) or [free_tcp_endpoint()]
     display_endpoint = free_tcp_endpoint()
+    if os.path.lexists(record) and not overwrite:
+        raise FileExistsError(f"{record} exists (--overwrite replaces it)")
     record.parent.mkdir(parents=True, exist_ok=True)
+    private = Path(tempfile.mkdtemp(prefix=".cfbci-session-", dir=record.parent))
     # The display listens before the others start, so they reach it at once and it misses
     # nothing; the source reaches the service through the service's endpoints.
     with zenoh.open(peer_config([display_endpoint], (), zenoh_config)) as session:
         service = context.Process(
             target=serve,
-            args=(service_endpoints, [display_endpoint, *connect], record.parent),
-            # Not resume: the directory holds the user's other recordings.
+            args=(service_endpoints, [display_endpoint, *connect], private),
             kwargs={"zenoh_config": zenoh_config, "resume": False, "limits": own_limits()},
             name="cfbci-service",
         )
@@ -218,9 +233,8 @@ def run_live_session(
             if service.is_alive():
                 service.kill()
                 service.join()
-    written = record.parent / f"{settings.session}.mcap"
-    if written != record:
-        written.replace(record)
+    _move_recording(private / f"{settings.session}.mcap", record, overwrite)
+    private.rmdir()
     result = {
         "world": settings.world,
         "steps": summary.steps,
@@ -232,6 +246,21 @@ def run_live_session(
     if settings.world == "puddle":
         result["restarts"] = sum(r.event == "reset" for r in summary.records)
     return result
+
+
+def _move_recording(written: Path, record: Path, overwrite: bool) -> None:
+    """Move the service's recording to ``record``: replacing it (a link is replaced, never
+    written through) if ``overwrite``, else only if no file took that name meanwhile."""
+    if overwrite:
+        os.replace(written, record)
+        return
+    try:
+        os.link(written, record)  # fails if ``record`` exists: nothing is replaced
+    except FileExistsError:
+        raise FileExistsError(
+            f"{record} appeared during the session; the recording is kept as {written}"
+        ) from None
+    written.unlink()
 
 
 @dataclass
