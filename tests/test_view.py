@@ -4,10 +4,15 @@ Selenium through chromedriver, fed by a real service and source over Zenoh on lo
 The view runs in a spawned process listening on its own Zenoh endpoint; the services
 (one for the module, one more that records the session the re-publishing test sends
 again) connect to it and the sources connect to both, as ``cfbci view --listen`` is used.
-The pages tell what they show in ``data-*`` attributes of ``#view`` (session, status,
-step, agent, layout, correct, wrong, best), which the tests compare with the messages the
-service published. Without Chromium the tests fail (CI installs it). The last tests check
-the view's bookkeeping (:mod:`cfbci.view_model`) on real encoded messages.
+Every page is opened with the view's access token (:data:`TOKEN`), as from the address
+``cfbci view`` prints. The pages tell what they show in ``data-*`` attributes of ``#view``
+(session, status, step, agent, layout, correct, wrong, best), which the tests compare with
+the messages the service published. Chromium resolves every ``*.test`` name to 127.0.0.1:
+a page of another site (``attacker.test``, served by a plain HTTP server of the test) and a
+rebound name of the view's own address are then real to the browser. Without Chromium the
+tests fail (CI installs it). The last tests check the view's bookkeeping
+(:mod:`cfbci.view_model`) on real encoded messages; tests/test_view_security.py checks the
+access rules over HTTP and the model's refusal of malformed messages.
 """
 
 from __future__ import annotations
@@ -15,13 +20,16 @@ from __future__ import annotations
 import json
 import queue
 import shutil
+import threading
 import time
+import urllib.parse
 import urllib.request
 from collections.abc import Callable, Iterator
 from concurrent.futures import Future, ProcessPoolExecutor
 from contextlib import contextmanager
 from dataclasses import dataclass
 from html.parser import HTMLParser
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
 from typing import Any
 
@@ -38,7 +46,7 @@ from selenium.webdriver.support.ui import Select, WebDriverWait
 from acquisition.simulated_source import SourceSettings, SourceSummary, run_source
 from cfbci.publish import publish_recording
 from cfbci.view_model import SessionBook, SessionView, layout_of
-from cfbci.view_server import STATIC, run_view
+from cfbci.view_server import STATIC, Access, run_view
 from replay.recording import read_recording
 from wire import protocol
 from wire.transport import Outbox, Pump, Received
@@ -48,7 +56,9 @@ WINDOW = (1440, 900)  # browser window, CSS pixels
 CHROME_FLAGS = (
     "--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
     "--disable-component-update", "--disable-sync", "--no-first-run", "--hide-scrollbars",
+    "--host-resolver-rules=MAP *.test 127.0.0.1",
 )
+TOKEN = "view-test-token-0123456789"  # the views' access token
 SEED = 3  # reaches targets early on the synthetic default (checked below: >= 1 target)
 STEPS = 120
 POLL = 0.02  # seconds between two readings of a page
@@ -64,21 +74,24 @@ def _executable(name: str, debian_path: str) -> str:
     return found
 
 
-def _view_process(listen: str, connect: list[str], ready: Any) -> None:
-    run_view([listen], connect, host="127.0.0.1", port=0,
-             on_ready=lambda _, port: ready.put(port))
+def _view_process(listen: str, connect: list[str], access: Access, ready: Any) -> None:
+    run_view([listen], connect, access=access, host="127.0.0.1", port=0, on_ready=ready.put)
 
 
 @contextmanager
-def _view_running(connect: tuple[str, ...] = ()) -> Iterator[tuple[str, str]]:
-    """A view in a spawned process: (its page address, its Zenoh endpoint)."""
+def _view_running(
+    connect: tuple[str, ...] = (), allow_origins: tuple[str, ...] = ()
+) -> Iterator[tuple[str, str]]:
+    """A view in a spawned process, its token :data:`TOKEN`: (its address without the
+    token, e.g. ``http://127.0.0.1:8080``, its Zenoh endpoint)."""
     endpoint = free_tcp_endpoint()
     ready = SPAWN.Queue()
-    process = SPAWN.Process(target=_view_process, args=(endpoint, list(connect), ready))
+    access = Access(TOKEN, allow_origins=allow_origins)
+    process = SPAWN.Process(target=_view_process,
+                            args=(endpoint, list(connect), access, ready))
     process.start()
     try:
-        port = ready.get(timeout=TIMEOUT)
-        yield f"http://127.0.0.1:{port}", endpoint
+        yield ready.get(timeout=TIMEOUT), endpoint
     finally:
         process.terminate()  # SIGTERM: the view stops cleanly
         process.join(TIMEOUT)
@@ -88,10 +101,47 @@ def _view_running(connect: tuple[str, ...] = ()) -> Iterator[tuple[str, str]]:
     assert process.exitcode == 0
 
 
+class _OtherSite(BaseHTTPRequestHandler):
+    """A page of another site that opens the view's WebSocket (the token in hand, as if it
+    had leaked) and shows in its title whether the view let it."""
+
+    def do_GET(self) -> None:
+        target = self.path.removeprefix("/?ws=")
+        page = f"""<!DOCTYPE html><title>connecting</title><script>
+const socket = new WebSocket({json.dumps(urllib.parse.unquote(target))});
+socket.onopen = () => {{ document.title = "open"; }};
+socket.onclose = () => {{ if (document.title !== "open") document.title = "refused"; }};
+</script>""".encode()
+        self.send_response(200)
+        self.send_header("Content-Type", "text/html")
+        self.send_header("Content-Length", str(len(page)))
+        self.end_headers()
+        self.wfile.write(page)
+
+    def log_message(self, *_: Any) -> None:  # quiet
+        pass
+
+
 @pytest.fixture(scope="module")
-def view() -> Iterator[tuple[str, str]]:
-    """The view the tests' services connect to."""
-    with _view_running() as running:
+def other_site() -> Iterator[int]:
+    """A plain HTTP server of pages of another site (:class:`_OtherSite`): its port.
+    ``friend.test`` on that port is an origin the view allows, ``attacker.test`` not."""
+    server = ThreadingHTTPServer(("127.0.0.1", 0), _OtherSite)
+    thread = threading.Thread(target=server.serve_forever, daemon=True)
+    thread.start()
+    try:
+        yield server.server_address[1]
+    finally:
+        server.shutdown()
+        thread.join()
+        server.server_close()
+
+
+@pytest.fixture(scope="module")
+def view(other_site: int) -> Iterator[tuple[str, str]]:
+    """The view the tests' services connect to; it allows the origin
+    ``http://friend.test:<other_site>``."""
+    with _view_running(allow_origins=(f"http://friend.test:{other_site}",)) as running:
         yield running
 
 
@@ -302,7 +352,8 @@ def test_operator_view_follows_a_live_session(
 ) -> None:
     url, view_endpoint = view
     settings = SourceSettings("live", seed=SEED, steps=STEPS, interval=0.03)
-    followed = _follow(browser, f"{url}/?session=live", settings, service, view_endpoint, sources)
+    followed = _follow(browser, f"{url}/?session=live&token={TOKEN}", settings, service,
+                       view_endpoint, sources)
     final, summary = followed.final, followed.summary
     assert sorted(followed.moves) == list(range(1, STEPS + 1))
     # Followed as it ran: many intermediate steps shown, each matching the service's move.
@@ -334,7 +385,8 @@ def test_subject_view_shows_the_grid_and_the_agent_only(
     url, view_endpoint = view
     settings = SourceSettings("subject", seed=1, steps=30, interval=0.03)
     followed = _follow(
-        browser, f"{url}/subject?session=subject", settings, service, view_endpoint, sources,
+        browser, f"{url}/subject?session=subject&token={TOKEN}", settings, service,
+        view_endpoint, sources,
         shows_beliefs=False,
     )
     assert len(_shown_steps(followed)) >= 30 // 4
@@ -370,7 +422,7 @@ def test_session_picker_switches_between_running_sessions(
 ) -> None:
     url, view_endpoint = view
     sessions = {"pick-a": (11, 40), "pick-b": (12, 25)}  # id: (seed, steps)
-    browser.get(f"{url}/")
+    browser.get(f"{url}/?token={TOKEN}")
     published = Published(service, tuple(sessions))
     try:
         futures = _start_sources(
@@ -416,7 +468,7 @@ def test_a_republished_recording_is_shown_as_it_was_recorded(
         original = future.result()  # the source's own timeout guards it
     recording = read_recording(recorded / "rec.mcap")
     last_move = recording.messages["/move"][-1][1]
-    browser.get(f"{url}/?session=rec-replay")
+    browser.get(f"{url}/?session=rec-replay&token={TOKEN}")
     with zenoh.open(peer_config((), [service, view_endpoint])) as session:
         result = publish_recording(session, recording, session_id="rec-replay", speed=0)
     assert result.moves_equal
@@ -439,7 +491,7 @@ def test_a_view_started_during_a_session_infers_its_grid(
         )
         published.wait_for_move(sid, 5)
         with _view_running(connect=(service,)) as (url, _):
-            browser.get(f"{url}/?session={sid}")
+            browser.get(f"{url}/?session={sid}&token={TOKEN}")
             seen: list[dict[str, str]] = []
             final = _wait(browser, _ended(sid, steps), f"the end of {sid}", seen)
             title = browser.find_element(By.ID, "world-title").text
@@ -471,7 +523,7 @@ class _References(HTMLParser):
 def test_every_file_a_page_loads_is_served_by_the_view(view: tuple[str, str]) -> None:
     url, _ = view
     for page in ("/", "/subject"):
-        with urllib.request.urlopen(url + page, timeout=TIMEOUT) as response:
+        with urllib.request.urlopen(f"{url}{page}?token={TOKEN}", timeout=TIMEOUT) as response:
             parser = _References()
             parser.feed(response.read().decode())
         files = [ref for ref in parser.found if ref.startswith("/static/")]
@@ -479,8 +531,62 @@ def test_every_file_a_page_loads_is_served_by_the_view(view: tuple[str, str]) ->
         assert files and others == [], f"{page} loads {others} from elsewhere"
         for ref in files:
             assert (STATIC / ref.removeprefix("/static/")).is_file()
-            with urllib.request.urlopen(url + ref, timeout=TIMEOUT) as response:
+            with urllib.request.urlopen(f"{url}{ref}?token={TOKEN}",
+                                        timeout=TIMEOUT) as response:
                 assert response.status == 200 and response.read()
+
+
+def _body(browser: webdriver.Chrome) -> str:
+    return browser.find_element(By.TAG_NAME, "body").text
+
+
+def _until(browser: webdriver.Chrome, condition: Callable[[webdriver.Chrome], Any]) -> None:
+    WebDriverWait(browser, TIMEOUT, poll_frequency=0.05).until(condition)
+
+
+def test_the_pages_need_the_token_and_keep_it_across_a_reload(
+    view: tuple[str, str], browser: webdriver.Chrome
+) -> None:
+    url, _ = view
+    browser.get(f"{url}/")
+    browser.delete_all_cookies()  # a browser that never had the token
+    for page in ("/?session=tok", "/subject?session=tok"):
+        browser.get(url + page)
+        assert "403" in _body(browser) and "access token" in _body(browser), page
+        assert browser.find_elements(By.ID, "view") == [], page
+    browser.get(f"{url}/?session=tok&token={TOKEN}")
+
+    def live(driver: webdriver.Chrome) -> bool:
+        return (driver.find_element(By.ID, "link").get_attribute("textContent") == "live"
+                and driver.find_element(By.ID, "view").get_attribute("data-session") == "tok")
+
+    _until(browser, live)  # its WebSocket took the token, and follows the session
+    assert browser.current_url == f"{url}/?session=tok"  # out of the address bar
+    subject = browser.find_element(By.ID, "subject-link").get_attribute("href")
+    assert subject == f"{url}/subject?session=tok&token={TOKEN}"
+    browser.refresh()  # the cookie
+    _until(browser, live)
+    browser.get(f"{url}/subject?session=tok")
+    _until(browser, lambda d: d.find_element(By.ID, "view").get_attribute("data-session") == "tok")
+
+
+def test_another_site_cannot_use_the_view_nor_a_rebound_name(
+    view: tuple[str, str], browser: webdriver.Chrome, other_site: int
+) -> None:
+    """A page of another site that has the token (leaked) still cannot open the view's
+    WebSocket; the same page under an origin given to the view can (so the refusal is the
+    view's, not the browser's). A name of another site that resolves to the view's address
+    (DNS rebinding) gets 403, token or not."""
+    url, _ = view
+    socket = urllib.parse.quote(f"{url.replace('http://', 'ws://')}/ws?token={TOKEN}")
+    for site, outcome in (("friend.test", "open"), ("attacker.test", "refused")):
+        browser.get(f"http://{site}:{other_site}/?ws={socket}")
+        _until(browser, lambda d: d.title in ("open", "refused"))
+        assert browser.title == outcome, site
+    port = url.rsplit(":", 1)[1]
+    browser.get(f"http://rebound.test:{port}/?token={TOKEN}")
+    assert "403" in _body(browser) and "--allow-host" in _body(browser)
+    assert browser.find_elements(By.ID, "view") == []
 
 
 def _message(kind: str, t_ns: int = 0, payload: Any = None, **fields: Any) -> protocol.Message:
@@ -498,7 +604,7 @@ def test_targets_are_judged_by_the_truth_of_their_step_in_any_order() -> None:
     view = SessionView("s")
     view.update(_move(5, 7, goal=True), 0)
     view.update(_message("truth", step=9, target=3, label=0), 0)
-    assert view.targets == [{"step": 5, "cell": 7, "status": "pending"}]
+    assert list(view.targets) == [{"step": 5, "cell": 7, "status": "pending"}]
     view.update(_message("truth", step=5, target=7, label=0), 0)  # late truth
     view.update(_message("truth", step=12, target=3, label=0), 0)  # early truth
     view.update(_move(12, 4, goal=True), 0)
@@ -534,7 +640,7 @@ def test_a_state_that_contradicts_itself_is_refused_and_changes_nothing() -> Non
     book = SessionBook()
     state = _message("state", payload=np.full(4, 0.5, np.float32), best_task=4, confident=False,
                      n_signals=0, class_counts=[0.0, 0.0], balanced_accuracy=None, points=[])
-    with pytest.raises(ValueError, match="best_task 4 is not one of the 4 tasks"):
+    with pytest.raises(ValueError, match="'best_task' must be an integer from 0 to 3; got 4"):
         book.update(state, 0)
     assert book.listing() == []
 

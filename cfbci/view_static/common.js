@@ -1,12 +1,34 @@
 "use strict";
-// Shared by the operator and subject pages: the WebSocket link to `cfbci view`, the
-// session model that the server's snapshots and patches keep up to date, and the drawing
-// of the world (a grid in SVG, or the agent's state for a world without a grid).
+// Shared by the operator and subject pages: the access token, the WebSocket link to
+// `cfbci view`, the session model that the server's snapshots and patches keep up to date,
+// and the drawing of the world (a grid in SVG, or the agent's state for a world without a
+// grid).
 
 const cfbci = (() => {
   const SVG = "http://www.w3.org/2000/svg";
 
-  /** Apply a server patch ({set, append} or {reset}) to a session model, in place. */
+  // The access token, when the page's address carries it (?token=...): taken out of the
+  // address bar (the cookie the server set keeps a reload working) and passed on to the
+  // WebSocket and to the links this page makes.
+  const address = new URL(location.href);
+  const token = address.searchParams.get("token");
+  if (token !== null) {
+    address.searchParams.delete("token");
+    history.replaceState(null, "", address.pathname + address.search + address.hash);
+  }
+
+  /** A path of the view with these query parameters, and the token when the page has it. */
+  function link(path, params = {}) {
+    const query = new URLSearchParams(params);
+    if (token !== null) query.set("token", token);
+    const text = query.toString();
+    return text ? `${path}?${text}` : path;
+  }
+
+  /**
+   * Apply a server patch ({set, append} or {reset}) to a session model, in place; a series
+   * keeps its newest model.series_length points, as the server does.
+   */
   function apply(model, patch) {
     if (patch.reset) {
       for (const key of Object.keys(model)) delete model[key];
@@ -14,7 +36,11 @@ const cfbci = (() => {
       return;
     }
     Object.assign(model, patch.set || {});
-    for (const [key, items] of Object.entries(patch.append || {})) model[key].push(...items);
+    for (const [key, items] of Object.entries(patch.append || {})) {
+      model[key].push(...items);
+      const excess = model[key].length - model.series_length;
+      if (excess > 0) model[key].splice(0, excess);
+    }
   }
 
   /**
@@ -46,7 +72,7 @@ const cfbci = (() => {
     };
     const open = () => {
       const scheme = location.protocol === "https:" ? "wss" : "ws";
-      socket = new WebSocket(`${scheme}://${location.host}/ws`);
+      socket = new WebSocket(`${scheme}://${location.host}${link("/ws")}`);
       socket.onopen = () => { handlers.link(true); model = null; send(); };
       socket.onclose = () => { handlers.link(false); setTimeout(open, 1000); };
       socket.onmessage = (event) => receive(JSON.parse(event.data));
@@ -193,5 +219,5 @@ const cfbci = (() => {
     data.layout = model.layout.kind;
   }
 
-  return {apply, connect, choose, viridis, colourBar, expose, WorldView};
+  return {apply, connect, choose, link, viridis, colourBar, expose, WorldView};
 })();

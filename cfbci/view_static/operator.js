@@ -14,6 +14,7 @@
   let model = null;
   let frame = null;
   cfbci.colourBar($("colorbar-canvas"));
+  $("subject-link").href = cfbci.link("/subject");
 
   const link = cfbci.connect({
     link(up) {
@@ -53,7 +54,6 @@
     const sorted = [...values].sort((a, b) => a - b);
     return sorted[Math.min(sorted.length - 1, Math.floor(q * sorted.length))];
   };
-  const count = (status) => model.targets.filter((t) => t.status === status).length;
 
   function render() {
     frame = null;
@@ -66,14 +66,16 @@
     $("colorbar").style.display = $("legend").style.display = m.layout.kind === "grid" ? "" : "none";
     $("status").textContent = m.status;
     $("status").className = `badge ${m.status}`;
-    $("subject-link").href = `/subject?session=${encodeURIComponent(m.session)}`;
+    $("subject-link").href = cfbci.link("/subject", {session: m.session});
+    $("truth-key").style.display = m.truth_hidden ? "none" : "";
 
-    const correct = count("correct");
-    const wrong = count("wrong");
-    const pending = count("pending");
+    const {correct, wrong} = m;
+    const pending = m.targets.filter((t) => t.status === "pending").length;
     $("t-step").textContent = `${m.step}${m.steps ? ` / ${m.steps}` : ""}`;
-    $("t-targets").innerHTML = `<span class="ok">✓ ${correct}</span> <span class="bad">✗ ${wrong}</span>`
-      + (pending ? ` <span class="muted">(${pending} awaiting truth)</span>` : "");
+    $("t-targets").innerHTML = m.truth_hidden
+      ? `${pending} <span class="muted">(truth hidden)</span>`
+      : `<span class="ok">✓ ${correct}</span> <span class="bad">✗ ${wrong}</span>`
+        + (pending ? ` <span class="muted">(${pending} awaiting truth)</span>` : "");
     $("t-best").textContent = m.best_task === null ? "–"
       : `${m.best_task} · ${m.confidence[m.best_task].toFixed(3)}${m.confident ? " ✔" : ""}`;
     $("t-bacc").textContent = m.balanced_accuracy === null ? "–" : m.balanced_accuracy.toFixed(3);
