@@ -311,11 +311,11 @@ def rescore(history: RecordedHistory, settings: LearnerConfig) -> Trajectory:
     The learner observes every recorded step in order and follows the recorded
     declarations (see the module docstring); it never proposes an action.
     """
-    learner = open_loop(history.config, settings)
+    loop = open_loop(history.config, settings)
     confidence, best, confident = [], [], []
 
     def keep() -> None:
-        beliefs = learner.beliefs()
+        beliefs = loop.beliefs()
         confidence.append(beliefs.confidence.astype(np.float32))
         best.append(beliefs.best_task)
         confident.append(beliefs.confident)
@@ -323,7 +323,7 @@ def rescore(history: RecordedHistory, settings: LearnerConfig) -> Trajectory:
     keep()
     for k in range(history.n_steps):
         state, action = int(history.states[k]), int(history.actions[k])
-        learner.observe(state, action, history.signals[k], bool(history.declared[k]))
+        loop.observe(state, action, history.signals[k], bool(history.declared[k]))
         keep()
     return Trajectory(np.array(confidence), np.array(best, dtype=np.int64), np.array(confident))
 
