@@ -198,6 +198,12 @@ def _check_point(name: str, point: Any) -> None:
         raise ValueError(f"{name} must lie in [0, 1]^2; got {x.tolist()}")
 
 
+def _check_no_state(state: Any) -> None:
+    """Raise ``ValueError`` unless ``state`` is None (the continuous learner has none)."""
+    if state is not None:
+        raise ValueError(f"the continuous learner has no state: state must be None; got {state!r}")
+
+
 class FrameHypothesesAdapter:
     """:class:`~calibration_free.frame_hypotheses.FrameHypothesesLearner` as a
     :class:`Learner`: its tasks are the (task, frame) hypotheses ``f * n_tasks + t``.
@@ -339,7 +345,3 @@ class ContinuousLearnerAdapter:
             confidence, int(np.argmax(confidence)), False, self.learner.n_signals, SAMPLED
         )
 
-
-def _check_no_state(state: Any) -> None:
-    if state is not None:
-        raise ValueError(f"the continuous learner has no state: state must be None; got {state!r}")

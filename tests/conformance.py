@@ -20,8 +20,8 @@ and a simulated user answering from labelled data) and a number of steps:
   (summing to 1 where the rule is "normalised"), ``best_task`` a task of the largest
   confidence, ``n_signals`` the count observed; beliefs already returned do not change;
 * :func:`check_rejects_malformed_signals`: a signal of the wrong size, of two dimensions
-  or holding NaN is a ``ValueError`` whose message names the signal and what is wrong,
-  and the learner goes on exactly as one that never saw it.
+  or holding NaN (the first signal too) is a ``ValueError`` whose message names the
+  signal and what is wrong, and the learner goes on exactly as one that never saw it.
 
 :func:`check_learner` runs them all. The learner gets every signal as a read-only float32
 copy (the wire format), never the dataset row itself.
@@ -42,6 +42,7 @@ import numpy as np
 
 from acquisition.cardinal_teacher import CardinalTeacher
 from acquisition.gaussian import generate_gaussian_features
+from acquisition.labelled import LabelledFeatures
 from acquisition.mixed_teacher import MixedTeacher
 from acquisition.user import SimulatedUser
 from calibration_free.protocol import NORMALISED, Learner, ProposalLike, TaskBeliefs
@@ -241,8 +242,9 @@ def check_beliefs_well_formed(
 def check_rejects_malformed_signals(
     make_learner: LearnerFactory, make_teacher: TeacherFactory, steps: int, seed: int = 4
 ) -> None:
-    """Halfway through a session, signals one value short, one too long, of two dimensions
-    and holding NaN are each a ``ValueError`` naming the signal and what is wrong; the
+    """At the first step, signals of two dimensions and holding NaN, and halfway through
+    the session these and signals one value short and one too long, are each a
+    ``ValueError`` naming the signal and what is wrong (:func:`malformed_signals`); the
     learner then goes on as a learner of the same seed that never saw them."""
     learner, reference = make_learner(seed), make_learner(seed)
     teachers = make_teacher(seed), make_teacher(seed)
@@ -255,8 +257,8 @@ def check_rejects_malformed_signals(
             for teacher, state, proposal in zip(teachers, states, proposals, strict=True)
         ]
         signal = wire_signal(answers[0][0])
-        if step == steps // 2 + 1:
-            for bad, what in malformed_signals(signal):
+        if step in (1, steps // 2 + 1):
+            for bad, what in malformed_signals(signal, size_known=step > 1):
                 _assert_rejected(learner, states[0], proposals[0].action, bad, what, step)
         learner.observe(states[0], proposals[0].action, signal)
         reference.observe(states[1], proposals[1].action, wire_signal(answers[1][0]))
@@ -287,18 +289,21 @@ def check_learner(
 # --- the assertions the checks share -------------------------------------------------------
 
 
-def malformed_signals(signal: np.ndarray) -> list[tuple[np.ndarray, str]]:
-    """Bad variants of a good signal, shape (d,), and a regular expression that the
-    rejection's message must match (after "signal")."""
+def malformed_signals(signal: np.ndarray, size_known: bool) -> list[tuple[np.ndarray, str]]:
+    """Bad variants of a good signal, shape (d,), each with a regular expression that the
+    rejection's message must match (besides naming the signal): of two dimensions and
+    holding NaN, and, once the learner knows the session's size ``size_known``, one value
+    short and one too long."""
     d = len(signal)
     nan = signal.copy()
     nan[0] = np.nan
-    return [
-        (signal[:-1].copy(), rf"\b{d - 1}\b.*\b{d}\b|\b{d}\b.*\b{d - 1}\b"),
-        (np.append(signal, signal[0]), rf"\b{d + 1}\b.*\b{d}\b|\b{d}\b.*\b{d + 1}\b"),
-        (signal[None], r"dimension|shape"),
-        (nan, r"nan"),
-    ]
+    variants = [(signal[None], r"dimension|shape"), (nan, r"nan")]
+    if size_known:
+        variants += [
+            (signal[:-1].copy(), rf"\b{d - 1}\b.*\b{d}\b|\b{d}\b.*\b{d - 1}\b"),
+            (np.append(signal, signal[0]), rf"\b{d + 1}\b.*\b{d}\b|\b{d}\b.*\b{d + 1}\b"),
+        ]
+    return variants
 
 
 def _assert_rejected(
@@ -406,8 +411,11 @@ def _same_numpy_state(first: tuple[Any, ...], second: tuple[Any, ...]) -> bool:
 # --- teachers of the project's worlds ----------------------------------------------------
 
 
-def gaussian_data(n_classes: int, seed: int, n_features: int = 4, accuracy: float = 0.9):
-    """Labelled Gaussian signals of a session seed's data stream: 40 per class."""
+def gaussian_data(
+    n_classes: int, seed: int, n_features: int = 4, accuracy: float = 0.9
+) -> LabelledFeatures:
+    """Labelled Gaussian signals of a session seed's data stream: 40 per class, shape
+    (40 n_classes, n_features), of nominal balanced accuracy ``accuracy``."""
     return generate_gaussian_features(
         40, n_classes, n_features, accuracy, session_streams(seed)[0]
     )

@@ -3,6 +3,7 @@ catches a learner that breaks its rule."""
 
 from __future__ import annotations
 
+import random
 from collections.abc import Callable
 from dataclasses import dataclass, replace
 from functools import cache, partial
@@ -254,6 +255,15 @@ class GlobalRandom(ToyLearner):
         return Proposal(int(np.random.randint(self.world.n_actions)), False)  # noqa: NPY002
 
 
+class TouchesGlobalState(ToyLearner):
+    """Draws from numpy's and the random module's global states, using nothing of it."""
+
+    def observe(self, state: int, action: int, signal: np.ndarray) -> None:
+        np.random.random()  # noqa: NPY002
+        random.random()
+        super().observe(state, action, signal)
+
+
 class DrawingBeliefs(ToyLearner):
     def beliefs(self) -> AdaptedBeliefs:
         self.rng.random()
@@ -291,9 +301,14 @@ class LiveBeliefs(ToyLearner):
 
 
 class IndexErrorOnWrongSize(ToyLearner):
+    """Checks a signal's rank and values but not its size: reads the last feature where
+    the first signal had it."""
+
     def observe(self, state: int, action: int, signal: np.ndarray) -> None:
-        weights = np.ones(4)
-        self._scores[state] += sum(weights[i] * signal[i] for i in range(len(signal)))
+        x = check_array("signal", signal, shape=(None,))
+        last = len(x) - 1 if self._n_features is None else self._n_features - 1
+        self._scores[state] += x[last] - x[0]
+        self._n_features = last + 1
         self.n_signals += 1
 
 
@@ -343,6 +358,8 @@ BROKEN = {
     "takes the target when built": (TakesTarget, _interface, "label-like parameters"),
     "uses numpy's global random state": (
         GlobalRandom, _session(check_deterministic), "proposals differ"),
+    "draws from the global random states": (
+        TouchesGlobalState, _session(check_deterministic), "global random state"),
     "draws when asked for its beliefs": (
         DrawingBeliefs, _session(check_deterministic), "proposals differ"),
     "is not normalised": (Unnormalised, _session(check_beliefs_well_formed), "sums to"),
@@ -352,7 +369,7 @@ BROKEN = {
     "returns beliefs that later change": (
         LiveBeliefs, _session(check_beliefs_well_formed), "once the session is over"),
     "crashes with IndexError on a wrong size": (
-        IndexErrorOnWrongSize, _session(check_rejects_malformed_signals), "IndexError"),
+        IndexErrorOnWrongSize, _session(check_rejects_malformed_signals), "raised IndexError"),
     "keeps a trace of a rejected signal": (
         KeepsRejected, _session(check_rejects_malformed_signals), "beliefs differ"),
     "says not what is wrong": (
