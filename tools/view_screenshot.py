@@ -1,9 +1,12 @@
 """Save a screenshot of a page of ``cfbci view`` once it shows a session at a given step.
 
 Headless Chromium (Debian's ``chromium`` and ``chromium-driver``) driven by Selenium, a
-fresh profile, the viewport set exactly (CSS pixels, times ``--scale``). The README's
-``docs/operator-view.png`` was made with a live session on ``s4.mat``::
+fresh profile, the viewport set exactly (CSS pixels, times ``--scale``). The page is opened
+with the view's access token: the one in the address if it has one, else ``--token``, else
+``$CFBCI_VIEW_TOKEN``. To make the README's ``docs/operator-view.png`` again (a live
+session on ``s4.mat``)::
 
+    export CFBCI_VIEW_TOKEN=$(python3 -c 'import secrets; print(secrets.token_urlsafe(32))')
     cfbci serve --listen tcp/127.0.0.1:7447 &
     cfbci view --connect tcp/127.0.0.1:7447 --port 8080 &
     cfbci source --session s4 --dataset ../shared/datasets/errp-features-s4/s4.mat \\
@@ -15,17 +18,30 @@ fresh profile, the viewport set exactly (CSS pixels, times ``--scale``). The REA
 from __future__ import annotations
 
 import argparse
+import os
 import tempfile
+import urllib.parse
 from pathlib import Path
 
 from selenium import webdriver
 from selenium.webdriver.chrome.service import Service
 from selenium.webdriver.support.ui import WebDriverWait
 
+from cfbci.view import TOKEN_ENV
+
 FLAGS = (
     "--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
     "--disable-component-update", "--disable-sync", "--no-first-run", "--hide-scrollbars",
 )
+
+
+def with_token(url: str, token: str | None) -> str:
+    """``url`` with ``token=`` in its query, unless it has one or ``token`` is None."""
+    parts = urllib.parse.urlsplit(url)
+    query = urllib.parse.parse_qsl(parts.query)
+    if token is None or any(name == "token" for name, _ in query):
+        return url
+    return parts._replace(query=urllib.parse.urlencode([*query, ("token", token)])).geturl()
 
 
 def main() -> None:
@@ -37,6 +53,9 @@ def main() -> None:
                         help="viewport, CSS pixels (default 1440 880)")
     parser.add_argument("--scale", type=float, default=1.5, help="device pixel ratio")
     parser.add_argument("--timeout", type=float, default=600.0, help="seconds to wait")
+    parser.add_argument("--token", default=os.environ.get(TOKEN_ENV),
+                        help=f"the view's access token (default: ${TOKEN_ENV}); not needed if "
+                        "the URL has one")
     args = parser.parse_args()
     options = webdriver.ChromeOptions()
     options.binary_location = "/usr/bin/chromium"
@@ -50,7 +69,7 @@ def main() -> None:
                 "width": args.size[0], "height": args.size[1],
                 "deviceScaleFactor": args.scale, "mobile": False,
             })
-            driver.get(args.url)
+            driver.get(with_token(args.url, args.token))
             shown = "return Number(document.getElementById('view').dataset.step) || 0"
             WebDriverWait(driver, args.timeout, poll_frequency=0.05).until(
                 lambda d: d.execute_script(shown) >= args.step
