@@ -135,6 +135,35 @@ def run_session(
     return session
 
 
+def run_in_turn(
+    first: Learner,
+    second: Learner,
+    make_teacher: TeacherFactory,
+    steps: int,
+    seed: int,
+    before_first_observes: Callable[[int, Any, Any, np.ndarray], None],
+) -> None:
+    """Step two learners in turn, each with its teacher of ``seed``, asserting at every
+    step that they propose the same; ``before_first_observes(step, state, action,
+    signal)`` is called before the first learner observes each step's signal."""
+    teachers = make_teacher(seed), make_teacher(seed)
+    states = [teacher.start() for teacher in teachers]
+    for step in range(1, steps + 1):
+        proposals = first.propose(states[0]), second.propose(states[1])
+        assert_same_proposal(*proposals, f"step {step}")
+        answers = [
+            teacher.answer(state, proposal)
+            for teacher, state, proposal in zip(teachers, states, proposals, strict=True)
+        ]
+        signals = [wire_signal(signal) for signal, _ in answers]
+        before_first_observes(step, states[0], proposals[0].action, signals[0])
+        for learner, state, proposal, signal in zip(
+            (first, second), states, proposals, signals, strict=True
+        ):
+            learner.observe(state, proposal.action, signal)
+        states = [next_state for _, next_state in answers]
+
+
 # --- the checks ----------------------------------------------------------------------------
 
 
@@ -183,26 +212,12 @@ def check_deterministic(
     make_learner: LearnerFactory, make_teacher: TeacherFactory, steps: int, seed: int = 2
 ) -> None:
     """Two learners of one seed, stepped in turn with teachers of one seed: the same
-    proposals and final beliefs (the first one's beliefs read before every proposal), and
-    the global random states (``numpy.random``, ``random``) untouched."""
+    proposals and final beliefs (the first one's beliefs read at every step), and the
+    global random states (``numpy.random``, ``random``) untouched."""
     numpy_state = np.random.get_state()  # noqa: NPY002 - the global state it must not touch
     python_state = random.getstate()
     first, second = make_learner(seed), make_learner(seed)
-    teachers = make_teacher(seed), make_teacher(seed)
-    states = [teacher.start() for teacher in teachers]
-    for step in range(1, steps + 1):
-        first.beliefs()
-        proposals = first.propose(states[0]), second.propose(states[1])
-        assert_same_proposal(*proposals, f"step {step}")
-        answers = [
-            teacher.answer(state, proposal)
-            for teacher, state, proposal in zip(teachers, states, proposals, strict=True)
-        ]
-        for learner, state, proposal, (signal, _) in zip(
-            (first, second), states, proposals, answers, strict=True
-        ):
-            learner.observe(state, proposal.action, wire_signal(signal))
-        states = [next_state for _, next_state in answers]
+    run_in_turn(first, second, make_teacher, steps, seed, lambda *_: first.beliefs())
     assert_same_beliefs(first.beliefs(), second.beliefs(), f"after {steps} steps")
     assert _same_numpy_state(np.random.get_state(), numpy_state), (  # noqa: NPY002
         f"{type(first).__name__} draws from numpy's global random state"
@@ -247,22 +262,13 @@ def check_rejects_malformed_signals(
     ``ValueError`` naming the signal and what is wrong (:func:`malformed_signals`); the
     learner then goes on as a learner of the same seed that never saw them."""
     learner, reference = make_learner(seed), make_learner(seed)
-    teachers = make_teacher(seed), make_teacher(seed)
-    states = [teacher.start() for teacher in teachers]
-    for step in range(1, steps + 1):
-        proposals = learner.propose(states[0]), reference.propose(states[1])
-        assert_same_proposal(*proposals, f"step {step}")
-        answers = [
-            teacher.answer(state, proposal)
-            for teacher, state, proposal in zip(teachers, states, proposals, strict=True)
-        ]
-        signal = wire_signal(answers[0][0])
+
+    def offer_malformed(step: int, state: Any, action: Any, signal: np.ndarray) -> None:
         if step in (1, steps // 2 + 1):
             for bad, what in malformed_signals(signal, size_known=step > 1):
-                _assert_rejected(learner, states[0], proposals[0].action, bad, what, step)
-        learner.observe(states[0], proposals[0].action, signal)
-        reference.observe(states[1], proposals[1].action, wire_signal(answers[1][0]))
-        states = [next_state for _, next_state in answers]
+                _assert_rejected(learner, state, action, bad, what, step)
+
+    run_in_turn(learner, reference, make_teacher, steps, seed, offer_malformed)
     assert_same_beliefs(
         learner.beliefs(), reference.beliefs(), "after the rejected signals and the session"
     )
