@@ -29,6 +29,7 @@ from typing import IO, Any
 import numpy as np
 import pytest
 import zenoh
+from system_deps import require
 
 from cfbci.router import READY
 from replay.recording import read_recording
@@ -44,7 +45,12 @@ TIMEOUT = 60.0  # failure guard, seconds
 STEPS = 30
 FORGED_CELL = 777  # from_state of the forged moves: no cell of a 5 x 5 grid
 
-pytestmark = pytest.mark.skipif(shutil.which("openssl") is None, reason="needs openssl")
+
+
+@pytest.fixture(autouse=True)
+def _openssl() -> None:
+    """The certificates are made with openssl (Debian's package of that name)."""
+    require("openssl", "openssl")
 
 
 @dataclass

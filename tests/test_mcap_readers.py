@@ -3,15 +3,14 @@ Foxglove builds on) and the Python mcap library's seeking reader, on a live sess
 
 The node reader is pinned by ``tests/js/package-lock.json``; when ``tests/js/node_modules``
 does not hold the locked version, the fixture runs ``npm ci`` there first (npm registry), so
-``make test`` needs nothing more than node and npm on the machine. Not skipped without them:
-the test fails, naming what is missing.
+``make test`` needs nothing more than node and npm on the machine. Without them the test
+skips, naming the packages (fails under ``CFBCI_REQUIRE_SYSTEM_DEPS=1``, as in CI).
 """
 
 from __future__ import annotations
 
 import fcntl
 import json
-import shutil
 import subprocess
 from collections import Counter
 from collections.abc import Callable
@@ -21,6 +20,7 @@ from typing import Any
 import pytest
 from live import TIMEOUT, service_process
 from mcap.reader import make_reader
+from system_deps import require
 
 from acquisition.simulated_source import SourceSettings, run_source
 from replay.recording import read_recording, recover
@@ -39,8 +39,7 @@ def _installed_version() -> str | None:
 @pytest.fixture(scope="session")
 def node_reader() -> NodeReader:
     """Runs ``tests/js/count_messages.mjs`` on a file (after ``npm ci`` if needed)."""
-    node, npm = shutil.which("node"), shutil.which("npm")
-    assert node and npm, "node and npm are needed to read recordings with @mcap/core"
+    node, npm = require("node", "nodejs"), require("npm", "npm")
     locked = json.loads((JS / "package-lock.json").read_text())
     version = locked["packages"]["node_modules/@mcap/core"]["version"]
     with (JS / ".install.lock").open("w") as lock:  # xdist workers install once

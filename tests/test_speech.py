@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from system_deps import require
 
 from acquisition.loaders import load_labelled
 from acquisition.speech import (
@@ -22,6 +23,13 @@ from acquisition.speech import (
 from cfbci.cli import main
 
 
+@pytest.fixture
+def espeak() -> str:
+    """The speech dataset is synthesised with espeak-ng (Debian's package of that name)."""
+    return require("espeak-ng", "espeak-ng")
+
+
+@pytest.mark.usefixtures("espeak")
 def test_the_default_parameters_give_an_accuracy_in_the_band_neither_chance_nor_trivial() -> None:
     # 40 utterances per word: the band 0.85-0.97 holds with margin at the command's default
     # of 100 (0.94 measured); a small set is noisier by a few points.
@@ -32,6 +40,7 @@ def test_the_default_parameters_give_an_accuracy_in_the_band_neither_chance_nor_
     assert report.with_distractors is not None and report.with_distractors < report.meanings
 
 
+@pytest.mark.usefixtures("espeak")
 def test_a_seed_gives_the_same_features_and_another_seed_other_speakers() -> None:
     speech = SpeechFeatures()
     first = speech.dataset(("grasp", "release"), 2, np.random.default_rng(7))
@@ -42,6 +51,7 @@ def test_a_seed_gives_the_same_features_and_another_seed_other_speakers() -> Non
     assert first.labels.tolist() == [0, 0, 1, 1]
 
 
+@pytest.mark.usefixtures("espeak")
 def test_dtw_distance_is_zero_on_itself_symmetric_and_smaller_for_the_same_word() -> None:
     p = SpeechParameters()
     grasp = mfcc_frames(synthesise("grasp", "en-us+m3", 150, 50), p)
@@ -53,6 +63,7 @@ def test_dtw_distance_is_zero_on_itself_symmetric_and_smaller_for_the_same_word(
     assert dtw_distance(grasp, grasp_other_voice) < dtw_distance(grasp, vision)
 
 
+@pytest.mark.usefixtures("espeak")
 def test_the_command_writes_a_guidance_dataset_the_loaders_read(tmp_path: Path) -> None:
     out = tmp_path / "speech.npz"
     assert main(["datasets", "speech", "--utterances-per-word", "10", "--distractors", "",
@@ -71,6 +82,7 @@ def test_a_missing_espeak_ng_is_named_with_its_install_command(
         espeak_executable()
 
 
+@pytest.mark.usefixtures("espeak")
 def test_one_speaker_is_decoded_better_than_speakers_drawn_per_utterance() -> None:
     # The thesis's words came from one teacher and were decoded at close to 100 %.
     words = ("yes", "no")
@@ -80,6 +92,7 @@ def test_one_speaker_is_decoded_better_than_speakers_drawn_per_utterance() -> No
     assert single.meanings > many.meanings + 0.03, (single, many)
 
 
+@pytest.mark.usefixtures("espeak")
 def test_the_speaker_and_noise_options_are_checked_and_named(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
