@@ -119,6 +119,11 @@ class FrameHypothesesLearner:
     def n_hypotheses(self) -> int:
         return len(self.frames) * self.world.n_tasks
 
+    @property
+    def n_signals(self) -> int:
+        """Signals observed so far."""
+        return self._learners[0].n_signals
+
     def pair(self, hypothesis: int) -> tuple[int, str]:
         """(task, frame) of a hypothesis index."""
         frame, task = divmod(hypothesis, self.world.n_tasks)

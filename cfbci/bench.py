@@ -56,6 +56,7 @@ from cfbci.blas import single_threaded_blas
 from cfbci.memory import keep_freed_memory
 from cfbci.simulation import SessionConfig, run_session
 from decoding.lda import DEFAULT_SHRINKAGE
+from session.tasks import TaskSession
 
 #: Tasks the naive reference is measured on; beyond, it is extrapolated linearly in T.
 NAIVE_TASKS = 25
@@ -135,14 +136,17 @@ def bench_grid(
     user = SimulatedUser(world, config.frame, data.labels, user_rng)
     learner = CalibrationFreeLearner(world, config, learner_rng)
     tasks = naive_slice(world.n_tasks)
-    state = user.start_state
-    proposal = learner.propose(state)
+    signals_seen = max(histories) + measured_steps
+    # A step is a signal observed and the next action chosen: one more step than signals.
+    session = TaskSession(world, learner, seed, signals_seen + 1)
+    move = session.start().move
     timings: dict[int, list[float]] = {h: [] for h in histories}
     naive: dict[int, list[float]] = {h: [] for h in histories}
     memory: dict[int, float] = {}
-    for n_seen in range(max(histories) + measured_steps):
-        index, _ = user.answer(state, proposal.action)
-        if proposal.declares_target:
+    for n_seen in range(signals_seen):
+        assert move is not None
+        index, _ = user.answer(session.agent, session.action)
+        if move["target_reached"]:
             user.new_target()
         measuring = [h for h in histories if h <= n_seen < h + measured_steps]
         if measuring and len(naive[measuring[0]]) < naive_repeats:
@@ -150,15 +154,12 @@ def bench_grid(
                 _time_naive(learner, tasks, signals[index], DEFAULT_SHRINKAGE)
             )
         start = time.perf_counter()
-        learner.observe(state, proposal.action, signals[index])
-        next_state = world.step(state, proposal.action)
-        proposal = learner.propose(next_state)
+        move = session.observe(signals[index]).move
         elapsed = time.perf_counter() - start
         for h in measuring:
             timings[h].append(elapsed)
             if n_seen == h + measured_steps - 1:
                 memory[h] = peak_memory_mb()
-        state = next_state
     rows = []
     for h in histories:
         ms = 1000 * np.asarray(timings[h])

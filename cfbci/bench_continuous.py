@@ -22,6 +22,7 @@ from acquisition.gaussian import generate_gaussian_features
 from calibration_free.continuous_goals import ContinuousConfig, ContinuousGoalLearner
 from cfbci.blas import single_threaded_blas
 from cfbci.memory import keep_freed_memory
+from session.plane import ContinuousSession, plane_config
 
 
 @dataclass(frozen=True)
@@ -52,17 +53,20 @@ def bench_continuous_step(
     rng = np.random.default_rng(seed)
     data = generate_gaussian_features(500, 4, 11, 0.98, rng)
     teacher = CardinalTeacher(data.labels, rng)
-    learner = ContinuousGoalLearner(config, rng)
-    for _ in range(history - 1):  # build the history without timing it
-        point = learner.propose()
-        learner.observe(point, data.features[teacher.answer(point)[0]])
+    # A step is a signal observed and the next probe chosen: one more step than signals.
+    session = ContinuousSession(
+        plane_config(seed, history + steps, config), ContinuousGoalLearner(config, rng)
+    )
+    move = session.start().move
     wall, cpu = [], []
-    for _ in range(steps):
+    for n_seen in range(history - 1 + steps):  # the first history - 1 untimed
+        assert move is not None
+        signal = data.features[teacher.answer(np.array(move["from_state"]))[0]]
         start, start_cpu = time.perf_counter(), time.process_time()
-        point = learner.propose()
-        learner.observe(point, data.features[teacher.answer(point)[0]])
-        wall.append(time.perf_counter() - start)
-        cpu.append(time.process_time() - start_cpu)
+        move = session.observe(signal).move
+        if n_seen >= history - 1:
+            wall.append(time.perf_counter() - start)
+            cpu.append(time.process_time() - start_cpu)
     wall_ms, cpu_ms = 1000 * np.array(wall), 1000 * np.array(cpu)
     return ContinuousStepTimes(
         history, config.n_hypotheses, config.n_candidates,

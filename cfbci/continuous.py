@@ -17,7 +17,7 @@ from acquisition.cardinal_teacher import CardinalTeacher
 from acquisition.labelled import LabelledFeatures
 from calibration_free.continuous_goals import ContinuousConfig, ContinuousGoalLearner
 from calibration_free.streams import session_streams
-from session.plane import ONE_BLAS_THREAD
+from session.plane import ONE_BLAS_THREAD, ContinuousSession, plane_config
 
 
 @dataclass(frozen=True)
@@ -60,8 +60,9 @@ def run_continuous_session(
     class_order: Sequence[int] | None = None,
     on_step: Callable[[ContinuousGoalLearner], None] | None = None,
 ) -> ContinuousResult:
-    """One closed-loop session of ``steps`` probes on a 4-class dataset; ``on_step`` is
-    called with the learner after each observation (it must not change it).
+    """One closed-loop session of ``steps`` probes on a 4-class dataset: a teacher
+    answering a :class:`session.plane.ContinuousSession`; ``on_step`` is called with the
+    learner after each observation (it must not change it).
 
     The learner gets each signal as float32, the wire format (as
     :func:`cfbci.simulation.run_session` does), and computes with one BLAS thread (see
@@ -79,19 +80,24 @@ def _run(
     class_order: Sequence[int] | None,
     on_step: Callable[[ContinuousGoalLearner], None] | None,
 ) -> ContinuousResult:
-    _, user_rng, learner_rng = session_streams(seed)
+    _, user_rng, _ = session_streams(seed)
     teacher = CardinalTeacher(data.labels, user_rng, class_order=class_order)
-    learner = ContinuousGoalLearner(config, learner_rng)
+    session = ContinuousSession(plane_config(seed, steps, config))
     signals = np.asarray(data.features, dtype=np.float32)
-    distances, probes = [], []
-    for _ in range(steps):
-        point = learner.propose()
-        index, _ = teacher.answer(point)
-        learner.observe(point, signals[index])
+    distances: list[float] = []
+    probes: list[tuple[float, float]] = []
+
+    def after(_: int, learner: ContinuousGoalLearner) -> None:
         if on_step is not None:
             on_step(learner)
         distances.append(float(np.linalg.norm(learner.estimate() - teacher.goal)))
-        probes.append((float(point[0]), float(point[1])))
+
+    move = session.start().move
+    while move is not None:
+        x, y = move["from_state"]
+        index, _ = teacher.answer(np.array([x, y]))
+        probes.append((x, y))
+        move = session.observe(signals[index], on_observe=after).move
     return ContinuousResult(
         seed, (float(teacher.goal[0]), float(teacher.goal[1])), tuple(distances), tuple(probes)
     )

@@ -24,8 +24,9 @@ from acquisition.user import SimulatedUser
 from calibration_free.config import LearnerConfig
 from calibration_free.frame_hypotheses import FrameHypothesesLearner
 from calibration_free.streams import session_streams
-from calibration_free.world import World, transition_draws
+from calibration_free.world import World
 from calibration_free.worlds import make_world
+from session.tasks import TaskSession
 
 TEACHER_FRAMES: tuple[str, ...] = ("feedback", "guidance")
 
@@ -85,35 +86,55 @@ def run_frame_session(
     steps: int,
     shuffle_labels: bool = False,
 ) -> FrameSessionResult:
-    """One closed-loop session of ``steps`` actions."""
+    """One closed-loop session of ``steps`` actions: a simulated user answering a
+    :class:`session.tasks.TaskSession` of the frame-hypotheses learner."""
     data_rng, user_rng, learner_rng = session_streams(seed)
     teacher_frame = TEACHER_FRAMES[seed % 2]
     user = SimulatedUser(world, teacher_frame, data.labels, user_rng)
     learner = FrameHypothesesLearner(world, TEACHER_FRAMES, config, learner_rng)
-    truth = TEACHER_FRAMES.index(teacher_frame) * world.n_tasks + user.target
-    draws = transition_draws(seed)
-    state = user.start_state
-    first, correct, user_first, confidence, likelihood = None, None, None, [], []
-    for step in range(1, steps + 1):
-        action = learner.propose(state).action
-        index, _ = user.answer(state, action)
+    session = TaskSession(world, learner, seed, steps)
+    pair = _UserPair(TEACHER_FRAMES.index(teacher_frame) * world.n_tasks + user.target)
+    session.start()
+    while not session.finished:
+        index, _ = user.answer(session.agent, session.action)
         if shuffle_labels:  # the control: a signal drawn regardless of the label
             index = int(data_rng.integers(len(data.labels)))
-        learner.observe(state, action, data.features[index])
-        beliefs = learner.beliefs()
-        confidence.append(float(beliefs.confidence[truth]))
-        if step % 10 == 0:
-            likelihood.append(float(beliefs.normalised()[truth]))
-        if first is None and beliefs.confident:
-            first, correct = step, beliefs.best == truth
-        if user_first is None and beliefs.confident and beliefs.best == truth:
-            user_first = step
-        state = world.step(state, action, draws.uniform(step))
+        session.observe(data.features[index], on_observe=pair)
     winning = learner.pair(learner.beliefs().best)[1]
     return FrameSessionResult(
-        seed, teacher_frame, user.target, first, correct, user_first, winning,
-        tuple(confidence), tuple(likelihood),
+        seed, teacher_frame, user.target, pair.first, pair.correct, pair.user_first, winning,
+        tuple(pair.confidence), tuple(pair.likelihood),
     )
+
+
+class _UserPair:
+    """What the beliefs say of the user's pair after every signal (the session's
+    ``on_observe``): the fields of :class:`FrameSessionResult` it names.
+
+    Parameters
+    ----------
+    truth : int
+        The user's pair, ``frame * n_tasks + task``.
+    """
+
+    def __init__(self, truth: int) -> None:
+        self.truth = truth
+        self.first: int | None = None
+        self.correct: bool | None = None
+        self.user_first: int | None = None
+        self.confidence: list[float] = []
+        self.likelihood: list[float] = []
+
+    def __call__(self, step: int, learner: FrameHypothesesLearner) -> None:
+        """Read the beliefs after the signal of ``step`` (1-based)."""
+        beliefs = learner.beliefs()
+        self.confidence.append(float(beliefs.confidence[self.truth]))
+        if step % 10 == 0:
+            self.likelihood.append(float(beliefs.normalised()[self.truth]))
+        if self.first is None and beliefs.confident:
+            self.first, self.correct = step, beliefs.best == self.truth
+        if self.user_first is None and beliefs.confident and beliefs.best == self.truth:
+            self.user_first = step
 
 
 @dataclass(frozen=True)

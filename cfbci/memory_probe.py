@@ -8,9 +8,10 @@ class, :func:`acquisition.gaussian.generate_gaussian_features`), runs a 12-step 
 session on a 2 x 2 grid with the same learner settings (what a service pays once, not per
 session: lazy imports, LAPACK workspaces), gives the heap's free memory back to the kernel,
 resets the kernel's peak-RSS counter (``/proc/self/clear_refs``), reads ``VmRSS`` and runs
-the session (:func:`cfbci.simulation.run_session`, the learner and a simulated user, no
-network) with the learner stepped as the service steps it: every observation is followed
-by the state message's fields (:func:`session.config.state_fields`, whose cross-validated
+the session (:func:`cfbci.simulation.run_session`, the learner's session and a simulated
+user, no network) with the learner stepped as the service steps it: every observation is
+followed by the state message's fields (its ``after_observe``:
+:func:`session.tasks.state_fields`, whose cross-validated
 balanced accuracy fits the k-fold decoders even for a likelihood that needs none). The
 peak resident growth is ``VmHWM`` afterwards minus ``VmRSS`` before. Linux only.
 
@@ -36,11 +37,10 @@ from acquisition.gaussian import generate_gaussian_features
 from acquisition.loaders import N_CLASSES
 from acquisition.mixed_teacher import SIGNAL_DIMS, gaussian_signals
 from calibration_free.config import LearnerConfig
-from calibration_free.learner import CalibrationFreeLearner
+from calibration_free.learner import TaskLearner
 from calibration_free.puddle_learner import PuddleConfig
 from calibration_free.world import World
 from calibration_free.worlds import make_world
-from cfbci import simulation
 from cfbci.blas import single_threaded_blas
 from cfbci.limits import world_memory_bytes
 from cfbci.memory import keep_freed_memory
@@ -156,14 +156,6 @@ def measure(case: MemoryCase) -> MemoryMeasurement:
     return MemoryMeasurement(case, measured, case.estimate_bytes() / 2**20)
 
 
-class _ServiceStepLearner(CalibrationFreeLearner):
-    """The learner as the service steps it (see the module docstring)."""
-
-    def observe(self, state: int, action: int, signal: np.ndarray) -> None:
-        super().observe(state, action, signal)
-        state_fields(self)
-
-
 def _status_kib(name: str) -> int:
     """A ``/proc/self/status`` field in KiB (e.g. ``VmRSS``)."""
     for line in Path("/proc/self/status").read_text().splitlines():
@@ -182,11 +174,15 @@ def _release_free_heap() -> None:
     ctypes.CDLL(ctypes.util.find_library("c")).malloc_trim(0)
 
 
+def _state_message(learner: TaskLearner) -> None:
+    """What the service computes after every observation: the state message's fields."""
+    state_fields(learner)
+
+
 def _peak_growth_mib(case: MemoryCase) -> float:
     """In the measuring process: the session's peak resident growth, MiB."""
     keep_freed_memory()
     single_threaded_blas()
-    simulation.CalibrationFreeLearner = _ServiceStepLearner  # this process only
     frame = case.settings.frame
     data = generate_gaussian_features(
         SIGNALS_PER_CLASS, N_CLASSES[frame], case.features, ACCURACY, case.seed
@@ -194,12 +190,13 @@ def _peak_growth_mib(case: MemoryCase) -> float:
     config = SessionConfig(
         steps=case.steps, grid=case.grid, learner=case.settings, world=case.world
     )
-    run_session(case.seed, replace(config, steps=_WARM_UP_STEPS, grid=2, world="grid"), data)
+    warm_up = replace(config, steps=_WARM_UP_STEPS, grid=2, world="grid")
+    run_session(case.seed, warm_up, data, after_observe=_state_message)
     gc.collect()
     _release_free_heap()
     Path("/proc/self/clear_refs").write_text("5")  # resets VmHWM to the current RSS
     before = _status_kib("VmRSS")
-    run_session(case.seed, config, data)
+    run_session(case.seed, config, data, after_observe=_state_message)
     return (_status_kib("VmHWM") - before) / 1024
 
 

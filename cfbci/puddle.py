@@ -23,7 +23,8 @@ from acquisition.mixed_teacher import (
 )
 from calibration_free.puddle import PuddleWorld
 from calibration_free.puddle_learner import PuddleConfig, PuddleLearner
-from calibration_free.streams import session_streams, world_stream
+from calibration_free.streams import session_streams
+from session.plane import PUDDLE_MOVES, PuddleSession, plane_config
 
 __all__ = [
     "SIGNAL_ACCURACY", "SIGNAL_DIMS", "PuddleResult", "PuddleStep", "gaussian_signals",
@@ -98,33 +99,37 @@ def run_puddle_session(
     data: LabelledFeatures | None = None,
     on_step: Callable[[PuddleStep], None] | None = None,
 ) -> PuddleResult:
-    """One closed-loop session; ``data`` defaults to :func:`gaussian_signals`.
+    """One closed-loop session: a teacher answering a :class:`session.plane.PuddleSession`,
+    which restarts the agent (``reset``) when a move enters the task's goal cell; ``data``
+    defaults to :func:`gaussian_signals`.
 
     ``on_step``, if given, is called with every step's :class:`PuddleStep` (it changes
     nothing in the session).
     """
-    data_rng, user_rng, learner_rng = session_streams(seed)
-    moves = world_stream(seed)
+    data_rng, user_rng, _ = session_streams(seed)
     data = gaussian_signals(data_rng) if data is None else data
     teacher = MixedTeacher(world, data.labels, user_rng, mixing=config.mixing)
-    learner = PuddleLearner(world, config, learner_rng)
+    session = PuddleSession(plane_config(seed, steps, config), world)
     goal = world.tasks[teacher.task].goal
-    state = moves.uniform(size=2)
-    update_steps, taught, reached = [], [], 0
-    for step in range(1, steps + 1):
-        action = learner.propose(state)
-        index, label = teacher.answer(state, action)
-        learner.observe(state, action, data.features[index])
+    update_steps: list[int] = []
+    taught: list[float] = []
+
+    def after(step: int, learner: PuddleLearner) -> None:
         if step % config.update_every == 0:
             update_steps.append(step)
             taught.append(float(learner.probabilities[teacher.task]))
-        before, state = state, world.move(state, action, moves)
-        restart = None
-        if world.task_cell(state) == goal:
-            reached += 1
-            restart = moves.uniform(size=2)
+
+    move = session.start().move
+    while move is not None:
+        state, outcome = np.array(move["from_state"]), np.array(move["to_state"])
+        action = PUDDLE_MOVES.index(move["action"])
+        index, label = teacher.answer(state, action)
+        reset = world.task_cell(outcome) == goal
+        step = session.observe(data.features[index], reset, after)
         if on_step is not None:
-            on_step(PuddleStep(step, before, action, label, state, restart))
-        if restart is not None:
-            state = restart
-    return PuddleResult(seed, teacher.task, tuple(update_steps), tuple(taught), reached)
+            restart = session.agent if reset else None
+            on_step(PuddleStep(move["step"], state, action, label, outcome, restart))
+        move = step.move
+    return PuddleResult(
+        seed, teacher.task, tuple(update_steps), tuple(taught), len(session.restarts)
+    )

@@ -66,6 +66,7 @@ from calibration_free.world import GridWorld
 from cfbci.service import serve
 from replay.recording import SessionRecorder, decode_array, read_recording
 from session.config import learner_settings
+from session.tasks import TaskSession
 from wire.zenoh_config import free_tcp_endpoint, peer_config
 
 #: Grid side of the soak sessions (T = GRID ** 2 tasks).
@@ -205,40 +206,48 @@ def _recording_figures(path: Path, steps: int) -> tuple[float, int]:
     return summary.statistics.message_count / steps, n_features
 
 
-class _OfflineLearner:
-    """The service's learner for the soak's config, run in this process on random feature
-    vectors: the reference for the memory a step of history takes and for the machine's
-    speed at the moment (what the learner keeps, and its cost at a short history, do not
-    depend on the values)."""
+class _OfflineSession:
+    """The service's session for the soak's config, stepped in this process on random
+    feature vectors from cell 0: the reference for the memory a step of history takes and
+    for the machine's speed at the moment (what the learner keeps, and its cost at a short
+    history, do not depend on the values).
 
-    def __init__(self, n_features: int) -> None:
-        self.world = GridWorld(GRID)
+    Parameters
+    ----------
+    n_features : int
+        Length of the feature vectors.
+    steps : int
+        Steps it will be asked for (:meth:`step`).
+    """
+
+    def __init__(self, n_features: int, steps: int) -> None:
+        world = GridWorld(GRID)
         settings = learner_settings({}, "feedback")
-        self.learner = CalibrationFreeLearner(self.world, settings, np.random.default_rng(0))
+        learner = CalibrationFreeLearner(world, settings, np.random.default_rng(0))
+        # One more step than signals: the last signal's next action is chosen too.
+        self.session = TaskSession(world, learner, 0, steps + 1, start=0)
+        self.session.start()
         self.n_features = n_features
-        self.state = 0
         self._rng = np.random.default_rng(1)
 
     def step(self) -> int:
-        """One update (``propose`` then ``observe``, as a service's step); its time, ns."""
+        """One update (a signal observed and the next action chosen, as a service's step);
+        its time, ns."""
         signal = self._rng.normal(size=self.n_features).astype(np.float32)
         started = time.perf_counter_ns()
-        action = self.learner.propose(self.state).action
-        self.learner.observe(self.state, action, signal)
-        elapsed = time.perf_counter_ns() - started
-        self.state = self.world.step(self.state, action)
-        return elapsed
+        self.session.observe(signal)
+        return time.perf_counter_ns() - started
 
 
 def _learner_bytes_per_step(
     n_features: int, steps: int = 200, warmup: int = 40
 ) -> tuple[float, float]:
     """Python memory the learner's history takes per step, bytes (tracemalloc, from step
-    ``warmup`` to step ``steps`` of an :class:`_OfflineLearner`): what it keeps between
+    ``warmup`` to step ``steps`` of an :class:`_OfflineSession`): what it keeps between
     steps, and its peak within a step (what it keeps plus the step's temporaries, which
     also grow with the history; with freed memory kept in the heap, RSS follows the peak).
     """
-    offline = _OfflineLearner(n_features)
+    offline = _OfflineSession(n_features, steps)
     for _ in range(warmup - 1):
         offline.step()
     tracemalloc.start()
@@ -253,7 +262,7 @@ def _learner_bytes_per_step(
     return (kept_after - kept_before) / n, (peak_after - peak_before) / n
 
 
-def _traced_step(offline: _OfflineLearner) -> tuple[int, int]:
+def _traced_step(offline: _OfflineSession) -> tuple[int, int]:
     """One step under tracemalloc: bytes traced after it, and their peak during it."""
     tracemalloc.reset_peak()
     offline.step()
@@ -263,16 +272,29 @@ def _traced_step(offline: _OfflineLearner) -> tuple[int, int]:
 class _SpeedReference:
     """Median time of 30 offline learner steps at a short history (50 to 350 signals
     over a 10,000-step soak), taken at every window of the long session while the service
-    waits: how fast the machine is then, so that growth can be told from load."""
+    waits: how fast the machine is then, so that growth can be told from load.
 
-    def __init__(self, recording: Path, warmup: int = 50, steps: int = 30) -> None:
-        self._recording, self._warmup, self._steps = recording, warmup, steps
-        self._offline: _OfflineLearner | None = None
+    Parameters
+    ----------
+    recording : Path
+        The long session's recording (its feature size).
+    windows : int
+        Windows of the long session (calls of :meth:`measure_ms`).
+    warmup, steps : int
+        Offline steps before the first window, and per window.
+    """
+
+    def __init__(self, recording: Path, windows: int, warmup: int = 50, steps: int = 30) -> None:
+        self._recording, self._windows = recording, windows
+        self._warmup, self._steps = warmup, steps
+        self._offline: _OfflineSession | None = None
 
     def measure_ms(self) -> float:
         if self._offline is None:  # the feature size, from the recording so far
             features = read_recording(self._recording).messages["/features"][0][1]
-            self._offline = _OfflineLearner(decode_array(features).size)
+            self._offline = _OfflineSession(
+                decode_array(features).size, self._warmup + self._windows * self._steps
+            )
             for _ in range(self._warmup):
                 self._offline.step()
         offline = self._offline
@@ -305,7 +327,7 @@ def soak_long(
     """
     rss: list[int] = []
     reference_ms: list[float] = []
-    reference = _SpeedReference(record_dir / f"{_LONG}.mcap")
+    reference = _SpeedReference(record_dir / f"{_LONG}.mcap", steps // every)
     started = time.perf_counter()
 
     with _running_service(record_dir) as service:

@@ -207,6 +207,9 @@ class ContinuousSession(_PlaneSession):
     ----------
     config : dict
         A config message's fields (``world`` "continuous").
+    learner : ContinuousGoalLearner, optional
+        A caller's own learner (offline, on a stream of its own); default the config's, on
+        the session's learner stream.
 
     Attributes
     ----------
@@ -220,12 +223,16 @@ class ContinuousSession(_PlaneSession):
     (n_hypotheses,)) after the latest signal (before any: the initial pool).
     """
 
-    def __init__(self, config: dict[str, Any]) -> None:
+    def __init__(
+        self, config: dict[str, Any], learner: ContinuousGoalLearner | None = None
+    ) -> None:
         self.steps = config["steps"]
-        with threadpool_limits(**ONE_BLAS_THREAD):
-            self.learner = ContinuousGoalLearner(
-                plane_settings(config), session_streams(config["seed"])[2]
-            )
+        if learner is None:
+            with threadpool_limits(**ONE_BLAS_THREAD):
+                learner = ContinuousGoalLearner(
+                    plane_settings(config), session_streams(config["seed"])[2]
+                )
+        self.learner = learner
         self.moves: list[dict[str, Any]] = []
         self._point: np.ndarray | None = None
         self._state = self._snapshot()
@@ -274,11 +281,13 @@ class PuddleSession(_PlaneSession):
     ----------
     config : dict
         A config message's fields (``world`` "puddle").
+    world : PuddleWorld, optional
+        The world, its policy tables built or not; default :func:`puddle_world`, shared
+        by every session of the process.
 
     Attributes
     ----------
     world : PuddleWorld
-        Shared by every session of the process (:func:`puddle_world`).
     learner : PuddleLearner
     agent : ndarray, shape (2,)
         The agent's state: where the next move starts (after the last move, before its
@@ -290,9 +299,9 @@ class PuddleSession(_PlaneSession):
     after the latest signal.
     """
 
-    def __init__(self, config: dict[str, Any]) -> None:
+    def __init__(self, config: dict[str, Any], world: PuddleWorld | None = None) -> None:
         self.steps = config["steps"]
-        self.world = puddle_world()
+        self.world = puddle_world() if world is None else world
         settings = plane_settings(config)
         assert isinstance(settings, PuddleConfig)
         self._draws = world_stream(config["seed"])
@@ -364,6 +373,18 @@ def goal_probabilities(probabilities: np.ndarray) -> np.ndarray:
     puddle tasks' normalised likelihoods summed over their puddles, shape (25,)."""
     return np.bincount(_goal_cells(), weights=np.asarray(probabilities, dtype=np.float64),
                        minlength=TASK_CELLS**2)
+
+
+def plane_config(
+    seed: int, steps: int, settings: ContinuousConfig | PuddleConfig
+) -> dict[str, Any]:
+    """The config message fields of a plane-world session of ``settings`` (its world and
+    frame those of the settings' class)."""
+    world = "puddle" if isinstance(settings, PuddleConfig) else "continuous"
+    return {
+        "seed": seed, "steps": steps, "world": world, "frame": PLANE_FRAMES[world],
+        "learner": dataclasses.asdict(settings),
+    }
 
 
 def plane_session(config: dict[str, Any]) -> ContinuousSession | PuddleSession:

@@ -37,6 +37,8 @@ class TaskSession(Session):
     decisions : bool
         Keep the beliefs each move was chosen with (:attr:`Step.decision`): the offline
         simulation's traces and metrics need them; the service does not.
+    start : int, optional
+        The agent's start state; default the session's (:func:`session.config.start_state`).
 
     Attributes
     ----------
@@ -47,13 +49,19 @@ class TaskSession(Session):
     """
 
     def __init__(
-        self, world: World, learner: Any, seed: int, steps: int, decisions: bool = False
+        self,
+        world: World,
+        learner: Any,
+        seed: int,
+        steps: int,
+        decisions: bool = False,
+        start: int | None = None,
     ) -> None:
         self.world = world
         self.learner = learner
         self.steps = steps
         self.draws = transition_draws(seed)
-        self.agent = start_state(seed, world)
+        self.agent = start_state(seed, world) if start is None else start
         self.action = 0
         self.moves: list[dict[str, Any]] = []
         self._decisions = decisions

@@ -2,8 +2,9 @@
 
 Closed-loop sessions on the 5 x 5 grid with a dataset (default ``s4.mat``, 34 features):
 for every seed, one session per likelihood, one after the other (so that the machine's
-load drifts across all of them alike); the time of ``observe`` + the next ``propose`` of
-every step, in milliseconds, with one BLAS thread (as ``cfbci simulate`` runs). Prints,
+load drifts across all of them alike); the time of every step of the session (a signal
+observed, the next action chosen), in milliseconds, with one BLAS thread (as ``cfbci
+simulate`` runs). Prints,
 per likelihood and window of steps, the median and the 10th-90th percentiles, and the
 "matching" median of the same window divided by that median (the speed-up)::
 
@@ -27,26 +28,28 @@ from calibration_free.streams import session_streams
 from calibration_free.world import GridWorld
 from cfbci.blas import single_threaded_blas
 from cfbci.cli import parse_settings
+from session.tasks import TaskSession
 
 
 def step_times(config: LearnerConfig, features: np.ndarray, labels: np.ndarray, seed: int,
                steps: int) -> np.ndarray:
-    """Milliseconds of ``observe`` + next ``propose`` of every step of one session."""
+    """Milliseconds of every step (a signal observed and the next action chosen) of one
+    session."""
     world = GridWorld(5)
     _, user_rng, learner_rng = session_streams(seed)
     user = SimulatedUser(world, config.frame, labels, user_rng)
     learner = CalibrationFreeLearner(world, config, learner_rng)
-    state = user.start_state
-    proposal = learner.propose(state)
+    # One more step than signals: the last signal's next action is chosen too.
+    session = TaskSession(world, learner, seed, steps + 1)
+    move = session.start().move
     times = np.empty(steps)
     for step in range(steps):
-        index, _ = user.answer(state, proposal.action)
-        if proposal.declares_target:
+        assert move is not None
+        index, _ = user.answer(session.agent, session.action)
+        if move["target_reached"]:
             user.new_target()
         start = time.perf_counter()
-        learner.observe(state, proposal.action, features[index])
-        state = world.step(state, proposal.action)
-        proposal = learner.propose(state)
+        move = session.observe(features[index]).move
         times[step] = time.perf_counter() - start
     return 1000 * times
 
