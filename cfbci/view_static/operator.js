@@ -104,8 +104,9 @@
       refs: [{y: m.threshold, colour: COLOURS.threshold,
               label: `threshold β = ${m.threshold}${m.threshold_known ? "" : " (default)"}`}],
       marks,
-      keys: [{colour: COLOURS.correct, label: "correct target"},
-             {colour: COLOURS.wrong, label: "wrong target"}],
+      keys: m.truth_hidden ? [{colour: COLOURS.pending, label: "target (truth hidden)"}]
+        : [{colour: COLOURS.correct, label: "correct target"},
+           {colour: COLOURS.wrong, label: "wrong target"}],
       empty: "no beliefs yet",
     });
     const chance = m.n_classes ? 1 / m.n_classes : null;
