@@ -379,7 +379,11 @@ class LearnerConfig:
         if value == CHOSEN_SHRINKAGE:
             self._check_chosen_shrinkage(name)
             return
-        check_option(name, value, (*SHRINKAGE_RULES, CHOSEN_SHRINKAGE))
+        if value not in (*SHRINKAGE_RULES, CHOSEN_SHRINKAGE):
+            forms = ", ".join(repr(v) for v in (*SHRINKAGE_RULES, CHOSEN_SHRINKAGE))
+            raise ValueError(
+                f"{name} must be a number in [0, 1] or one of {forms}; got {value!r}"
+            )
         if self.decoder != "lda" or self.likelihood == "bhattacharyya":
             raise ValueError(
                 f"{name} {value!r} is chosen from the pooled covariance: it needs decoder "

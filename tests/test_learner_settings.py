@@ -119,3 +119,13 @@ def test_a_confidence_between_the_frames_thresholds_declares_in_one_frame_only()
         assert beliefs.required == beliefs.threshold == DEFAULT_BETA[frame]
         confident[frame] = beliefs.confident
     assert confident == {"feedback": False, "guidance": True}
+
+
+def test_an_unknown_shrinkage_names_every_accepted_form() -> None:
+    """A number is accepted too: the message says so, besides the named rules."""
+    for name in ("shrinkage", "first_target_shrinkage"):
+        with pytest.raises(ValueError) as error:
+            LearnerConfig.from_dict({name: "banana"})
+        message = str(error.value)
+        assert "a number in [0, 1]" in message and "'oas'" in message and "'cv'" in message
+        assert name in message and "'banana'" in message
