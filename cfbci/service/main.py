@@ -3,6 +3,7 @@ SIGINT or SIGTERM."""
 
 from __future__ import annotations
 
+import json
 import logging
 import signal
 from collections.abc import Sequence
@@ -53,13 +54,16 @@ def serve(
     """
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
     keep_freed_memory()
-    with zenoh.open(peer_config(listen, connect, zenoh_config)) as session:
+    config = peer_config(listen, connect, zenoh_config)
+    with zenoh.open(config) as session:
         service = PipelineService(
             session, record_dir, limits, on_end=on_end, resume=resume, service_id=service_id
         )
         for signum in (signal.SIGINT, signal.SIGTERM):
             signal.signal(signum, lambda *_: service.stop())
+        # The endpoints in force: the options', else the --zenoh-config file's.
         log.info("service %s serving on listen=%s connect=%s", service.registration.service,
-                 list(listen), list(connect))
+                 json.loads(config.get_json("listen/endpoints")),
+                 json.loads(config.get_json("connect/endpoints")))
         service.run()
     log.info("stopped")
