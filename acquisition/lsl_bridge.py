@@ -1,11 +1,16 @@
 """The LSL bridge: a Zenoh source whose epochs are cut from an amplifier's LSL stream.
 
-``cfbci lsl-bridge`` stands where the replay source stands in ``cfbci session``: it sends
-the session's ``config`` to the pipeline service, forwards every ``move`` of the service
-to the stimulus program (the LSL move stream, :func:`acquisition.lsl_streams.move_marker`)
-and answers it with the ``epoch`` cut from the continuous EEG around the stimulus
-program's onset marker of that step (docs/protocol.md). It publishes no ``truth``: in the
-lab nobody knows it; ``cfbci lsl-simulator`` publishes its own.
+``cfbci lsl-bridge`` stands where the simulated source stands in ``cfbci session``: it
+sends the session's ``config`` to the pipeline service, forwards every ``move`` of the
+service to the stimulus program (the LSL move stream,
+:func:`acquisition.lsl_streams.move_marker`) and answers it with the ``epoch`` cut from the
+continuous EEG around the stimulus program's onset marker of that step (docs/protocol.md).
+It publishes no ``truth``: in the lab nobody knows it; ``cfbci lsl-simulator`` publishes
+its own. The loop is every client's, :class:`wire.client.Client`: the config is re-sent
+until the session starts and each epoch until the next move arrives (a service that
+dropped one, or was restarted, still gets it), a move sent again is the one the bridge
+has (the stimulus program sees it once), and the session ends only on ``session_ended``
+or on a ``session_rejected`` answering the bridge's own config.
 
 Timing. Samples are placed by their LSL timestamps, markers by theirs; both are mapped to
 this machine's clock with the inlets' ``time_correction()`` (the marker time is then
@@ -29,7 +34,6 @@ is resolved again by name (a restarted source is found with its new uid).
 from __future__ import annotations
 
 import logging
-import queue
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -51,8 +55,7 @@ from acquisition.lsl_streams import (
     resolve_inlet,
 )
 from wire import protocol
-from wire.protocol import SequenceTracker
-from wire.transport import Outbox, Pump, Received, decode_from_service, wait_for_subscribers
+from wire.client import Client
 from wire.zenoh_config import peer_config
 
 log = logging.getLogger("cfbci.lsl_bridge")
@@ -96,8 +99,8 @@ class BridgeSettings:
         An onset marker arriving more than this many seconds after its timestamp is
         reported as late.
     timeout : float
-        Seconds to find a stream, or without a message from the service or an onset from
-        the stimulus program, before giving up.
+        Seconds to find a stream, or that the service or the stimulus program may keep the
+        bridge waiting, before giving up.
     """
 
     session: str
@@ -256,10 +259,11 @@ def bridge_session(
     ------
     TimeoutError
         If a stream is not found, no stimulus program subscribes to the move stream, no
-        service subscribes to the config, or the service or the stimulus program falls
-        silent for ``settings.timeout`` s.
+        service subscribes to the config, or the service or the stimulus program keeps the
+        bridge waiting for ``settings.timeout`` s.
     RuntimeError
-        If the service rejects the config.
+        If the service rejects the session (a ``session_rejected`` event answering its
+        config); ``error`` events about single messages are only logged.
     ValueError
         If the EEG stream's metadata do not describe EEG (see
         :func:`acquisition.lsl_streams.eeg_stream_meta`).
@@ -275,67 +279,49 @@ def bridge_session(
     if not moves.wait_for_consumers(settings.timeout):
         raise TimeoutError(f"no stimulus program subscribed to the move stream "
                            f"{settings.moves!r} within {settings.timeout:g} s")
-    sid = settings.session
-    inbox: queue.SimpleQueue[Received] = queue.SimpleQueue()
-    pumps = [Pump(session, protocol.key(sid, kind), kind, inbox)
-             for kind in ("move", "state", "event")]
-    outbox = Outbox(session)
-    try:
-        if not wait_for_subscribers(outbox.publisher(protocol.key(sid, "config")),
-                                    settings.timeout):
-            raise TimeoutError(f"no service subscribed to {protocol.key(sid, 'config')} "
-                               f"within {settings.timeout:g} s")
-        outbox.send("config", sid, {
-            "seed": settings.seed, "world": "grid", "grid": settings.grid, "frame": settings.frame,
-            "steps": settings.steps, "learner": settings.learner,
-            "dataset": {"description": f"LSL streams {settings.eeg!r} (EEG) and "
-                                       f"{settings.markers!r} (markers)"},
-            "signal": "epochs", "sfreq": meta.sfreq, "tmin": first / meta.sfreq,
-            "ch_names": list(meta.ch_names),
-        })
-        bridge = _Bridge(settings, meta, (first, last), eeg, markers, moves, outbox, summary)
-        while not bridge.ended and keep_running():
-            bridge.poll(inbox)
-        return summary
-    finally:
-        for pump in pumps:
-            pump.close()
-        outbox.close()
+    config = {
+        "seed": settings.seed, "world": "grid", "grid": settings.grid, "frame": settings.frame,
+        "steps": settings.steps, "learner": settings.learner,
+        "dataset": {"description": f"LSL streams {settings.eeg!r} (EEG) and "
+                                   f"{settings.markers!r} (markers)"},
+        "signal": "epochs", "sfreq": meta.sfreq, "tmin": first / meta.sfreq,
+        "ch_names": list(meta.ch_names),
+    }
+    with Client(session, settings.session, log, settings.timeout) as client:
+        bridge = _Bridge(settings, meta, (first, last), eeg, markers, moves, client, summary)
+        client.run(config, bridge, keep_running)
+    return summary
 
 
 class _Bridge:
-    """The bridge's loop: EEG in, markers in, moves out, epochs out."""
+    """The bridge's side of the session (a :class:`wire.client.Answerer`): EEG in, markers
+    in, moves out to the stimulus program, epochs out to the client."""
 
     def __init__(
         self, settings: BridgeSettings, meta: StreamMeta, window: tuple[int, int],
-        eeg: _Input, markers: _Input, moves: pylsl.StreamOutlet, outbox: Outbox,
+        eeg: _Input, markers: _Input, moves: pylsl.StreamOutlet, client: Client,
         summary: BridgeSummary,
     ) -> None:
         self.settings, self.meta, self.window = settings, meta, window
-        self.eeg, self.markers, self.moves, self.outbox = eeg, markers, moves, outbox
+        self.eeg, self.markers, self.moves, self.client = eeg, markers, moves, client
         self.summary = summary
         self.buffer = SampleBuffer(len(meta.ch_names), meta.sfreq, settings.buffer_seconds,
                                    settings.gap_tolerance)
         self.times = np.arange(window[0], window[1] + 1) / meta.sfreq
-        self.trackers = {kind: SequenceTracker() for kind in ("move", "state", "event")}
-        self.started = self.ended = False
         self.awaited: _Awaited | None = None
-        # Last EEG sample, and last progress (a service message, an onset, an epoch), ns.
+        # Last EEG sample, and last progress on the awaited step (its move, its onset), ns.
         self.eeg_ns = self.progress_ns = time.monotonic_ns()
         self.silent = False
 
-    def poll(self, inbox: queue.SimpleQueue[Received]) -> None:
-        """One round: take the EEG, the markers and the service's messages; cut what is due."""
+    def poll(self) -> float:
+        """One round: take the EEG and the markers; cut what is due. The EEG inlet's pull
+        is the round's wait, so the client does not wait for the service (0 s)."""
         self._take_eeg()
         self._take_markers()
-        while True:
-            try:
-                self._on_service(inbox.get_nowait())
-            except queue.Empty:
-                break
         if self.awaited is not None and self.awaited.onset is not None:
             self._try_cut(self.awaited)
         self._check_silence()
+        return 0.0
 
     def _take_eeg(self) -> None:
         samples, times = self.eeg.pull(_POLL_SECONDS, as_numpy=True)
@@ -403,7 +389,7 @@ class _Bridge:
     def _publish(self, awaited: _Awaited, epoch: Epoch) -> None:
         data = apply_baseline(epoch.data, self.times, self.settings.baseline)
         fields = {"step": awaited.step, "signal": "epochs", "ch_names": list(self.meta.ch_names)}
-        self.outbox.send("epoch", self.settings.session, fields, data)
+        self.client.send_epoch(fields, data)
         self.summary.latency_ns.append(time.monotonic_ns() - epoch.last_arrival_ns)
         self.summary.age_s.append(pylsl.local_clock() - epoch.last_time - self.eeg.offset)
         self.summary.epochs.append(
@@ -416,38 +402,28 @@ class _Bridge:
         awaited.sent_at = pylsl.local_clock()
         self.moves.push_sample([move_marker(awaited.move, awaited.repeat)])
 
-    def _on_service(self, received: Received) -> None:
-        self.progress_ns = time.monotonic_ns()
-        message = decode_from_service(received, self.trackers, log)
-        if message is None or message.kind == "state":
-            return
-        if message.kind == "event":
-            event, text = message.fields["event"], message.fields["message"]
-            if event == "session_started":
-                self.started = True
-            elif event == "session_ended":
-                self.ended = True
-            elif event == "session_rejected" or (event == "error" and not self.started):
-                raise RuntimeError(f"the service rejected the session: {text}")
-            (log.warning if event == "error" else log.info)("%s: %s", event, text)
-            return
+    def on_move(self, move: protocol.Message) -> None:
+        """Forward the move to the stimulus program; its epoch is cut once its onset marker
+        and window have come (:meth:`poll`)."""
         if self.awaited is not None:
             log.warning("move of step %d while step %d awaits its epoch; following the service",
-                        message.fields["step"], self.awaited.step)
-        self.awaited = _Awaited(message.fields, 0.0)
+                        move.fields["step"], self.awaited.step)
+        self.progress_ns = time.monotonic_ns()
+        self.awaited = _Awaited(move.fields, 0.0)
         self._send_move(self.awaited)
 
     def _check_silence(self) -> None:
+        """Report a silent EEG stream; give up on a step whose onset or window does not
+        come (the client gives up on a silent service)."""
         now = time.monotonic_ns()
         if not self.silent and now - self.eeg_ns > _SILENCE_SECONDS * 1e9:
             log.warning("EEG stream %r: no sample for %.1f s", self.settings.eeg,
                         (now - self.eeg_ns) / 1e9)
             self.silent = True
-        if now - self.progress_ns > self.settings.timeout * 1e9:
-            awaited = self.awaited
+        awaited = self.awaited
+        if awaited is not None and now - self.progress_ns > self.settings.timeout * 1e9:
             what = (
-                "a move of the service" if awaited is None
-                else f"the onset marker of step {awaited.step}" if awaited.onset is None
+                f"the onset marker of step {awaited.step}" if awaited.onset is None
                 else f"the samples of step {awaited.step}'s window"
             )
             raise TimeoutError(f"session {self.settings.session!r}: waited "

@@ -1,9 +1,11 @@
-"""The replay source: a simulated user answering the live service's moves over Zenoh.
+"""The simulated source: a simulated user answering the live service's moves over Zenoh.
 
 It plays the part of :func:`cfbci.simulation.run_session`'s user against the pipeline
 service (docs/protocol.md): it publishes the session's ``config``, waits for
 ``session_started``, then answers every ``move`` with the ``epoch`` of that step and the
-step's ``truth``, until ``session_ended``.
+step's ``truth``, until ``session_ended``. The loop (re-sending, sequence numbers, the
+events that start and end the session, the timeout) is every client's,
+:class:`wire.client.Client`; this module is the user's side: the signals and the answers.
 
 The random streams are those of the simulation (:func:`calibration_free.streams.session_streams`):
 the data stream makes the synthetic epochs, the user stream drives
@@ -32,12 +34,12 @@ agent.
 from __future__ import annotations
 
 import logging
-import queue
+import math
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Generic, NamedTuple, TypeVar
 
 import numpy as np
 import zenoh
@@ -53,29 +55,16 @@ from calibration_free.worlds import WORLDS, make_world
 from decoding.validation import check_option
 from session.plane import PLANE_FRAMES, PUDDLE_MOVES, plane_settings, puddle_world
 from wire import protocol
-from wire.protocol import SequenceTracker
+from wire.client import DEFAULT_TIMEOUT, RESEND_INTERVAL, Client
 from wire.services import QUERY_TIMEOUT, SERVICES, ask_for_offers, pick_service
-from wire.transport import (
-    Outbox,
-    Pump,
-    Received,
-    Resender,
-    decode_from_service,
-    wait_for_subscribers,
-)
 from wire.zenoh_config import peer_config
 
 log = logging.getLogger("cfbci.source")
 
-#: Seconds without any message from the service after which the source gives up.
-DEFAULT_TIMEOUT = 30.0
-#: Seconds between two sendings of an unanswered config or epoch.
-RESEND_INTERVAL = 1.0
-
 
 @dataclass(frozen=True)
 class SourceSettings:
-    """One replayed session.
+    """One simulated session.
 
     Attributes
     ----------
@@ -98,7 +87,8 @@ class SourceSettings:
     user_error_rate : float
         Probability that the user's label is wrong (see :class:`SimulatedUser`).
     timeout : float
-        Seconds without a message from the service before giving up (a failure guard).
+        Seconds the service may keep the source waiting before it gives up (``cfbci
+        source --timeout``; a failure guard).
     resend_interval : float
         Seconds between two sendings of the unanswered config or epoch.
     world : {"grid", "line", "pick-and-place", "continuous", "puddle"}
@@ -132,6 +122,8 @@ class SourceSettings:
 
     def __post_init__(self) -> None:
         check_option("world", self.world, (*WORLDS, *PLANE_FRAMES))
+        if not self.timeout > 0:
+            raise ValueError(f"--timeout must be positive; got {self.timeout}")
         if self.world == "puddle" and self.data != DataSpec():
             raise ValueError(
                 "the puddle world's signals are its own six-class 20-D Gaussian data; leave "
@@ -149,7 +141,7 @@ class SourceSettings:
 
 @dataclass(frozen=True)
 class SourceSummary:
-    """What happened in a replayed session, from the truth and the moves.
+    """What happened in a simulated session, from the truth and the moves.
 
     Attributes
     ----------
@@ -234,7 +226,7 @@ def run_source(
     zenoh_config: Path | None = None,
 ) -> SourceSummary:
     """Open a Zenoh peer (or what ``zenoh_config``, a Zenoh JSON5 file merged over the
-    defaults, says) and replay one session (see :func:`replay_session`)."""
+    defaults, says) and run one session (see :func:`replay_session`)."""
     with zenoh.open(peer_config(listen, connect, zenoh_config)) as session:
         return replay_session(session, settings)
 
@@ -244,7 +236,8 @@ def replay_session(
     settings: SourceSettings,
     on_step: Callable[[StepRecord], None] | None = None,
 ) -> SourceSummary:
-    """Run one session against the service reachable through ``session``.
+    """Run one session against the service reachable through ``session`` (the loop:
+    :class:`wire.client.Client`; the user's answers: this module).
 
     Parameters
     ----------
@@ -256,8 +249,8 @@ def replay_session(
     Raises
     ------
     TimeoutError
-        If no service subscribes to the config, or the service falls silent for
-        ``settings.timeout`` seconds.
+        If no service subscribes to the config, or the service keeps the source waiting
+        for ``settings.timeout`` seconds.
     RuntimeError
         If the service rejects the session (a ``session_rejected`` event answering its
         config), or moves by an action not of the session's world; ``error`` events
@@ -268,40 +261,19 @@ def replay_session(
     sid = settings.session
     if settings.world == "puddle":
         puddle_world()  # the teacher's policy tables (3-4 s), before the config goes out
-    inbox: queue.SimpleQueue[Received] = queue.SimpleQueue()
-    pumps = [Pump(session, protocol.key(sid, kind), kind, inbox) for kind in ("move", "state",
-                                                                                "event")]
-    outbox = Outbox(session)
-    try:
-        if not wait_for_subscribers(outbox.publisher(protocol.key(sid, "config")),
-                                    settings.timeout):
-            raise TimeoutError(f"no service subscribed to {protocol.key(sid, 'config')} "
-                               f"within {settings.timeout} s")
-        resender = Resender(outbox, settings.resend_interval)
+
+    def config() -> dict[str, Any]:
         chosen = {"service": _chosen_service(session, sid)} if settings.pick_service else {}
-        config = resender.send("config", sid, {**chosen,
-            "seed": settings.seed, **settings.world_fields(), "frame": settings.frame,
-            "steps": settings.steps, "learner": settings.learner,
+        return {
+            **chosen, "seed": settings.seed, **settings.world_fields(),
+            "frame": settings.frame, "steps": settings.steps, "learner": settings.learner,
             "dataset": signals.dataset, **signals.config,
-        })
-        replay = _replay(settings, signals, user_rng, resender, config.t_ns, on_step)
-        heard = time.monotonic()
-        while not replay.done:
-            try:
-                replay.handle(inbox.get(timeout=resender.wait(settings.timeout)))
-                heard = time.monotonic()
-            except queue.Empty:
-                if time.monotonic() - heard >= settings.timeout:
-                    raise TimeoutError(
-                        f"session {sid!r}: no message from the service for {settings.timeout} "
-                        f"s (at step {replay.next_step})"
-                    ) from None
-            resender.poll()
-        return replay.summary()
-    finally:
-        for pump in pumps:
-            pump.close()
-        outbox.close()
+        }
+
+    with Client(session, sid, log, settings.timeout, settings.resend_interval) as client:
+        user = _user(settings, signals, user_rng, client, on_step)
+        client.run(config, user)
+        return user.summary()
 
 
 def _chosen_service(session: zenoh.Session, sid: str) -> str:
@@ -316,149 +288,90 @@ def _chosen_service(session: zenoh.Session, sid: str) -> str:
     return chosen.service
 
 
-def _replay(
+def _user(
     settings: SourceSettings,
     signals: _Signals,
     user_rng: np.random.Generator,
-    resender: Resender,
-    config_t_ns: int,
+    client: Client,
     on_step: Callable[[StepRecord], None] | None,
-) -> _Replay:
-    """The source's side of the session's world: its user (or teacher) and its replay."""
+) -> _User[Any]:
+    """The source's side of the session's world: its user (or teacher)."""
     if settings.world == "continuous":
         teacher = CardinalTeacher(signals.labels, user_rng, class_order=settings.class_order)
-        return _ContinuousReplay(settings, signals, teacher, resender, config_t_ns, on_step)
+        return _ContinuousUser(settings, signals, teacher, client, on_step)
     if settings.world == "puddle":
         mixing = plane_settings(
             {"world": "puddle", "frame": settings.frame, "learner": settings.learner}
         ).mixing
         mixed = MixedTeacher(puddle_world(), signals.labels, user_rng, mixing=mixing)
-        return _PuddleReplay(settings, signals, mixed, resender, config_t_ns, on_step)
-    world = settings.make_world()
+        return _PuddleUser(settings, signals, mixed, client, on_step)
     user = SimulatedUser(
-        world, settings.frame, signals.labels, user_rng, settings.user_error_rate
+        settings.make_world(), settings.frame, signals.labels, user_rng,
+        settings.user_error_rate,
     )
-    return _Replay(settings, signals, world, user, resender, config_t_ns, on_step)
+    return _WorldUser(settings, signals, user, client, on_step)
 
 
-class _Replay:
-    """The source's side of one session: answers moves, keeps the score."""
+class _Answer(NamedTuple):
+    """A user's answer to a move: the dataset signal it sends, the step's truth (its
+    target and label), the epoch's ``reset`` and the step's event in the records."""
+
+    index: int
+    target: Any
+    label: int
+    reset: bool = False
+    event: str | None = None
+
+
+UserT = TypeVar("UserT", SimulatedUser, CardinalTeacher, MixedTeacher)
+
+
+class _User(Generic[UserT]):
+    """The source's side of one session (a :class:`wire.client.Answerer`): its user (or
+    teacher) answers each move with an epoch and the step's truth; it keeps the score and
+    the records. A world's user says how it answers (:meth:`_answer`)."""
 
     def __init__(
         self,
         settings: SourceSettings,
         signals: _Signals,
-        world: World,
-        user: SimulatedUser,
-        resender: Resender,
-        config_t_ns: int,
+        user: UserT,
+        client: Client,
         on_step: Callable[[StepRecord], None] | None,
     ) -> None:
-        self.settings, self.signals, self.world, self.user = settings, signals, world, user
-        self.resender, self.config_t_ns, self.on_step = resender, config_t_ns, on_step
-        self.trackers = {kind: SequenceTracker() for kind in ("move", "state", "event")}
-        self.started = self.ended = False
-        self.moves: dict[int, protocol.Message] = {}  # step -> first move received
-        self.states: dict[int, protocol.Message] = {}  # n_signals -> first state received
+        self.settings, self.signals, self.user = settings, signals, user
+        self.client, self.on_step = client, on_step
         self.records: list[StepRecord] = []
-        self.events: dict[int, str | None] = {}
-        self.epoch_sent_ns: dict[int, int] = {}  # step -> its epoch's t_ns
-        self.latency_ns: dict[int, int] = {}  # step k -> epoch k published to move k + 1
-        self.next_step = 1  # the next move to answer
-        self.last_truth: protocol.Message | None = None  # re-sent with the next epoch
-        self.agent = None if user is None else user.start_state  # none in the plane
+        self.events: dict[int, str | None] = {}  # step -> its event in the records
+        self.agent: Any = None  # where the agent is, as the source knows it (None: not known)
         self.first_target: int | None = None
         self.correct = self.wrong = 0
 
-    @property
-    def done(self) -> bool:
-        return (
-            self.ended
-            and self.next_step > self.settings.steps
-            and len(self.records) == self.settings.steps
-        )
-
-    def handle(self, received: Received) -> None:
-        """Take one message of the service; answer the moves that are due."""
-        message = decode_from_service(received, self.trackers, log)
-        if message is None:
-            return
-        if message.kind == "event":
-            self._on_event(message)
-        elif message.kind == "move":
-            step = message.fields["step"]
-            self.moves.setdefault(step, message)  # a move sent again is the same move
-            if step - 1 in self.epoch_sent_ns:
-                self.latency_ns[step - 1] = received.t_ns - self.epoch_sent_ns.pop(step - 1)
-            pending = self.resender.pending
-            if pending is not None and pending.kind == "epoch" and step > pending.fields["step"]:
-                self.resender.answered()
-        else:
-            self.states.setdefault(message.fields["n_signals"], message)
-        while self.started and self.next_step in self.moves:
-            self._answer(self.moves[self.next_step])
-            self.next_step += 1
-        self._complete_records()
-
-    def _on_event(self, message: protocol.Message) -> None:
-        event, text = message.fields["event"], message.fields["message"]
-        own = message.fields["config_t_ns"] == self.config_t_ns
-        if event == "session_started" and own:
-            self.started = True
-            if self.resender.pending is not None and self.resender.pending.kind == "config":
-                self.resender.answered()
-        elif event == "session_ended":
-            self.ended = True
-        elif event == "session_rejected" and own:
-            raise RuntimeError(f"the service rejected the session: {text}")
-        else:  # errors about single messages, information, others' sessions on this id
-            (log.warning if event == "error" else log.info)("%s: %s", event, text)
-
-    def _send_answer(
-        self, step: int, index: int, target: Any, label: int, reset: bool = False
-    ) -> None:
-        """Publish the epoch of ``step`` (dataset signal ``index``; ``reset`` on it when
-        true) and the step's truth."""
-        sid = self.settings.session
-        epoch = self.signals.values[index]
-        sent = self.resender.send("epoch", sid, self.signals.epoch_fields(step, reset), epoch)
-        self.epoch_sent_ns[step] = sent.t_ns
-        if self.last_truth is not None:  # lost if the service restarted before it came
-            self.resender.also(self.last_truth)
-        truth = {"step": step, "target": target, "label": label}
-        self.last_truth = self.resender.send("truth", sid, truth, companion=True)
-
-    def _answer(self, move: protocol.Message) -> None:
-        fields = move.fields
-        step, state = fields["step"], fields["from_state"]
-        if state != self.agent:
-            log.warning("step %d: move from state %d, the agent was in %d", step, state, self.agent)
-        if fields["action"] not in self.world.action_names:
-            raise RuntimeError(
-                f"the service's move of step {step} is {fields['action']!r}, not an action of "
-                f"the {self.world.name} world: {', '.join(self.world.action_names)}"
-            )
-        action = self.world.action_names.index(fields["action"])
+    def on_move(self, move: protocol.Message) -> None:
+        """Answer the move with the user's epoch and the step's truth."""
         if self.settings.interval > 0:
             time.sleep(self.settings.interval)  # the user's reaction time
-        index, label = self.user.answer(state, action)
-        target = self.user.target
-        self._send_answer(step, index, target, label)
-        event = None
-        if fields["target_reached"]:
-            reached = state == self.world.task_states[target]
-            event = "correct_target" if reached else "wrong_target"
-            self.first_target = self.first_target or step
-            self.correct += event == "correct_target"
-            self.wrong += event == "wrong_target"
-            self.user.new_target()
-        self.events[step] = event
-        self.agent = fields["to_state"]
+        step = move.fields["step"]
+        answer = self._answer(move.fields)
+        self.client.send_epoch(
+            self.signals.epoch_fields(step, answer.reset), self.signals.values[answer.index],
+            {"step": step, "target": answer.target, "label": answer.label},
+        )
+        self.events[step] = answer.event
+
+    def poll(self) -> float:
+        """Complete the records whose state has arrived; nothing else is ever due."""
+        self._complete_records()
+        return math.inf
+
+    def _answer(self, fields: dict[str, Any]) -> _Answer:
+        raise NotImplementedError
 
     def _complete_records(self) -> None:
         """Records of the answered steps whose state has arrived, in step order."""
-        while (step := len(self.records) + 1) < self.next_step and step - 1 in self.states:
-            move, state = self.moves[step].fields, self.states[step - 1].fields
+        moves, states = self.client.moves, self.client.states
+        while (step := len(self.records) + 1) in self.events and step - 1 in states:
+            move, state = moves[step].fields, states[step - 1].fields
             record = StepRecord(
                 self.settings.seed, step, move["from_state"], move["action"], move["to_state"],
                 state["confident"], state["best_task"], self.events.pop(step),
@@ -470,68 +383,61 @@ class _Replay:
     def summary(self) -> SourceSummary:
         return SourceSummary(
             self.settings.session, len(self.records), self.first_target, self.correct,
-            self.wrong, self.records, [self.latency_ns[step] for step in sorted(self.latency_ns)],
+            self.wrong, self.records, self.client.latency_ns(),
         )
 
 
-class _ContinuousReplay(_Replay):
+class _WorldUser(_User[SimulatedUser]):
+    """The grid's, the line's and pick-and-place's source: a :class:`SimulatedUser` answers
+    each move by its label for the move's action in its ``from_state``; a target declared
+    is judged against the user's target, which then changes."""
+
+    def _answer(self, fields: dict[str, Any]) -> _Answer:
+        step, state, world = fields["step"], fields["from_state"], self.user.world
+        agent = self.user.start_state if self.agent is None else self.agent
+        if state != agent:
+            log.warning("step %d: move from state %d, the agent was in %d", step, state, agent)
+        if fields["action"] not in world.action_names:
+            raise RuntimeError(
+                f"the service's move of step {step} is {fields['action']!r}, not an action of "
+                f"the {world.name} world: {', '.join(world.action_names)}"
+            )
+        index, label = self.user.answer(state, world.action_names.index(fields["action"]))
+        target, event = self.user.target, None
+        if fields["target_reached"]:
+            reached = state == world.task_states[target]
+            event = "correct_target" if reached else "wrong_target"
+            self.first_target = self.first_target or step
+            self.correct += event == "correct_target"
+            self.wrong += event == "wrong_target"
+            self.user.new_target()
+        self.agent = fields["to_state"]
+        return _Answer(index, target, label, event=event)
+
+
+class _ContinuousUser(_User[CardinalTeacher]):
     """The continuous world's source: a :class:`CardinalTeacher` answers each probe point
     (the move's ``to_state``) with a signal of its direction's class; the truth holds its
     goal point and the direction (``label``)."""
 
-    def __init__(
-        self,
-        settings: SourceSettings,
-        signals: _Signals,
-        teacher: CardinalTeacher,
-        resender: Resender,
-        config_t_ns: int,
-        on_step: Callable[[StepRecord], None] | None,
-    ) -> None:
-        super().__init__(
-            settings, signals, None, None, resender, config_t_ns, on_step  # type: ignore[arg-type]
-        )
-        self.teacher = teacher
-
-    def _answer(self, move: protocol.Message) -> None:
-        fields = move.fields
+    def _answer(self, fields: dict[str, Any]) -> _Answer:
         if fields["action"] != "probe" or not isinstance(fields["to_state"], list):
             raise RuntimeError(
                 f"the service's move of step {fields['step']} is {fields['action']!r} to "
                 f"{fields['to_state']!r}, not a probe point of the continuous world"
             )
-        if self.settings.interval > 0:
-            time.sleep(self.settings.interval)  # the user's reaction time
-        index, direction = self.teacher.answer(np.asarray(fields["to_state"], dtype=float))
-        goal = [float(x) for x in self.teacher.goal]
-        self._send_answer(fields["step"], index, goal, direction)
-        self.events[fields["step"]] = None
+        index, direction = self.user.answer(np.asarray(fields["to_state"], dtype=float))
+        return _Answer(index, [float(x) for x in self.user.goal], direction)
 
 
-class _PuddleReplay(_Replay):
+class _PuddleUser(_User[MixedTeacher]):
     """The puddle world's source: a :class:`MixedTeacher` answers each move (its
     ``from_state`` and ``action``) with a signal of its label's class, and says ``reset``
     on the epoch when the move's ``to_state`` is in its task's goal cell (see the module
     docstring); the truth holds the task and the label. A reset step's record has the event
     "reset"."""
 
-    def __init__(
-        self,
-        settings: SourceSettings,
-        signals: _Signals,
-        teacher: MixedTeacher,
-        resender: Resender,
-        config_t_ns: int,
-        on_step: Callable[[StepRecord], None] | None,
-    ) -> None:
-        super().__init__(
-            settings, signals, None, None, resender, config_t_ns, on_step  # type: ignore[arg-type]
-        )
-        self.teacher = teacher
-        self.goal = teacher.world.tasks[teacher.task].goal
-
-    def _answer(self, move: protocol.Message) -> None:
-        fields = move.fields
+    def _answer(self, fields: dict[str, Any]) -> _Answer:
         step, start, end = fields["step"], fields["from_state"], fields["to_state"]
         if fields["action"] not in PUDDLE_MOVES or not (
             isinstance(start, list) and isinstance(end, list)
@@ -543,12 +449,10 @@ class _PuddleReplay(_Replay):
             )
         if self.agent is not None and start != self.agent:
             log.warning("step %d: move from %s, the agent was at %s", step, start, self.agent)
-        if self.settings.interval > 0:
-            time.sleep(self.settings.interval)  # the user's reaction time
         action = PUDDLE_MOVES.index(fields["action"])
-        index, label = self.teacher.answer(np.asarray(start, dtype=float), action)
-        world = self.teacher.world
-        reset = bool(world.task_cell(np.asarray(end, dtype=float)) == self.goal)
-        self._send_answer(step, index, self.teacher.task, label, reset)
-        self.events[step] = "reset" if reset else None
+        index, label = self.user.answer(np.asarray(start, dtype=float), action)
+        world = self.user.world
+        goal = world.tasks[self.user.task].goal
+        reset = bool(world.task_cell(np.asarray(end, dtype=float)) == goal)
         self.agent = None if reset else end  # the service draws the restart state
+        return _Answer(index, self.user.task, label, reset, "reset" if reset else None)

@@ -8,7 +8,9 @@ in order (a puddle epoch with its ``reset`` flag), each followed by the recorded
 ``truth`` of its step (so that a recording service records it), all with fresh sequence
 numbers and timestamps (:class:`wire.transport.Outbox`, reliable publication with
 congestion control BLOCK). The service's answers are read by our
-own threads (:class:`wire.transport.Pump`), never in Zenoh callbacks.
+own threads (:class:`wire.transport.Pump`), never in Zenoh callbacks. The loop (re-sending,
+sequence numbers, the events that start and end the session, the timeout) is every
+client's, :class:`wire.client.Client`.
 
 Pacing
     The service checks that an epoch carries the step of its last move and answers each
@@ -33,11 +35,10 @@ from __future__ import annotations
 import logging
 import math
 import os
-import queue
 import re
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from itertools import pairwise
 from typing import Any
 
@@ -55,24 +56,10 @@ from replay.rerun import (
 )
 from session.plane import is_plane
 from wire import protocol
-from wire.protocol import SequenceTracker
-from wire.transport import (
-    Outbox,
-    Pump,
-    Received,
-    Resender,
-    decode_from_service,
-    wait_for_subscribers,
-)
+from wire.client import DEFAULT_TIMEOUT, RESEND_INTERVAL, Client
 from wire.zenoh_config import peer_config
 
 log = logging.getLogger("cfbci.publish")
-
-#: Seconds without any message from the service after which publishing gives up.
-DEFAULT_TIMEOUT = 30.0
-#: Seconds between two sendings of an unanswered config or epoch.
-RESEND_INTERVAL = 1.0
-_KINDS = ("move", "state", "event")
 
 
 def default_session_id(recording: Recording) -> str:
@@ -236,54 +223,38 @@ def _prepare(recording: Recording, where: str) -> _Published:
     )
 
 
-@dataclass
-class _Answers:
-    """The service's messages on our session, as they arrive."""
+class _Publisher:
+    """The re-publication's side of the session (a :class:`wire.client.Answerer`): epoch
+    ``k`` answers move ``k`` once its paced time has come (see the module docstring)."""
 
-    sid: str
-    resender: Resender
-    config_t_ns: int = -1
-    trackers: dict[str, SequenceTracker] = field(
-        default_factory=lambda: {kind: SequenceTracker() for kind in _KINDS}
-    )
-    moves: dict[int, dict[str, Any]] = field(default_factory=dict)
-    move_ns: dict[int, int] = field(default_factory=dict)  # step -> received t_ns
-    states: list[dict[str, Any]] = field(default_factory=list)
-    target_events: list[str] = field(default_factory=list)
-    started: bool = False
-    ended: bool = False
+    def __init__(self, client: Client, published: _Published, speed: float) -> None:
+        self.client, self.published, self.speed = client, published, speed
+        self.pace = speed > 0 and math.isfinite(speed)
+        self.moves = 0  # moves handed to us
+        self.sent = 0  # epochs sent
+        self.truths = 0  # truths sent
 
-    def take(self, received: Received) -> None:
-        message = decode_from_service(received, self.trackers, log)
-        if message is None:
-            return
-        fields, pending = message.fields, self.resender.pending
-        if message.kind == "move":
-            if fields["step"] not in self.moves:  # a move sent again is the same move
-                self.moves[fields["step"]] = fields
-                self.move_ns[fields["step"]] = received.t_ns
-            if pending is not None and pending.kind == "epoch" and (
-                fields["step"] > pending.fields["step"]
-            ):
-                self.resender.answered()
-        elif message.kind == "state":
-            assert message.payload is not None
-            if fields["n_signals"] == len(self.states):  # not a state sent again
-                self.states.append({**fields, "confidence": [float(x) for x in message.payload]})
-        elif fields["config_t_ns"] == self.config_t_ns and fields["event"] == "session_started":
-            self.started = True
-            if pending is not None and pending.kind == "config":
-                self.resender.answered()
-        elif fields["config_t_ns"] == self.config_t_ns and fields["event"] == "session_rejected":
-            raise RuntimeError(f"the service rejected session {self.sid!r}: {fields['message']}")
-        elif fields["event"] == "session_ended":
-            self.ended = True
-        elif fields["event"] == "target_reached":
-            self.target_events.append(fields["message"])
-        else:  # errors about single messages, information, others' sessions on this id
-            (log.warning if fields["event"] == "error" else log.info)(
-                "%s: %s", fields["event"], fields["message"]
-            )
+    def on_move(self, move: protocol.Message) -> None:
+        """Move ``k`` came: epoch ``k`` is due at its paced time (:meth:`poll`)."""
+        self.moves += 1
+
+    def poll(self) -> float:
+        """Send the epoch that answers the latest move once its paced time has come;
+        return the seconds until then."""
+        if self.sent == self.moves:
+            return math.inf
+        fields, payload = self.published.epochs[self.sent]
+        step = fields["step"]
+        if self.pace and step > 1:
+            gap_ns = self.published.gaps_ns[self.sent]
+            due_ns = self.client.epoch_ns[step - 1] + int(gap_ns / self.speed)
+            if (wait_ns := due_ns - time.monotonic_ns()) > 0:
+                return wait_ns / 1e9
+        truth = self.published.truths.get(step)
+        self.client.send_epoch(fields, payload, truth)
+        self.sent += 1
+        self.truths += truth is not None
+        return math.inf
 
 
 def publish_recording(
@@ -295,7 +266,8 @@ def publish_recording(
     timeout: float = DEFAULT_TIMEOUT,
     resend_interval: float = RESEND_INTERVAL,
 ) -> PublishResult:
-    """Publish a recorded session to the service reachable through ``session``.
+    """Publish a recorded session to the service reachable through ``session`` (the loop:
+    :class:`wire.client.Client`; the recorded epochs and their pace: this module).
 
     Parameters
     ----------
@@ -306,7 +278,7 @@ def publish_recording(
     speed : float
         Pace factor (see the module docstring); 0 or ``inf``: as fast as possible.
     timeout : float
-        Seconds without any message from the service before giving up (a failure guard).
+        Seconds the service may keep us waiting before giving up (a failure guard).
     resend_interval : float
         Seconds between two sendings of the unanswered config or epoch.
 
@@ -315,7 +287,7 @@ def publish_recording(
     ValueError
         On an unusable recording or a bad session id or speed.
     TimeoutError
-        If no service subscribes to the config, or the service falls silent.
+        If no service subscribes to the config, or the service keeps us waiting.
     RuntimeError
         If the service rejects the session (a ``session_rejected`` event answering its
         config); ``error`` events about single messages are only logged.
@@ -324,83 +296,33 @@ def publish_recording(
         recording = read_recording(recording)
     published = _prepare(recording, recording.path)
     sid = session_id or default_session_id(recording)
-    protocol.key(sid, "config")  # ProtocolError (a ValueError) on a bad id
-    pace = check_speed(speed) > 0 and math.isfinite(speed)
-    inbox: queue.SimpleQueue[Received] = queue.SimpleQueue()
-    pumps = [Pump(session, protocol.key(sid, kind), kind, inbox) for kind in _KINDS]
-    outbox = Outbox(session)
-    resender = Resender(outbox, resend_interval)
-    answers = _Answers(sid, resender)
-    heard_ns = time.monotonic_ns()
-
-    def receive(deadline_ns: int | None = None) -> None:
-        """Take one message, or re-send what is due; until ``deadline_ns`` (monotonic) at
-        most, if given."""
-        nonlocal heard_ns
-        wait = timeout if deadline_ns is None else (deadline_ns - time.monotonic_ns()) / 1e9
-        try:
-            answers.take(inbox.get(timeout=resender.wait(max(wait, 0.0))))
-            heard_ns = time.monotonic_ns()
-        except queue.Empty:
-            if deadline_ns is None and time.monotonic_ns() - heard_ns >= timeout * 1e9:
-                raise TimeoutError(
-                    f"session {sid!r}: no message from the service for {timeout} s"
-                ) from None
-        resender.poll()
-
-    sent_ns: dict[int, int] = {}
-    try:
-        if not wait_for_subscribers(outbox.publisher(protocol.key(sid, "config")), timeout):
-            raise TimeoutError(
-                f"no service subscribed to {protocol.key(sid, 'config')} within {timeout} s"
-            )
-        answers.config_t_ns = resender.send("config", sid, published.config).t_ns
-        while not answers.started:
-            receive()
-        truths = 0
-        last_truth: protocol.Message | None = None  # re-sent with the next epoch
-        for (fields, payload), gap_ns in zip(published.epochs, published.gaps_ns, strict=True):
-            step = fields["step"]
-            while step not in answers.moves:
-                receive()
-            if pace and step > 1:
-                due = sent_ns[step - 1] + int(gap_ns / speed)
-                while time.monotonic_ns() < due:
-                    receive(due)
-            sent_ns[step] = resender.send("epoch", sid, fields, payload).t_ns
-            if last_truth is not None:  # lost if the service restarted before it came
-                resender.also(last_truth)
-            if step in published.truths:
-                last_truth = resender.send("truth", sid, published.truths[step], companion=True)
-                truths += 1
-        n = len(published.epochs)
-        while not (answers.ended and len(answers.states) == n + 1):
-            receive()
-        elapsed = (time.monotonic_ns() - sent_ns[1]) / 1e9
-    finally:
-        for pump in pumps:
-            pump.close()
-        outbox.close()
-    moves = [answers.moves[step] for step in sorted(answers.moves)]
+    check_speed(speed)
+    with Client(session, sid, log, timeout, resend_interval) as client:  # checks the id
+        publisher = _Publisher(client, published, speed)
+        client.run(published.config, publisher)
+        elapsed = (time.monotonic_ns() - client.epoch_ns[1]) / 1e9
+    n = len(published.epochs)
+    moves = [client.moves[step].fields for step in range(1, n + 1)]
+    states = [
+        {**client.states[k].fields, "confidence": [float(x) for x in client.states[k].payload]}
+        for k in range(n + 1)
+    ]
     recorded_epochs = recording.accepted_epochs()[:n]
     return PublishResult(
         session=sid,
         epochs=n,
-        truths=truths,
+        truths=publisher.truths,
         moves=moves,
-        states=answers.states,
-        target_events=answers.target_events,
+        states=states,
+        target_events=client.target_events,
         recorded_moves=len(published.moves),
         recorded_states=len(published.states),
         moves_divergence=move_divergence(published.moves, moves),
         states_divergence=state_divergence(
-            published.states, answers.states, published.target_events,
-            answers.target_events, moves,
+            published.states, states, published.target_events, client.target_events, moves,
             STATE_MESSAGE_FIELDS if is_plane(published.config) else STATE_FIELDS,
         ),
-        latency_ns=[
-            answers.move_ns[step + 1] - sent_ns[step] for step in range(1, n)
-        ],
+        latency_ns=client.latency_ns(),
         elapsed_s=elapsed,
         recorded_s=(recorded_epochs[-1]["t_ns"] - recorded_epochs[0]["t_ns"]) / 1e9,
         speed=speed,

@@ -3,23 +3,29 @@
 The sessions run real processes (``cfbci serve``, ``cfbci lsl-simulator`` and
 ``cfbci lsl-bridge``), talking over real LSL outlets and inlets kept on the loopback by
 an ``lsl_api.cfg`` of the test's own (``LSLAPICFG``; a session id per test, so parallel
-tests do not see each other's streams) and over loopback Zenoh. This process never
-calls liblsl's network functions.
+tests do not see each other's streams) and over loopback Zenoh; where a test must start
+the service at a moment of its choosing, the service runs in this process, on the test's
+Zenoh session. This process never calls liblsl's network functions.
 """
 
 from __future__ import annotations
 
 import json
 import os
+import queue
 import signal
 import subprocess
 import sys
+import threading
+from collections.abc import Callable, Iterator
+from contextlib import ExitStack, contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import pylsl
 import pytest
+import zenoh
 
 from acquisition.lsl_epochs import Epoch, Refusal, SampleBuffer, apply_baseline
 from acquisition.lsl_simulator import check_recording
@@ -31,9 +37,12 @@ from acquisition.lsl_streams import (
     parse_onset_marker,
 )
 from acquisition.sources import DataSpec
+from cfbci.service import PipelineService
 from cfbci.simulation import SessionConfig, run_session
 from replay.recording import read_recording
-from wire.zenoh_config import free_tcp_endpoint
+from wire import protocol
+from wire.transport import Outbox, Pump, Received
+from wire.zenoh_config import free_tcp_endpoint, peer_config
 
 SFREQ = 256.0
 TIMEOUT = 300  # failure guard, seconds
@@ -160,53 +169,70 @@ class LslSession:
     logs: dict[str, str]
 
 
+def _start(tmp_path: Path, role: str, *args: str) -> subprocess.Popen:
+    """``cfbci ARGS`` as a process on this test's LSL, its output in ``<role>.log``."""
+    env = os.environ | {"LSLAPICFG": str(tmp_path / "lsl_api.cfg")}
+    with (tmp_path / f"{role}.log").open("w") as log:
+        return subprocess.Popen([sys.executable, "-m", "cfbci.cli", *args], env=env,
+                                stdout=log, stderr=subprocess.STDOUT)
+
+
+def _stop(process: subprocess.Popen) -> None:
+    """SIGTERM to a process still running, and wait for it."""
+    if process.poll() is None:
+        process.send_signal(signal.SIGTERM)
+        process.wait(TIMEOUT)
+
+
+@contextmanager
+def lsl_clients(
+    tmp_path: Path, steps: int, seed: int, endpoint: str, simulator_options: list[str]
+) -> Iterator[Callable[[], LslSession]]:
+    """``lsl-simulator`` and ``lsl-bridge`` as processes connecting to ``endpoint``, for a
+    service recording to ``tmp_path``; yields the function that waits for both to exit
+    (status 0) and returns the session."""
+    name = tmp_path.name[-40:]
+    (tmp_path / "lsl_api.cfg").write_text(loopback_config(f"cfbci-test-{name}"))
+    common = ["--session", name, "--seed", str(seed), "--connect", endpoint,
+              "--moves", f"moves-{name}", "--timeout", "60", "--eeg", f"eeg-{name}",
+              "--markers", f"markers-{name}"]
+    with ExitStack() as running:
+        simulator = _start(tmp_path, "simulator", "lsl-simulator", *common, "--written",
+                           str(tmp_path / "written.npz"), *simulator_options)
+        running.callback(_stop, simulator)
+        bridge = _start(tmp_path, "bridge", "lsl-bridge", *common, "--steps", str(steps),
+                        "--json", str(tmp_path / "bridge.json"))
+        running.callback(_stop, bridge)
+        logs = {role: tmp_path / f"{role}.log" for role in ("simulator", "bridge")}
+
+        def finish() -> LslSession:
+            assert bridge.wait(TIMEOUT) == 0, logs["bridge"].read_text()
+            assert simulator.wait(TIMEOUT) == 0, logs["simulator"].read_text()
+            with np.load(tmp_path / "written.npz", allow_pickle=False) as arrays:
+                written = dict(arrays)
+            return LslSession(
+                json.loads((tmp_path / "bridge.json").read_text()), tmp_path / f"{name}.mcap",
+                tmp_path / "written.npz", written,
+                {role: path.read_text() for role, path in logs.items()},
+            )
+
+        yield finish
+
+
 def lsl_session(
     tmp_path: Path, steps: int, seed: int, simulator_options: list[str]
 ) -> LslSession:
     """``cfbci serve``, ``lsl-simulator`` and ``lsl-bridge`` as processes, to the end."""
-    name = tmp_path.name[-40:]
-    config = tmp_path / "lsl_api.cfg"
-    config.write_text(loopback_config(f"cfbci-test-{name}"))
-    env = os.environ | {"LSLAPICFG": str(config)}
     endpoint = free_tcp_endpoint()
-    cfbci = [sys.executable, "-m", "cfbci.cli"]
-    common = ["--session", name, "--seed", str(seed), "--connect", endpoint,
-              "--moves", f"moves-{name}", "--timeout", "60"]
-    streams = {"eeg": f"eeg-{name}", "markers": f"markers-{name}"}
-    logs = {role: tmp_path / f"{role}.log" for role in ("serve", "simulator", "bridge")}
-
-    def start(role: str, *args: str) -> subprocess.Popen:
-        with logs[role].open("w") as log:
-            return subprocess.Popen([*cfbci, *args], env=env, stdout=log,
-                                    stderr=subprocess.STDOUT)
-
-    serve = start("serve", "serve", "--listen", endpoint, "--record-dir", str(tmp_path))
-    simulator = bridge = None
+    serve = _start(tmp_path, "serve", "serve", "--listen", endpoint, "--record-dir",
+                   str(tmp_path))
     try:
-        simulator = start(
-            "simulator", "lsl-simulator", *common, "--eeg", streams["eeg"],
-            "--markers", streams["markers"], "--written", str(tmp_path / "written.npz"),
-            *simulator_options,
-        )
-        bridge = start(
-            "bridge", "lsl-bridge", *common, "--eeg", streams["eeg"],
-            "--markers", streams["markers"], "--steps", str(steps),
-            "--json", str(tmp_path / "bridge.json"),
-        )
-        assert bridge.wait(TIMEOUT) == 0, logs["bridge"].read_text()
-        assert simulator.wait(TIMEOUT) == 0, logs["simulator"].read_text()
+        with lsl_clients(tmp_path, steps, seed, endpoint, simulator_options) as finish:
+            session = finish()
     finally:
-        for process in (bridge, simulator, serve):
-            if process is not None and process.poll() is None:
-                process.send_signal(signal.SIGTERM)
-                process.wait(TIMEOUT)
-    assert serve.returncode == 0, logs["serve"].read_text()
-    with np.load(tmp_path / "written.npz", allow_pickle=False) as arrays:
-        written = dict(arrays)
-    return LslSession(
-        json.loads((tmp_path / "bridge.json").read_text()), tmp_path / f"{name}.mcap",
-        tmp_path / "written.npz", written, {role: path.read_text() for role, path in logs.items()},
-    )
+        _stop(serve)
+    assert serve.returncode == 0, (tmp_path / "serve.log").read_text()
+    return session
 
 
 def assert_session_is_the_simulation(session: LslSession, steps: int, seed: int) -> None:
@@ -276,4 +302,45 @@ def test_dropped_samples_and_a_vanished_stream_are_reported_and_never_cut_across
         for low, high in missing:
             assert onset + 256 < low or onset - 51 >= high
     # The repeated step got its epoch, the same the user gave: the session is unchanged.
+    assert_session_is_the_simulation(session, steps, seed)
+
+
+def test_a_config_lost_before_the_service_subscribed_is_resent_and_answered(
+    tmp_path: Path,
+) -> None:
+    """The bridge's config reaches only an observer: the service is not there yet, so the
+    config is lost for it. An ``error`` event and the rejection of another config on the
+    session's id come next; the bridge ends on neither (docs/protocol.md), re-sends its
+    config unchanged, and the service started afterwards (in this process, on the
+    observer's Zenoh session) answers it: the session runs to its end as the simulation."""
+    steps, seed = 6, 2
+    sid, endpoint = tmp_path.name[-40:], free_tcp_endpoint()
+    heard: queue.SimpleQueue[Received] = queue.SimpleQueue()
+    with zenoh.open(peer_config([endpoint], ())) as network:
+        pumps = [Pump(network, protocol.key(sid, kind), kind, heard)  # truth: the simulator's
+                 for kind in ("config", "truth")]
+        with lsl_clients(tmp_path, steps, seed, endpoint, ["--onset-delay", "0.3"]) as finish:
+            first = heard.get(timeout=TIMEOUT)  # no truth comes before a move: the config
+            outbox = Outbox(network)
+            outbox.send("event", sid, {"event": "error", "message": "garbage on the keys",
+                                       "config_t_ns": None})
+            outbox.send("event", sid, {"event": "session_rejected", "message": "not yours",
+                                       "config_t_ns": protocol.decode(first.data).t_ns + 1})
+            service = PipelineService(network, tmp_path)
+            serving = threading.Thread(target=service.run)
+            serving.start()
+            try:
+                while (again := heard.get(timeout=TIMEOUT)).tag != "config":
+                    pass
+                session = finish()
+            finally:
+                service.stop()
+                serving.join(TIMEOUT)
+                outbox.close()
+        for pump in pumps:
+            pump.close()
+    assert (first.tag, again.data) == ("config", first.data)  # re-sent unchanged
+    assert "error: garbage on the keys" in session.logs["bridge"]
+    assert "session_rejected: not yours" in session.logs["bridge"]
+    assert [e["step"] for e in session.bridge["epochs"]] == list(range(1, steps + 1))
     assert_session_is_the_simulation(session, steps, seed)
