@@ -190,7 +190,7 @@ def _simulate_frame_hypotheses(args: argparse.Namespace, console: Console) -> in
         description="sessions", console=console,
     )
     summary = frame_hypotheses_report(sessions, args.steps, config.frame_beta)
-    console.print(summary)
+    _print_frame_hypotheses(summary, config.frame_beta, console)
     if args.json:
         report = {"config": {"world": args.world, "frame": "hypotheses",
                              "learner": config.to_dict(), "dataset": data.describe(),
@@ -198,6 +198,53 @@ def _simulate_frame_hypotheses(args: argparse.Namespace, console: Console) -> in
                   "sessions": sessions, "summary": summary}
         args.json.write_text(json.dumps(report, indent=2) + "\n")
     return 0
+
+
+def _print_frame_hypotheses(summary: dict[str, Any], beta: float, console: Console) -> None:
+    """The frame-hypotheses summary (:func:`cfbci.frame_sessions.frame_hypotheses_report`)
+    as two tables, over every session and per teacher frame, with what each row means."""
+    from rich.table import Table
+
+    groups = [("all sessions", summary)] + [
+        (f"{key.removesuffix('_teacher')} teacher", group)
+        for key, group in summary.items() if key.endswith("_teacher")
+    ]
+    rows = (  # label, how a group's value is shown, what it means
+        ("sessions", lambda g: str(g["sessions"]), "sessions run"),
+        ("decided", lambda g: str(g["sessions_confident"]),
+         f"sessions with a confident pair: its confidence W above {beta:g} and its decoder "
+         "above chance"),
+        ("first decision right", lambda g: str(g["first_confident_correct"]),
+         "sessions whose first confident pair was the user's task and frame"),
+        ("teacher's frame won", lambda g: str(g["winning_frame_is_teachers"]),
+         "sessions whose best pair at the end had the teacher's frame"),
+        ("user's pair by step 100", lambda g: f"{g['user_pair_confident_by_step_100']:.1%}",
+         "the user's pair decided by step 100"),
+        (f"W > {beta:g} by step 100", lambda g: f"{g['user_pair_w_above_beta_by_step_100']:.1%}",
+         "the thesis's measure: the user's pair's W alone above the threshold by step 100"),
+        ("median first decision", lambda g: f"{g['median_first_confident_step']:g}",
+         "step of the first confident pair (never: the steps + 1)"),
+        ("undecided", lambda g: f"{g['undecided']:.1%}", "sessions with no confident pair"),
+    )
+    table = Table(title="frame hypotheses: the (task, frame) pairs the learner decided on")
+    table.add_column("")
+    for name, _ in groups:
+        table.add_column(name, justify="right")
+    for label, shown, _ in rows:
+        table.add_row(label, *(shown(group) for _, group in groups))
+    console.print(table)
+    steps = list(summary["mean_user_pair_w"])
+    if steps:
+        confidence = Table(title="mean confidence W of the user's pair after step ...")
+        confidence.add_column("")
+        for step in steps:
+            confidence.add_column(step, justify="right")
+        for name, group in groups:
+            confidence.add_row(name, *(f"{group['mean_user_pair_w'][s]:.3f}" for s in steps))
+        console.print(confidence)
+    console.print("\n".join(f"{label}: {meaning}" for label, _, meaning in rows[1:]) + (
+        "\nW: a pair's pairwise confidence, the least over the other pairs of L / (L + "
+        "L_other), L its likelihood"), soft_wrap=True, highlight=False)
 
 
 def _run_simulate(args: argparse.Namespace, console: Console) -> int:
