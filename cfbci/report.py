@@ -4,7 +4,9 @@ Every recording is one job (:func:`report_session`, run on Dask by
 :func:`cfbci.parallel.run_parallel`; on an existing cluster its workers must see the
 recordings and the output directory at the same paths): read it (a truncated file gives
 what it holds), measure it (:mod:`replay.metrics`, which re-runs the learner), and draw its
-figures (:mod:`replay.figures`, ``DIR/<stem>_<kind>.png``). This process then writes
+figures (:mod:`replay.figures`, ``DIR/<stem>_<kind>.png``; the feature vectors of a pinned
+data set per channel, :func:`pinned_feature_layout`, where the recording does not say their
+layout). This process then writes
 ``DIR/metrics.json`` (per session and aggregate) and ``DIR/index.html``
 (:mod:`replay.html_report`), and prints a summary. A file that cannot be processed (missing,
 not MCAP, no configuration, ...) is reported by name; the others are still processed.
@@ -12,6 +14,7 @@ not MCAP, no configuration, ...) is reported by name; the others are still proce
 
 from __future__ import annotations
 
+import hashlib
 import json
 import re
 from dataclasses import asdict, dataclass
@@ -23,6 +26,7 @@ from rich.console import Console
 from rich.markup import escape
 from rich.table import Table
 
+from acquisition.fetch import DATASETS
 from cfbci.parallel import Scheduler, run_parallel
 from replay.calibration import (
     CalibrationBin,
@@ -32,7 +36,7 @@ from replay.calibration import (
     pool_counts_by_rule,
     rule_summary,
 )
-from replay.figures import calibration_figure, save_figures, session_figures
+from replay.figures import FeatureLayout, calibration_figure, save_figures, session_figures
 from replay.html_report import SessionReport, write_html
 from replay.metrics import aggregate, session_metrics
 from replay.plane_report import plane_figures, plane_metrics
@@ -42,6 +46,26 @@ from session.plane import is_plane
 
 #: File stem of the pooled figures of a report (``<stem>_confidence_calibration.png``).
 CALIBRATION_STEM = "all-sessions"
+#: The feature layout of the pinned data sets (:data:`acquisition.fetch.DATASETS`) whose
+#: vectors have one (datasets/README.md): s4.mat's 34 features are 2 fronto-central
+#: channels x 17 samples, channel-major (its channels' names are not in the file).
+PINNED_FEATURE_LAYOUTS: dict[str, FeatureLayout] = {
+    "s4": FeatureLayout(("channel 1", "channel 2"), 17),
+}
+
+
+def pinned_feature_layout(config: dict[str, Any]) -> FeatureLayout | None:
+    """The feature layout of the recording's data set when it is a pinned one with a known
+    layout (:data:`PINNED_FEATURE_LAYOUTS`): the file at the config's ``dataset`` ``path``
+    has its sha256. None otherwise (no such file, another file, raw epochs)."""
+    if config.get("signal") != "features":
+        return None
+    path = config.get("dataset", {}).get("path")
+    if not isinstance(path, str) or not Path(path).is_file():
+        return None
+    digest = hashlib.sha256(Path(path).read_bytes()).hexdigest()
+    return next((layout for name, layout in PINNED_FEATURE_LAYOUTS.items()
+                 if DATASETS[name].sha256 == digest), None)
 
 
 @dataclass(frozen=True)
@@ -85,7 +109,8 @@ def report_session(job: ReportJob) -> SessionReport:
             figures = plane_figures(recording, metrics, Path(job.out_dir), job.stem)
         else:
             metrics = session_metrics(recording, str(path))
-            figures = session_figures(recording, metrics, Path(job.out_dir), job.stem)
+            figures = session_figures(recording, metrics, Path(job.out_dir), job.stem,
+                                      pinned_feature_layout(recording.config))
     except Exception as error:  # one bad file must not stop the others: report it
         message = str(error)
         if str(path) not in message:
@@ -172,8 +197,8 @@ def print_summary(reports: list[SessionReport], console: Console) -> None:
                             ("steps_per_correct_target", "steps/correct"),
                             ("final_accuracy_truth", "acc truth"),
                             ("latency_median_ms", "update ms p50")):
-            values = summary[name]
-            if values["n"]:
+            values = summary.get(name)
+            if values and values["n"]:
                 parts.append(f"{label} {_cell(values['median'])} "
                              f"[{_cell(values['min'])}–{_cell(values['max'])}]")
         line = f"median [min–max] over {len(done)} sessions: " + ", ".join(parts)
@@ -202,14 +227,17 @@ def run_report(
     (out_dir / "metrics.json").write_text(json.dumps(document, indent=1) + "\n")
     calibration = None
     if document["confidence_calibration"] is not None:
-        panels = [CalibrationPanel(
-            "all steps", [CalibrationBin(**b) for b in document["confidence_calibration"]])]
-        if document["confidence_calibration_by_rule"] is not None:
-            panels += [CalibrationPanel.of_rule_summary(rule)
-                       for rule in document["confidence_calibration_by_rule"]["rules"]]
+        by_rule = document["confidence_calibration_by_rule"]
+        rules = [CalibrationPanel.of_rule_summary(rule) for rule in by_rule["rules"]] if (
+            by_rule is not None) else []
         betas = {r.metrics.beta for r in reports
                  if r.metrics is not None and r.metrics.calibration_counts is not None}
-        figure = calibration_figure(panels, betas.pop() if len(betas) == 1 else 0.9)
+        # The pooled steps' threshold, where they have one: every session's, every rule's.
+        thresholds = betas | {p.threshold for p in rules}
+        panels = [CalibrationPanel(
+            [CalibrationBin(**b) for b in document["confidence_calibration"]],
+            threshold=thresholds.pop() if len(thresholds) == 1 else None), *rules]
+        figure = calibration_figure(panels)
         caption = ("Pooled over the sessions, all steps and each decision rule's: bars, the "
                    "fraction of steps in each confidence bin whose best task was the user's "
                    "target (labels: steps); dashed, a calibrated confidence.")

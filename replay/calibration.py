@@ -2,15 +2,17 @@
 
 Over all steps of many sessions, the best hypothesis's confidence is binned and, per bin,
 the fraction of steps at which that hypothesis was the user's target is counted. A
-calibrated confidence of 0.9 is right 90 % of the time. Bins are :data:`N_BINS` equal
-intervals of [0, 1], ``[k/10, (k+1)/10)``, the last one closed (a confidence of 1.0 and the
-default threshold 0.9 fall in the last bin).
+calibrated confidence of 0.8 is right 80 % of the time. Bins are :data:`N_BINS` equal
+intervals of [0, 1], ``[k/10, (k+1)/10)``, the last one closed (a confidence of 1.0 falls
+in the last bin).
 
 Counts are kept per session (:func:`calibration_counts`) so that sessions run apart (Dask
 workers, recordings) pool by summing (:func:`pool_counts`). A learner may decide by more
-than one rule in a session (the pairwise W against 0.9, the normalised likelihood against
-0.995 while its evidence is calibrated): :func:`counts_by_rule` keeps one set of counts
-per rule, so that each threshold can be read against its own rule's curve.
+than one rule in a session (the pairwise W against ``beta``, the normalised likelihood
+against ``calibrated_beta`` while its evidence is calibrated: see
+:class:`calibration_free.config.LearnerConfig`): :func:`counts_by_rule` keeps one set of
+counts per rule and threshold, so that each threshold can be read against its own rule's
+curve.
 """
 
 from __future__ import annotations
@@ -135,7 +137,6 @@ def calibration_curve(counts: Sequence[Sequence[int]]) -> list[CalibrationBin]:
     ]
 
 
-
 def rule_summary(counts: RuleCounts) -> dict[str, Any]:
     """A rule's pooled counts as JSON: ``rule``, ``threshold``, ``curve`` (the
     :class:`CalibrationBin` fields per bin) and ``above_threshold`` (``steps``, ``right``)."""
@@ -150,18 +151,32 @@ def rule_summary(counts: RuleCounts) -> dict[str, Any]:
 
 @dataclass(frozen=True)
 class CalibrationPanel:
-    """One curve of a calibration figure: all steps pooled (``threshold`` None), or one
-    rule's steps with its threshold and ``above_threshold`` (``[steps, right]``)."""
+    """One curve of a calibration figure: all steps pooled (``rule`` None), or the steps one
+    rule decided, with its threshold and ``above_threshold`` (``[steps, right]`` of those
+    whose best task's confidence exceeded it). ``threshold`` without ``rule``: the one
+    threshold of every pooled step (drawn, not counted)."""
 
-    name: str
     curve: list[CalibrationBin]
+    rule: str | None = None
     threshold: float | None = None
     above_threshold: list[int] | None = None
+
+    @property
+    def steps(self) -> int:
+        """The steps the panel counts."""
+        return sum(b.steps for b in self.curve)
+
+    @property
+    def title(self) -> str:
+        """What the panel counts, e.g. ``steps decided by the pairwise rule (threshold
+        0.93): 255`` or ``all steps: 400``."""
+        if self.rule is None:
+            return f"all steps: {self.steps}"
+        return f"steps decided by the {self.rule} rule (threshold {self.threshold:g}): {self.steps}"
 
     @classmethod
     def of_rule_summary(cls, summary: dict[str, Any]) -> CalibrationPanel:
         """The panel of one rule's :func:`rule_summary`."""
         above = summary["above_threshold"]
-        return cls(f"{summary['rule']} > {summary['threshold']:g}",
-                   [CalibrationBin(**b) for b in summary["curve"]], summary["threshold"],
-                   [above["steps"], above["right"]])
+        return cls([CalibrationBin(**b) for b in summary["curve"]], summary["rule"],
+                   summary["threshold"], [above["steps"], above["right"]])

@@ -1,8 +1,10 @@
 """A self-contained HTML report of recorded sessions: one file, images embedded.
 
-:func:`write_html` writes ``index.html`` with an aggregate table at the top, then one
-section per session: a warning banner when the recording is truncated (saying where it
-ends) or its re-run diverged, its metrics table, and every figure with its caption. The
+:func:`write_html` writes ``index.html`` with an aggregate table at the top (the metrics
+of the reported sessions' worlds), then one section per session: a warning banner when
+the recording is truncated (saying where it ends) or its re-run diverged, its metrics
+table (with its seed, dataset and decision rules), its learner settings against the
+defaults (the others folded away), and every figure with its caption. The
 PNG files are embedded as base64 ``data:`` URIs, so the single file still works when moved
 or mailed; each ``<img>`` also names its file in ``data-file``.
 """
@@ -15,9 +17,10 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from calibration_free.task_decoders import DEFAULT_FOLDS
 from replay.calibration import CalibrationPanel
-from replay.figures import SavedFigure
-from replay.metrics import SCALAR_METRICS, SessionMetrics
+from replay.figures import SavedFigure, rules_text
+from replay.metrics import SCALAR_METRICS, SessionMetrics, SessionSettings, metric_applies
 
 _STYLE = """
 body { font-family: system-ui, sans-serif; margin: 2em auto; max-width: 1200px;
@@ -34,6 +37,8 @@ th { background: #f0f0f0; }
 figure { margin: 1.5em 0; } figure img { max-width: 100%; border: 1px solid #eee; }
 figcaption { font-size: 0.9em; color: #444; max-width: 60em; }
 dl dt { font-weight: bold; margin-top: 0.5em; } dl dd { margin-left: 1.5em; }
+tr.changed td { background: #fff3cd; font-weight: bold; }
+details { margin: 0.5em 0 1.5em; } summary { cursor: pointer; }
 """
 
 #: The definitions a reader needs, shown under the aggregate table.
@@ -47,11 +52,20 @@ DEFINITIONS: dict[str, str] = {
     "Mean steps between targets": "Mean number of steps between successive declared "
     "targets (correct or wrong); the first search is excluded (see first target step).",
     "Decoder accuracy vs truth": "The learner is re-run over the recording; after t signals, "
-    "the out-of-fold (10-fold) predictions of its most likely task's decoder for those t "
-    "signals (argmax of the cross-validated class probabilities) are compared with the "
-    "recorded true labels: mean recall over the true classes present.",
+    "the out-of-fold predictions (the session's n_folds-fold cross-validation, "
+    f"{DEFAULT_FOLDS} by default) of its most likely task's decoder for those t signals "
+    "(argmax of the cross-validated class probabilities) are compared with the recorded "
+    "true labels: mean recall over the true classes present.",
     "Self-estimate": "The same cross-validated balanced accuracy as recorded by the learner, "
     "against the labels its most likely task hypothesises (what the learner can know).",
+    "Decision rule": "The confidence rule in force at a step (pairwise: the pairwise-min W "
+    "of the scores; normalised: the normalised likelihood, while the evidence is calibrated) "
+    "and its threshold, from the session's settings as the re-run of the learner applies "
+    "them. A target is declared when the best task's confidence exceeds the threshold (more "
+    "before the first target while the history is short: first_target_signals).",
+    "Learner settings": "Every setting the session's learner ran with, as recorded; "
+    "highlighted, those that differ from this version's defaults for the session's world "
+    "and frame.",
     "Update latency": "The learner's time per step recorded by the service: observe the "
     "epoch + propose the next move, ms; median, 90th and 99th percentiles (linear "
     "interpolation) and maximum.",
@@ -92,16 +106,16 @@ def _format(value: object, digits: int = 3) -> str:
     return str(value)
 
 
+def _cell(value: object) -> str:
+    """A table cell of a value, numbers right-aligned."""
+    number = isinstance(value, int | float) and not isinstance(value, bool)
+    cls = ' class="num"' if number else ""
+    return f"<td{cls}>{html.escape(_format(value))}</td>"
+
+
 def _table(header: Sequence[str], rows: Sequence[Sequence[object]]) -> str:
     head = "".join(f"<th>{html.escape(h)}</th>" for h in header)
-    body = []
-    for row in rows:
-        cells = []
-        for value in row:
-            number = isinstance(value, int | float) and not isinstance(value, bool)
-            cls = ' class="num"' if number else ""
-            cells.append(f"<td{cls}>{html.escape(_format(value))}</td>")
-        body.append("<tr>" + "".join(cells) + "</tr>")
+    body = ["<tr>" + "".join(_cell(value) for value in row) + "</tr>" for row in rows]
     return f"<table><tr>{head}</tr>{''.join(body)}</table>"
 
 
@@ -116,36 +130,85 @@ def aggregate_table(aggregate: dict[str, dict[str, float | int | None]]) -> str:
 
 
 def metrics_table(metrics: SessionMetrics) -> str:
-    """One session's metrics, name and value."""
+    """One session's metrics, name and value: those of its world
+    (:func:`replay.metrics.metric_applies`)."""
     latency = metrics.latency
-    rows: list[list[object]] = [
-        ["session", metrics.session],
-        ["file", metrics.file],
-        ["world / frame / signal", f"{metrics.world_text} / {metrics.frame} / "
-                                   f"{metrics.signal}"],
-        ["steps recorded (configured)", f"{metrics.steps} ({metrics.configured_steps})"],
-        ["first target step", metrics.first_target_step],
-        ["targets correct / wrong / unverified",
-         f"{metrics.correct_targets} / {metrics.wrong_targets} / {metrics.unverified_targets}"],
-        ["steps per correct target", metrics.steps_per_correct_target],
-        ["mean steps between targets", metrics.mean_steps_between_targets],
-        ["decoder balanced accuracy vs truth, last step", metrics.final_accuracy_truth],
-        ["decoder balanced accuracy, self-estimate, last step", metrics.final_accuracy_self],
-        ["chance level", metrics.chance],
-        ["update latency median / p90 / p99 / max (ms)",
+    settings = metrics.settings
+    rules = metrics.decision_rules()
+    # (the scalar metric a row shows, or None for a row of every world; name; value)
+    rows: list[tuple[str | None, str, object]] = [
+        (None, "session", metrics.session),
+        (None, "file", metrics.file),
+        *([(None, "seed", settings.seed), (None, "dataset", dataset_text(settings.dataset))]
+          if settings is not None else []),
+        (None, "world / frame / signal",
+         f"{metrics.world_text} / {metrics.frame} / {metrics.signal}"),
+        *([(None, "decision rule > threshold (steps)",
+            ", ".join(f"{rule} > {threshold:g} ({steps})" for rule, threshold, steps in rules)
+            if rules else rules_text(metrics))] if metrics.beta is not None else []),
+        (None, "steps recorded (configured)", f"{metrics.steps} ({metrics.configured_steps})"),
+        ("first_target_step", "first target step", metrics.first_target_step),
+        ("correct_targets", "targets correct / wrong / unverified",
+         f"{metrics.correct_targets} / {metrics.wrong_targets} / {metrics.unverified_targets}"),
+        ("steps_per_correct_target", "steps per correct target",
+         metrics.steps_per_correct_target),
+        ("mean_steps_between_targets", "mean steps between targets",
+         metrics.mean_steps_between_targets),
+        ("final_accuracy_truth", "decoder balanced accuracy vs truth, last step",
+         metrics.final_accuracy_truth),
+        ("final_accuracy_self", "decoder balanced accuracy, self-estimate, last step",
+         metrics.final_accuracy_self),
+        ("final_accuracy_truth", "chance level", metrics.chance),
+        ("final_distance", "the best particle's distance to the goal, last step",
+         metrics.final_distance),
+        (None, "update latency median / p90 / p99 / max (ms)",
          "–" if latency is None else
          f"{latency.median_ms:.2f} / {latency.p90_ms:.2f} / {latency.p99_ms:.2f} / "
-         f"{latency.max_ms:.2f} (n = {latency.n})"],
-        *([["taught task's normalised likelihood at the updates",
-            ", ".join(f"{v:.3g} @{k}" for k, v in zip(metrics.update_steps or [],
-                                                       metrics.taught_likelihood, strict=True)
-                      if v is not None) or "–"],
-           ["restarts (goal cell reached)", metrics.goals_reached]]
-          if metrics.taught_likelihood is not None else []),
-        ["re-run identical to the recording", metrics.replay_identical],
-        ["truncated", metrics.truncated],
+         f"{latency.max_ms:.2f} (n = {latency.n})"),
+        ("final_taught_likelihood", "taught task's normalised likelihood at the updates",
+         ", ".join(f"{v:.3g} @{k}" for k, v in zip(metrics.update_steps or [],
+                                                    metrics.taught_likelihood or [], strict=True)
+                   if v is not None) or "–"),
+        ("goals_reached", "restarts (goal cell reached)", metrics.goals_reached),
+        (None, "re-run identical to the recording", metrics.replay_identical),
+        (None, "truncated", metrics.truncated),
     ]
-    return _table(["metric", "value"], rows)
+    return _table(["metric", "value"], [
+        [name, value] for metric, name, value in rows
+        if metric is None or metric_applies(metric, metrics.world)])
+
+
+def dataset_text(dataset: dict[str, object]) -> str:
+    """The recorded ``dataset`` object as ``key: value`` pairs (a value repeating the
+    description left out)."""
+    description = dataset.get("description")
+    return "; ".join(f"{key}: {_format(value)}" for key, value in dataset.items()
+                     if key == "description" or value != description) or "–"
+
+
+def settings_section(settings: SessionSettings) -> str:
+    """The learner settings of a session: those that differ from the defaults named in a
+    line, then every setting with its default in a folded table, the differing ones
+    highlighted (``tr.changed``)."""
+    if not settings.defaults:
+        intro = ("The recorded learner settings are not valid in this version: they are "
+                 "shown as recorded, without defaults.")
+    elif settings.non_default:
+        intro = "Learner settings that differ from the defaults: " + ", ".join(
+            f"{name} = {_format(settings.learner[name])} (default "
+            f"{_format(settings.defaults[name])})" for name in settings.non_default) + "."
+    else:
+        intro = "Every learner setting is the default for the session's world and frame."
+    rows = []
+    for name, value in settings.learner.items():
+        default = settings.defaults.get(name)
+        cls = ' class="changed"' if name in settings.non_default else ""
+        rows.append(f"<tr{cls}><td>{html.escape(name)}</td>{_cell(value)}{_cell(default)}</tr>")
+    return (
+        f"<p>{html.escape(intro)}</p><details><summary>All {len(settings.learner)} learner "
+        "settings (value, default)</summary><table><tr><th>setting</th><th>value</th>"
+        f"<th>default</th></tr>{''.join(rows)}</table></details>"
+    )
 
 
 def _image(figure: SavedFigure) -> str:
@@ -182,6 +245,8 @@ def session_section(report: SessionReport, first_figure: int) -> str:
             f"{html.escape(metrics.replay_note or '')}</div>"
         )
     parts.append(metrics_table(metrics))
+    if metrics.settings is not None:
+        parts.append(settings_section(metrics.settings))
     for number, figure in enumerate(report.figures, start=first_figure):
         parts.append(
             f'<figure id="{anchor}-{figure.kind}">{_image(figure)}<figcaption>'
@@ -193,14 +258,15 @@ def session_section(report: SessionReport, first_figure: int) -> str:
 
 
 def calibration_section(figure: SavedFigure, panels: Sequence[CalibrationPanel]) -> str:
-    """The confidence calibration, all steps pooled and per decision rule: its figure and a
-    table with two columns (steps, fraction right) per panel, and each rule's steps above
-    its threshold."""
+    """The confidence calibration, all steps pooled and per decision rule: a text naming
+    the rules and thresholds of the panels, the figure, and a table with two columns
+    (steps, fraction right) per panel, titled for what it counts, and each rule's steps
+    above its threshold."""
 
     def cell(steps: int, right: float | None) -> str:
         return f"<td>{steps}</td><td>{'-' if right is None else f'{right:.3f}'}</td>"
 
-    head = "".join(f'<th colspan="2">{html.escape(p.name)}</th>' for p in panels)
+    head = "".join(f'<th colspan="2">{html.escape(p.title)}</th>' for p in panels)
     sub = "<th>steps</th><th>fraction right</th>" * len(panels)
     rows = "".join(
         f"<tr><td>{bins[0].low:.1f}-{bins[0].high:.1f}</td>"
@@ -214,15 +280,20 @@ def calibration_section(figure: SavedFigure, panels: Sequence[CalibrationPanel])
         for p in panels
     )
     if any(p.above_threshold is not None for p in panels):
-        rows += f"<tr><td>above the rule's threshold</td>{above}</tr>"
+        rows += f"<tr><td>steps above the rule's threshold</td>{above}</tr>"
+    rules = [p for p in panels if p.rule is not None]
+    text = (
+        "Per step, the best task's confidence before the step's action, binned, against "
+        "whether that task was the user's target then: a calibrated confidence of 0.8 is "
+        "right 80 % of the time."
+    )
+    if rules:
+        text += (" The steps each decision rule decided also have their own panel (the "
+                 "sessions the re-run reproduced): " + "; ".join(
+                     f"the {p.rule} rule, threshold {p.threshold:g}, {p.steps} steps"
+                     for p in rules) + ".")
     return (
-        "<h2>Confidence calibration (all sessions)</h2>"
-        "<p>Per step, the best task's confidence before the step's action, binned, against "
-        "whether that task was the user's target then: a calibrated confidence of 0.9 is right "
-        "90 % of the time. Where the learner decided by more than one rule (the pairwise W "
-        "against 0.9; the normalised likelihood against 0.995 once its evidence is "
-        "calibrated), each rule's steps also have their own curve (the sessions the re-run "
-        "reproduced).</p>"
+        f"<h2>Confidence calibration (all sessions)</h2><p>{html.escape(text)}</p>"
         f'<figure id="confidence-calibration">{_image(figure)}</figure>'
         f"<table><tr><th>confidence</th>{head}</tr><tr><th></th>{sub}</tr>{rows}</table>"
     )

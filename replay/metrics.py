@@ -2,7 +2,9 @@
 
 Pure computation (no plotting, no files): :func:`session_metrics` gives one session's
 :class:`SessionMetrics`, :func:`aggregate` the median, minimum and maximum of every scalar
-metric over sessions.
+metric over the sessions whose world it applies to (:data:`WORLD_METRICS`), and
+:func:`session_settings` what a session ran with (seed, dataset, learner settings against
+the defaults).
 
 Steps and alignment
 -------------------
@@ -35,6 +37,11 @@ recording holds one more, final, state after the last signal).
   fewer than two true classes are present. This is exactly the recording's own
   ``balanced_accuracy`` (the **self-estimate**) with the true labels in place of the
   best task's hypothesised ones: the two coincide when those labels are the truth.
+* **Decision rule** at step ``k``: the confidence rule and its threshold in force in the
+  ``k``-th state, and the confidence a target needed there (the threshold, or more before
+  the first target while the history is short:
+  :func:`calibration_free.learner.first_target_requirement`), from the re-run (the state
+  of step 1, before any signal, has no requirement recorded).
 * **Update latency**: the moves' ``update_ms`` (the learner's observe + propose time, ms;
   the first move has none), summarised by median, 90th and 99th percentiles (linear
   interpolation, numpy's default) and maximum.
@@ -42,18 +49,26 @@ recording holds one more, final, state after the last signal).
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from typing import Any
 
 import numpy as np
 
+from calibration_free.config import DEFAULT_BETA
 from calibration_free.frames import FRAMES, Frame
 from calibration_free.learner import CalibrationFreeLearner
 from calibration_free.world import GridWorld, World
 from replay.calibration import RuleCounts, calibration_counts, counts_by_rule
 from replay.recording import Recording
 from replay.rerun import first_divergence, recompute
-from session.config import config_world, learner_settings, world_text
+from session.config import (
+    config_world,
+    learner_settings,
+    recorded_config,
+    resolved_config,
+    world_text,
+)
+from session.plane import PLANE_FRAMES
 
 #: The scalar metrics :func:`aggregate` summarises, with their meaning (and unit).
 SCALAR_METRICS: dict[str, str] = {
@@ -74,6 +89,65 @@ SCALAR_METRICS: dict[str, str] = {
     "latency_p99_ms": "99th percentile learner update, ms",
     "latency_max_ms": "maximum learner update, ms",
 }
+
+#: The scalar metrics that apply to one kind of world only, by kind: "discrete" (the grid,
+#: line and pick-and-place worlds, which declare targets and score a best task's decoder)
+#: and each plane world; the others apply to every world.
+WORLD_METRICS: dict[str, tuple[str, ...]] = {
+    "discrete": ("first_target_step", "correct_targets", "wrong_targets",
+                 "steps_per_correct_target", "mean_steps_between_targets",
+                 "final_accuracy_truth", "final_accuracy_self"),
+    "continuous": ("final_distance",),
+    "puddle": ("final_taught_likelihood", "goals_reached"),
+}
+
+
+def metric_applies(name: str, world: str) -> bool:
+    """Whether the scalar metric ``name`` applies to a session of ``world`` (a
+    :attr:`SessionMetrics.world`)."""
+    kind = world if world in PLANE_FRAMES else "discrete"
+    return all(name not in names or owner == kind for owner, names in WORLD_METRICS.items())
+
+
+@dataclass(frozen=True)
+class SessionSettings:
+    """What a session ran with, from its recorded configuration.
+
+    Attributes
+    ----------
+    seed : int or None
+        The session seed (None: not recorded).
+    dataset : dict
+        The config's ``dataset`` object as recorded (``description``, and ``path``,
+        ``synthetic_accuracy`` or ``class_order`` where they apply).
+    learner : dict
+        Every learner setting the session ran with (defaults included; a recording made
+        before a setting existed: the value that reproduces its learner).
+    defaults : dict
+        The same settings' defaults for the session's world and frame, in this version
+        ({} when the recorded settings are not valid here).
+    non_default : list of str
+        The settings whose value is not the default, sorted.
+    """
+
+    seed: int | None
+    dataset: dict[str, Any]
+    learner: dict[str, Any]
+    defaults: dict[str, Any]
+    non_default: list[str] = field(default_factory=list)
+
+
+def session_settings(config: dict[str, Any]) -> SessionSettings:
+    """The :class:`SessionSettings` of a recorded configuration."""
+    try:
+        learner = resolved_config(recorded_config(config))["learner"]
+        defaults = resolved_config({**config, "learner": {}})["learner"]
+    except (KeyError, TypeError, ValueError):  # settings of another version: as recorded
+        learner, defaults = dict(config.get("learner", {})), {}
+    changed = sorted(k for k, v in learner.items() if k in defaults and defaults[k] != v)
+    seed = config.get("seed")
+    return SessionSettings(None if seed is None else int(seed), dict(config.get("dataset", {})),
+                           learner, defaults, changed)
 
 
 @dataclass(frozen=True)
@@ -131,8 +205,9 @@ class SessionMetrics:
         Task hypotheses of the world.
     signal : str
         "epochs" (raw epochs recorded) or "features".
-    beta : float
-        The learner's confidence threshold.
+    beta : float or None
+        The learner's configured confidence threshold (``beta`` in force for the frame);
+        None in a world without one (the plane worlds).
     configured_steps : int
         Steps the session was configured for.
     steps : int
@@ -189,8 +264,14 @@ class SessionMetrics:
         best task's confidence falls in it, and those whose best task was the target.
     calibration_counts_by_rule : list of RuleCounts or None
         The same split by the decision rule in force at each state (the pairwise W against
-        0.9, the normalised likelihood against 0.995 in calibrated segments), known from the
-        re-run: None unless it reproduced the recording.
+        ``beta``, the normalised likelihood against ``calibrated_beta`` in calibrated
+        segments), known from the re-run: None unless it reproduced the recording.
+    decision_rule, decision_threshold : list of str, list of float, or None
+        The confidence rule and its threshold in force at each step (the re-run's; None
+        unless it reproduced the recording).
+    target_requirement : list of float or None
+        The confidence a target needed at each step (None at step 1; as
+        ``decision_rule``).
     update_steps : list of int or None
         Puddle world: the epochs after which the learner updated (every ``update_every``;
         None elsewhere; see :mod:`replay.puddle_report`).
@@ -204,6 +285,8 @@ class SessionMetrics:
         and restarted).
     goals_reached : int or None
         Their number.
+    settings : SessionSettings or None
+        Seed, dataset and learner settings of the session.
     """
 
     file: str
@@ -215,7 +298,7 @@ class SessionMetrics:
     grid: int | None
     n_tasks: int
     signal: str
-    beta: float
+    beta: float | None
     configured_steps: int
     steps: int
     n_signals: int
@@ -253,16 +336,28 @@ class SessionMetrics:
     final_taught_likelihood: float | None = None
     restarts: list[int] | None = None
     goals_reached: int | None = None
+    decision_rule: list[str] | None = None
+    decision_threshold: list[float] | None = None
+    target_requirement: list[float | None] | None = None
+    settings: SessionSettings | None = None
 
     def scalars(self) -> dict[str, float | int | None]:
-        """The :data:`SCALAR_METRICS` of this session."""
+        """The :data:`SCALAR_METRICS` that apply to this session's world
+        (:func:`metric_applies`)."""
         latency = self.latency
         values: dict[str, float | int | None] = {
             name: getattr(self, name) for name in SCALAR_METRICS if hasattr(self, name)
         }
         for name in ("median_ms", "p90_ms", "p99_ms", "max_ms"):
             values[f"latency_{name}"] = getattr(latency, name) if latency else None
-        return values
+        return {k: v for k, v in values.items() if metric_applies(k, self.world)}
+
+    def decision_rules(self) -> list[tuple[str, float, int]]:
+        """Each ``(rule, threshold)`` in force at some step, in the order they first are,
+        with its number of steps ([] unless the re-run gave them)."""
+        pairs = list(zip(self.decision_rule or [], self.decision_threshold or [], strict=True))
+        return [(rule, threshold, pairs.count((rule, threshold)))
+                for rule, threshold in dict.fromkeys(pairs)]
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready dictionary (no NaN: undefined values are None)."""
@@ -334,13 +429,15 @@ def _confidences(
 @dataclass
 class _Rerun:
     """What the re-run of the learner gives: accuracy vs truth per signal, divergence, and
-    the decision rule (rule, threshold) in force at each recorded state (None unless the
-    re-run reproduced the recording)."""
+    at each recorded state the decision rule (rule, threshold) in force and the confidence
+    a target needed (None at the first state) (None unless the re-run reproduced the
+    recording)."""
 
     accuracy_truth: list[float | None]
     identical: bool | None
     note: str | None
     rules: list[tuple[str, float]] | None = None
+    required: list[float | None] | None = None
 
 
 def _rerun(recording: Recording, n_classes: int) -> _Rerun:
@@ -354,11 +451,14 @@ def _rerun(recording: Recording, n_classes: int) -> _Rerun:
     known = labels >= 0
     one_hot[np.flatnonzero(known), labels[known]] = 1.0
     accuracy: list[float | None] = []
+    required: list[float | None] = [None]  # the first state's, before any signal
 
     def measure(step: int, learner: CalibrationFreeLearner) -> None:
         # The self-estimate's exact definition, against the true labels (unknown ones
-        # weigh 0).
-        accuracy.append(learner.balanced_accuracy(learner.beliefs().best_task, one_hot[:step]))
+        # weigh 0); and what the next move's state requires of a target.
+        beliefs = learner.beliefs()
+        accuracy.append(learner.balanced_accuracy(beliefs.best_task, one_hot[:step]))
+        required.append(beliefs.required)
 
     try:
         moves, states, events = recompute(recording, measure)
@@ -374,7 +474,8 @@ def _rerun(recording: Recording, n_classes: int) -> _Rerun:
     divergence = first_divergence(recording, moves, states, events)
     if divergence is not None:
         return _Rerun(accuracy, False, divergence.describe())
-    return _Rerun(accuracy, True, None, [(s["rule"], s["threshold"]) for s in states])
+    return _Rerun(accuracy, True, None, [(s["rule"], s["threshold"]) for s in states],
+                  required[: len(states)])
 
 
 def _mean_gap(steps: list[int]) -> float | None:
@@ -419,8 +520,8 @@ def session_metrics(recording: Recording, file: str = "", rerun: bool = True) ->
         ) from None
     try:
         beta = learner_settings(config.get("learner", {}), frame).frame_beta
-    except (ValueError, TypeError):
-        beta = float(config.get("learner", {}).get("beta", 0.9))
+    except (ValueError, TypeError):  # settings of another version: the frame's default
+        beta = DEFAULT_BETA[frame]
     frame_ = Frame(world, frame)
     n_classes = frame_.n_classes
     moves = [m for _, m in recording.messages.get("/move", [])]
@@ -450,10 +551,14 @@ def session_metrics(recording: Recording, file: str = "", rerun: bool = True) ->
         replay = _Rerun([None] * n_signals, None, "not re-run")
     accuracy_truth = replay.accuracy_truth
     calibration_by_rule = None
+    rules = thresholds = required = None
     if replay.rules is not None:
         calibration_by_rule = counts_by_rule(
             [c for c, _ in best], [r for _, r in best], [replay.rules[k] for k in counted]
         )
+        rules = [rule for rule, _ in replay.rules[:n_steps]]
+        thresholds = [float(threshold) for _, threshold in replay.rules[:n_steps]]
+        required = (replay.required or [])[:n_steps]
 
     warning = recording.warning
     if recording.truncated:
@@ -503,14 +608,19 @@ def session_metrics(recording: Recording, file: str = "", rerun: bool = True) ->
         warning=warning,
         calibration_counts=calibration,
         calibration_counts_by_rule=calibration_by_rule,
+        decision_rule=rules,
+        decision_threshold=thresholds,
+        target_requirement=required,
+        settings=session_settings(config),
     )
 
 
 def aggregate(sessions: list[SessionMetrics]) -> dict[str, dict[str, float | int | None]]:
     """Median, minimum and maximum of every :data:`SCALAR_METRICS` over sessions.
 
-    Sessions where a metric is undefined (None) are left out of it; ``n`` counts the
-    sessions that define it.
+    A metric is summarised over the sessions whose world it applies to
+    (:func:`metric_applies`), and left out when it applies to none of them; sessions where
+    it is undefined (None) are left out of it; ``n`` counts the sessions that define it.
 
     Returns
     -------
@@ -521,6 +631,8 @@ def aggregate(sessions: list[SessionMetrics]) -> dict[str, dict[str, float | int
     result: dict[str, dict[str, float | int | None]] = {}
     scalars = [s.scalars() for s in sessions]
     for name in SCALAR_METRICS:
+        if not any(name in v for v in scalars):
+            continue
         values = np.array([v[name] for v in scalars if v.get(name) is not None], dtype=float)
         if len(values):
             result[name] = {

@@ -19,8 +19,8 @@ import numpy as np
 from matplotlib.figure import Figure
 
 from calibration_free.cardinal import DIRECTIONS
-from replay.figures import SavedFigure, latency_figure, save_figures
-from replay.metrics import SessionMetrics, latency_summary, truth_by_step
+from replay.figures import FIGURE_WIDTH, SavedFigure, latency_figure, paper_figure, save_figures
+from replay.metrics import SessionMetrics, latency_summary, session_settings, truth_by_step
 from replay.recording import Recording
 from replay.rerun import replay_verdict
 
@@ -57,7 +57,7 @@ def plane_metrics(recording: Recording, file: str = "") -> SessionMetrics:
         file=file, session=recording.session, frame=str(config["frame"]),
         class_names=list(DIRECTIONS), world="continuous",
         world_text=f"continuous world ({n_particles} particles)", grid=None,
-        n_tasks=n_particles, signal=str(config.get("signal", "features")), beta=0.0,
+        n_tasks=n_particles, signal=str(config.get("signal", "features")), beta=None,
         configured_steps=int(config.get("steps", len(moves))), steps=len(moves),
         n_signals=n_signals, first_target_step=None, targets=[], correct_targets=0,
         wrong_targets=0, unverified_targets=0, steps_per_correct_target=None,
@@ -69,20 +69,20 @@ def plane_metrics(recording: Recording, file: str = "") -> SessionMetrics:
         final_accuracy_truth=None, final_accuracy_self=None, chance=1.0 / len(DIRECTIONS),
         replay_identical=identical, replay_note=note, truncated=recording.truncated,
         warning=recording.warning, distance=distance,
-        final_distance=distance[-1] if distance else None,
+        final_distance=distance[-1] if distance else None, settings=session_settings(config),
     )
 
 
+@paper_figure
 def distance_figure(metrics: SessionMetrics) -> Figure:
     """The best particle's distance to the goal against step (log scale)."""
-    fig = Figure(figsize=(8, 3.6), layout="constrained")
+    fig = Figure(figsize=(FIGURE_WIDTH, 3.2), layout="constrained")
     ax = fig.add_subplot()
     values = [np.nan if d is None else d for d in metrics.distance or []]
     ax.semilogy(np.arange(1, len(values) + 1), values, color="tab:blue")
     ax.set_xlabel("step (epochs observed)")
     ax.set_ylabel("distance to the goal")
-    ax.set_title(f"Session {metrics.session}: the best particle's distance to the goal",
-                 fontsize=10)
+    ax.set_title(f"Session {metrics.session}: the best particle's distance to the goal")
     ax.grid(alpha=0.3, which="both")
     return fig
 
@@ -94,15 +94,21 @@ def cloud_steps(n_states: int, n: int = CLOUD_PANELS) -> list[int]:
     return sorted(set(np.linspace(1, n_states - 1, n).round().astype(int).tolist()))
 
 
+@paper_figure
 def cloud_figure(recording: Recording, metrics: SessionMetrics) -> Figure:
     """The particle cloud (coloured by confidence), the best particle, the goal and the
-    probe points so far, after :func:`cloud_steps` epochs."""
+    probe points so far, after :func:`cloud_steps` epochs (two panels to a row)."""
     states = _states(recording)
     probes = np.array([m["to_state"] for _, m in recording.messages.get("/move", [])])
     goal = _goal(recording)
     chosen = cloud_steps(len(states))
-    fig = Figure(figsize=(3.2 * len(chosen) + 1, 3.6), layout="constrained")
-    axes = fig.subplots(1, len(chosen), squeeze=False)[0]
+    n_cols = min(len(chosen), 2)
+    n_rows = -(-len(chosen) // n_cols)
+    fig = Figure(figsize=(FIGURE_WIDTH, 2.9 * n_rows + 0.9), layout="constrained")
+    axes = fig.subplots(n_rows, n_cols, squeeze=False).ravel()
+    for ax in axes[len(chosen):]:
+        ax.set_visible(False)
+    axes = axes[: len(chosen)]
     scatter = None
     for ax, k in zip(axes, chosen, strict=True):
         state = states[k]
@@ -119,13 +125,15 @@ def cloud_figure(recording: Recording, metrics: SessionMetrics) -> Figure:
         if goal is not None:
             ax.scatter(*goal, s=140, c="tab:red", marker="*", label="goal")
         ax.set(xlim=(0, 1), ylim=(0, 1), aspect="equal", title=f"after {k} epochs")
-    axes[0].legend(fontsize=7, loc="lower left", framealpha=0.8)
+    fig.legend(*axes[0].get_legend_handles_labels(), loc="outside lower center", ncol=4,
+               frameon=False)
     if scatter is not None:
         fig.colorbar(scatter, ax=list(axes), label="confidence W", shrink=0.8)
-    fig.suptitle(f"Session {metrics.session}: particles and probe points", fontsize=10)
+    fig.suptitle(f"Session {metrics.session}: particles and probe points")
     return fig
 
 
+@paper_figure
 def probes_figure(recording: Recording, metrics: SessionMetrics) -> Figure:
     """Every probe point, coloured by its step, and the goal."""
     probes = np.array([m["to_state"] for _, m in recording.messages.get("/move", [])])
@@ -138,9 +146,9 @@ def probes_figure(recording: Recording, metrics: SessionMetrics) -> Figure:
         fig.colorbar(shown, ax=ax, label="step")
     if goal is not None:
         ax.scatter(*goal, s=160, c="tab:red", marker="*", label="goal")
-        ax.legend(fontsize=8, loc="lower left")
+        ax.legend(loc="lower left")
     ax.set(xlim=(0, 1), ylim=(0, 1), aspect="equal")
-    ax.set_title(f"Session {metrics.session}: probe points over time", fontsize=10)
+    ax.set_title(f"Session {metrics.session}: probe points over time")
     return fig
 
 

@@ -25,8 +25,8 @@ from matplotlib.patches import Rectangle
 
 from calibration_free.puddle import MIXED_LABELS, TASK_CELLS, PuddleTask, puddle_tasks
 from calibration_free.puddle_learner import PuddleConfig
-from replay.figures import SavedFigure, latency_figure, save_figures
-from replay.metrics import SessionMetrics, latency_summary, truth_by_step
+from replay.figures import FIGURE_WIDTH, SavedFigure, latency_figure, paper_figure, save_figures
+from replay.metrics import SessionMetrics, latency_summary, session_settings, truth_by_step
 from replay.recording import Recording
 from replay.rerun import recorded_resets, replay_verdict
 
@@ -81,7 +81,7 @@ def puddle_metrics(recording: Recording, file: str = "") -> SessionMetrics:
         file=file, session=recording.session, frame=str(config["frame"]),
         class_names=list(MIXED_LABELS), world="puddle",
         world_text=f"puddle world ({n_tasks} tasks)", grid=None, n_tasks=n_tasks,
-        signal=str(config.get("signal", "features")), beta=0.0,
+        signal=str(config.get("signal", "features")), beta=None,
         configured_steps=int(config.get("steps", len(moves))), steps=len(moves),
         n_signals=n_signals, first_target_step=None, targets=[], correct_targets=0,
         wrong_targets=0, unverified_targets=0, steps_per_correct_target=None,
@@ -96,14 +96,15 @@ def puddle_metrics(recording: Recording, file: str = "") -> SessionMetrics:
         warning=recording.warning, update_steps=update_steps,
         taught_likelihood=taught_likelihood,
         final_taught_likelihood=taught_likelihood[-1] if taught_likelihood else None,
-        restarts=restarts, goals_reached=len(restarts),
+        restarts=restarts, goals_reached=len(restarts), settings=session_settings(config),
     )
 
 
+@paper_figure
 def likelihood_figure(metrics: SessionMetrics) -> Figure:
     """The taught task's and the best other task's normalised likelihood against the
     epochs observed (log scale), the update steps marked, the restarts as vertical lines."""
-    fig = Figure(figsize=(8, 3.6), layout="constrained")
+    fig = Figure(figsize=(FIGURE_WIDTH, 3.4), layout="constrained")
     ax = fig.add_subplot()
     epochs = np.arange(1, len(metrics.confidence_true) + 1)
     taught = np.array([np.nan if v is None else v for v in metrics.confidence_true])
@@ -124,9 +125,8 @@ def likelihood_figure(metrics: SessionMetrics) -> Figure:
     ax.set_ylim(floor, 1.5)
     ax.set_xlabel("epochs observed")
     ax.set_ylabel("normalised likelihood")
-    ax.set_title(f"Session {metrics.session}: the taught task's normalised likelihood",
-                 fontsize=10)
-    ax.legend(fontsize=8, frameon=False, loc="upper left", bbox_to_anchor=(1.01, 1.0))
+    ax.set_title(f"Session {metrics.session}: the taught task's normalised likelihood")
+    fig.legend(loc="outside lower center", ncol=3, frameon=False)
     ax.grid(alpha=0.3, which="both")
     return fig
 
@@ -137,6 +137,7 @@ def _cell_patch(cell: int, **style: Any) -> Rectangle:
     return Rectangle((col * size, row * size), size, size, **style)
 
 
+@paper_figure
 def trajectory_figure(recording: Recording, metrics: SessionMetrics) -> Figure:
     """The agent's moves over the unit square, coloured by step, with the taught task's
     puddle (blue) and goal cell (green), the start and the restart points."""
@@ -166,13 +167,12 @@ def trajectory_figure(recording: Recording, metrics: SessionMetrics) -> Figure:
                        edgecolors="black", marker="o", label="restarts", zorder=3)
     handles = [Rectangle((0, 0), 1, 1, color="tab:blue", alpha=0.35, label="puddle"),
                Rectangle((0, 0), 1, 1, color="tab:green", alpha=0.35, label="goal")]
-    ax.legend(handles=[*handles, *ax.get_legend_handles_labels()[0]], fontsize=7,
-              loc="lower left", bbox_to_anchor=(0.0, 1.0), ncol=4, frameon=False)
+    fig.legend(handles=[*handles, *ax.get_legend_handles_labels()[0]],
+               loc="outside lower center", ncol=4, frameon=False)
     ax.set(xlim=(0, 1), ylim=(0, 1), aspect="equal")
     name = "no truth" if task is None else (
         f"task {taught}: goal cell {task.goal}, puddle {list(task.puddle)}")
-    ax.set_title(f"Session {metrics.session}: the agent's trajectory ({name})",
-                 fontsize=9, pad=22)
+    ax.set_title(f"Session {metrics.session}: the agent's trajectory\n({name})")
     return fig
 
 

@@ -60,11 +60,15 @@ HAND_SELF_ACCURACY = [None, None, None, 0.5, 0.6, 0.75, 0.8]  # by n_signals 0..
 HAND_UPDATE_MS = [None, 1.0, 2.0, 3.0, 4.0, 10.0]  # none on the first move
 
 
-def write_hand_built(path: Path, frame: str = "feedback") -> None:
-    """The recording of HAND_STEPS as the service would write it (feature vectors)."""
+def write_hand_built(
+    path: Path, frame: str = "feedback", n_features: int = 3, **fields: Any
+) -> None:
+    """The recording of HAND_STEPS as the service would write it (feature vectors of
+    ``n_features``); ``fields`` are added to (or replace) the config's."""
     config = {
         "seq": 0, "t_ns": 0, "seed": 0, "grid": 2, "frame": frame, "steps": len(HAND_STEPS),
         "learner": {}, "dataset": {"description": "hand-built"}, "signal": "features",
+        **fields,
     }
     rng = np.random.default_rng(0)
     with SessionRecorder(path, "hand", config) as recorder:
@@ -81,7 +85,7 @@ def write_hand_built(path: Path, frame: str = "feedback") -> None:
                                            "message": f"step {k}: target reached in cell {src}"}, t)
             # Guidance: label k stands for a direction; feedback: 0 correct, 1 error.
             label = label if frame == "feedback" else (k - 1) % 4
-            features = rng.normal(size=3) + 2.0 * label
+            features = rng.normal(size=n_features) + 2.0 * label
             header = {"seq": k, "t_ns": t, "units": "uV", "step": k, "signal": "features"}
             recorder.record_array("/epoch", header, features, t)
             recorder.record_array("/features", header, features, t)
@@ -107,17 +111,18 @@ REAL_SEED, REAL_STEPS, REAL_GRID = 5, 90, 3
 
 
 def write_real(path: Path, seed: int = REAL_SEED, steps: int = REAL_STEPS,
-               grid: int = REAL_GRID) -> None:
+               grid: int = REAL_GRID, settings_given: dict[str, Any] | None = None) -> None:
     """A synthetic-epoch session: the learner, a simulated user and the service's messages.
 
     Same streams, start cell, feature extraction and message order as a live session
-    (``update_ms`` is a made-up, deterministic value: no clock is read).
+    (``update_ms`` is a made-up, deterministic value: no clock is read);
+    ``settings_given``: learner settings (the others their defaults).
     """
     data_rng, user_rng, learner_rng = session_streams(seed)
     data = synthetic_epochs(DEFAULT_SYNTHETIC_ACCURACY, data_rng)
     world = GridWorld(grid)
     user = SimulatedUser(world, "feedback", data.labels, user_rng)
-    settings = learner_settings({}, "feedback")
+    settings = learner_settings(settings_given or {}, "feedback")
     learner = CalibrationFreeLearner(world, settings, learner_rng)
     state = start_cell(seed, world.n_states)
     assert state == user.start_state
