@@ -6,7 +6,11 @@ malformed and adversarial messages (:func:`attacks`): undecodable bytes, header 
 that lie, huge numbers, oversized payloads, maximum-size configs it follows (and feeds a
 maximum-size epoch), valid configs for sessions nobody follows, and garbage on the real
 session's own keys (at most :data:`LIVE_SHARE` of the rate limit), before the real
-session starts and while it runs. Afterwards:
+session starts and while it runs. Before the real session asks for a slot, a *slot hog*
+sends four configs per slot of the service (:func:`slot_hog`) while it listens to every
+session's events (``cfbci/**/event``) but never answers their challenge, as a client that
+tries to hold every slot does: none of its sessions may start, and the real one must.
+Afterwards:
 
 * the real session's decisions equal ``cfbci simulate``'s for its seed, and its recording
   replays identically (:func:`replay.rerun.replay_check`);
@@ -155,6 +159,15 @@ def _maximum_sessions(limits: ServiceLimits) -> list[tuple[str, dict[str, Any], 
     return [(f"maximum-{i}", config, d) for i, d in enumerate(sizes) if d > 0]
 
 
+def slot_hog(limits: ServiceLimits) -> list[tuple[str, bytes]]:
+    """The slot hog's configs: ``(key expression, bytes)``, four per slot of ``limits``."""
+    return [
+        (protocol.key(f"hog-{i}", "config"),
+         protocol.encode(protocol.Message("config", f"hog-{i}", 0, 1, _config(3, 10))))
+        for i in range(4 * limits.max_sessions)
+    ]
+
+
 def _flood(endpoint: str, limits: ServiceLimits, rounds: int, done: Event, counts: Any) -> None:
     """The hostile client (a spawned process): garbage until the real session has started
     (it watches its events), then maximum-size sessions, and rounds of :func:`attacks`
@@ -179,8 +192,9 @@ def _flood(endpoint: str, limits: ServiceLimits, rounds: int, done: Event, count
 
         # One subscription to every session's events, declared before the first message.
         events: queue.SimpleQueue[Received] = queue.SimpleQueue()
-        pump = Pump(session, f"{protocol.PREFIX}/*/event", "event", events)
+        pump = Pump(session, f"{protocol.PREFIX}/**/event", "event", events)
         seen: set[tuple[str, str]] = set()  # (session, event) pairs received so far
+        challenges: dict[str, tuple[int, str]] = {}  # session -> (config_t_ns, challenge)
 
         def received(sid: str, names: tuple[str, ...], timeout: float) -> bool:
             """Whether ``sid`` has sent one of the events ``names``, waiting up to
@@ -193,7 +207,13 @@ def _flood(endpoint: str, limits: ServiceLimits, rounds: int, done: Event, count
                     return False
                 message = protocol.decode(sample.data)
                 seen.add((message.session, message.fields["event"]))
+                if message.fields["event"] == "session_pending":
+                    challenges[message.session] = (
+                        message.fields["config_t_ns"], message.fields["challenge"])
             return True
+
+        for key_expr, data in slot_hog(limits):
+            put(key_expr, data, "slot hog config")
 
         round_ = 0
         while round_ < rounds and not received(_LIVE, ("session_started",), 0.0):
@@ -207,10 +227,20 @@ def _flood(endpoint: str, limits: ServiceLimits, rounds: int, done: Event, count
             config_message = protocol.encode(protocol.Message("config", sid, 0, 1, config))
             give_up = time.monotonic() + TIMEOUT
             put(protocol.key(sid, "config"), config_message, "maximum-size config")
-            while not received(sid, ("session_started", "session_rejected"), RESEND_S):
+            answered = ("session_started", "session_rejected")
+            while not received(sid, answered, 0.0):
                 if time.monotonic() > give_up:
                     raise TimeoutError(f"flood: session {sid!r} unanswered after {TIMEOUT} s")
-                put(protocol.key(sid, "config"), config_message, "maximum-size config, re-sent")
+                if sid in challenges:  # it follows these sessions: it answers the challenge
+                    config_t_ns, challenge = challenges[sid]
+                    put(protocol.key(sid, "ready"), protocol.encode(protocol.Message(
+                        "ready", sid, 0, 1, {"config_t_ns": config_t_ns, "challenge": challenge},
+                    )), "ready of a maximum-size config")
+                if not received(sid, (*answered, "session_pending"), RESEND_S) or (
+                    sid in challenges and not received(sid, answered, RESEND_S)
+                ):
+                    put(protocol.key(sid, "config"), config_message,
+                        "maximum-size config, re-sent")
             # (an epoch before the session starts would only be an error)
             epoch = np.ones(n_features, dtype=np.float32)
             put(protocol.key(sid, "epoch"),
@@ -221,6 +251,9 @@ def _flood(endpoint: str, limits: ServiceLimits, rounds: int, done: Event, count
             for category, key_expr, data in attacks(_LIVE, limits, round_):
                 put(key_expr, data, category)
             round_ += 1
+        received("-", (), 0.0)  # takes in the events that came meanwhile
+        sent["slot hog sessions started"] = sum(
+            name == "session_started" and sid.startswith("hog-") for sid, name in seen)
         pump.close()
         for publisher in publishers.values():
             publisher.undeclare()

@@ -31,7 +31,20 @@ class ServiceLimits:
         Seconds without an accepted epoch after which a session is ended (its recording
         closed); counted from its start, its last epoch, or its resumption.
     subscriber_timeout : float
-        Seconds a new session waits for a subscriber to its events before it is rejected.
+        Seconds a new session waits for its source to answer its ``session_pending``
+        challenge (proving it listens to the session's events) before it is rejected.
+    start_timeout : float
+        Seconds a started session may wait for its first epoch before it is ended (apart
+        from ``idle_timeout``, which counts between epochs). The default leaves a person at
+        an LSL amplifier time to start: the bridge sends its config once its streams are
+        found, and the first epoch comes one onset and one epoch after the first move is
+        shown; two minutes cover a slow start and still free the slot of a session that
+        never sends an epoch.
+    user_sessions : int
+        Sessions one user (the ``<user>`` of session ids ``<user>/<name>``, the key space
+        access control gives a source user) may run at once.
+    user_pending : int
+        Sessions of one user that may wait for their source at once.
     max_grid : int
         Largest grid side.
     max_steps : int
@@ -49,6 +62,9 @@ class ServiceLimits:
     max_sessions: int = 8
     idle_timeout: float = 300.0
     subscriber_timeout: float = 5.0
+    start_timeout: float = 120.0
+    user_sessions: int = 4
+    user_pending: int = 4
     max_grid: int = 10
     max_steps: int = 20_000
     max_features: int = 512
@@ -73,7 +89,10 @@ class ServiceLimits:
 _HELP = {
     "max_sessions": "sessions run at once",
     "idle_timeout": "seconds without an epoch before a session is ended",
-    "subscriber_timeout": "seconds a new session waits for its source to subscribe",
+    "subscriber_timeout": "seconds a new session waits for its source to answer its challenge",
+    "start_timeout": "seconds a started session waits for its first epoch",
+    "user_sessions": "sessions one user (<user>/<name> ids) may run at once",
+    "user_pending": "sessions of one user that may wait for their source at once",
     "max_grid": "largest grid side",
     "max_steps": "most steps in a session",
     "max_features": "longest feature vector",

@@ -2,7 +2,7 @@
 
 One process is both a Zenoh peer and an HTTP server (aiohttp). It subscribes to every
 session's ``config``, ``move``, ``state``, ``event``, ``truth`` and ``epoch``
-(``cfbci/*/<kind>``, docs/protocol.md), keeps what the pages show of each session
+(``cfbci/**/<kind>``, docs/protocol.md), keeps what the pages show of each session
 (:mod:`cfbci.view_model`) and sends it to the pages over a WebSocket: a snapshot when a
 page starts following a session, then one patch per message. Pages and scripts are
 package files (``cfbci/view_static``): nothing is fetched from elsewhere.
@@ -420,7 +420,7 @@ async def _serve(
     await runner.setup()
     with zenoh.open(zenoh_config) as session:
         sink = _LoopSink(loop, server.receive)
-        pumps = [Pump(session, f"{protocol.PREFIX}/*/{kind}", kind, sink) for kind in KINDS]
+        pumps = [Pump(session, f"{protocol.PREFIX}/**/{kind}", kind, sink) for kind in KINDS]
         try:
             await web.SockSite(runner, sock).start()
             on_ready()

@@ -11,8 +11,12 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
+import zenoh
+
 from cfbci.service import serve
 from replay.recording import Recording, SessionRecorder
+from wire import protocol
+from wire.transport import Outbox
 
 TIMEOUT = 60.0  # failure guard, seconds
 SPAWN = multiprocessing.get_context("spawn")
@@ -44,3 +48,25 @@ def rewrite(recording: Recording, path: Path) -> None:
             if topic not in ("/config", "/belief", "/log"):
                 for log_time_ns, message in messages:
                     recorder.record(topic, message, log_time_ns)
+
+
+@contextmanager
+def answering_challenges(session: zenoh.Session) -> Iterator[None]:
+    """Answer every ``session_pending`` challenge heard on ``session`` with a ``ready``
+    message, as a source listening to its session's events does: for tests that send
+    configs by hand (the client loop, :mod:`wire.client`, answers for the real sources)."""
+    outbox = Outbox(session)
+
+    def on_event(sample: zenoh.Sample) -> None:
+        message = protocol.decode(sample.payload.to_bytes(), key_expr=str(sample.key_expr))
+        if message.fields["event"] == "session_pending":
+            ready = {"config_t_ns": message.fields["config_t_ns"],
+                     "challenge": message.fields["challenge"]}
+            outbox.send("ready", message.session, ready)
+
+    subscriber = session.declare_subscriber(f"{protocol.PREFIX}/**/event", on_event)
+    try:
+        yield
+    finally:
+        subscriber.undeclare()
+        outbox.close()

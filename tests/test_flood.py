@@ -52,6 +52,10 @@ def test_a_real_session_under_a_flood_decides_as_alone(tmp_path: Path) -> None:
     assert report.peak_rss_mb <= memory_bound(LIMITS)
     assert sum(report.sent.values()) >= 300  # the flood ran ...
     assert report.sent["maximum-size config"] == LIMITS.max_sessions - 1
+    # The slot hog's configs, heard with a wildcard subscription but never answered,
+    # started no session, and held no slot from the real one.
+    assert report.sent["slot hog config"] == 4 * LIMITS.max_sessions
+    assert report.sent["slot hog sessions started"] == 0
     assert report.queued_ms_max >= report.queued_ms_median >= 0  # ... and was measured
     # The flood's own sessions left their recordings; the one fed an epoch over the
     # memory limit was rejected at it.

@@ -7,12 +7,13 @@ from __future__ import annotations
 import argparse
 import queue
 from collections.abc import Callable
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import pytest
 import zenoh
-from live import SPAWN, TIMEOUT
+from live import SPAWN, TIMEOUT, answering_challenges
 
 from calibration_free.config import LearnerConfig
 from calibration_free.learner import CalibrationFreeLearner
@@ -28,8 +29,8 @@ from wire.transport import Outbox, Pump, Received, wait_for_subscribers
 from wire.zenoh_config import free_tcp_endpoint, peer_config
 
 LIMITS = ServiceLimits(
-    max_sessions=2, idle_timeout=2.0, subscriber_timeout=1.0, max_grid=6, max_steps=100,
-    max_session_mb=2.0,
+    max_sessions=2, idle_timeout=2.0, start_timeout=2.0, subscriber_timeout=1.0, max_grid=6,
+    max_steps=100, max_session_mb=2.0,
 )
 
 
@@ -126,8 +127,8 @@ def test_the_memory_estimate_bounds_a_real_session_within_2_5_times(case: Memory
 def test_rejections_idle_timeout_and_a_re_sent_config(tmp_path: Path) -> None:
     endpoint, client_endpoint = free_tcp_endpoint(), free_tcp_endpoint()
     inbox: queue.SimpleQueue[Received] = queue.SimpleQueue()
-    with zenoh.open(peer_config([client_endpoint], ())) as client:
-        pump = Pump(client, "cfbci/*/event", "event", inbox)
+    with zenoh.open(peer_config([client_endpoint], ())) as client, answering_challenges(client):
+        pump = Pump(client, "cfbci/**/event", "event", inbox)
         service = SPAWN.Process(
             target=serve, args=([endpoint], [client_endpoint], tmp_path),
             kwargs={"limits": LIMITS},
@@ -168,16 +169,67 @@ def test_rejections_idle_timeout_and_a_re_sent_config(tmp_path: Path) -> None:
             assert "maximum of 2" in _next(inbox, _event("c", "session_rejected")).fields[
                 "message"
             ]
-            # No epoch for idle_timeout: "a" is ended with a rejection naming its config.
+            # No epoch within start_timeout: "a" is ended with a rejection naming its config.
             idle = _next(inbox, lambda m: m.session == "a" and m.fields["event"] != "info")
             assert idle.fields["event"] == "session_rejected"
-            assert "no epoch for 2 s" in idle.fields["message"]
+            assert "no epoch within 2 s of the start" in idle.fields["message"]
             assert idle.fields["config_t_ns"] == first.t_ns
             # "b" (started after "a") is ended next: by then "a"'s recording was closed,
             # while the service still runs (it handles one thing at a time).
             _next(inbox, _event("b", "session_rejected"))
             recording = read_recording(tmp_path / "a.mcap")
             assert not recording.truncated and not unfinished(recording)
+            outbox.close()
+        finally:
+            service.terminate()
+            service.join(TIMEOUT)
+            pump.close()
+    assert service.exitcode == 0
+
+
+def test_user_quotas_and_the_start_handshake(tmp_path: Path) -> None:
+    """Sessions ``<user>/<name>`` count against their user's quota, not another's; a
+    config starts only when its source answers the challenge: a wrong answer is an error
+    and starts nothing, a listener that never answers holds no slot."""
+    endpoint, client_endpoint = free_tcp_endpoint(), free_tcp_endpoint()
+    limits = replace(LIMITS, max_sessions=3, user_sessions=1, start_timeout=60.0,
+                     idle_timeout=60.0)
+    inbox: queue.SimpleQueue[Received] = queue.SimpleQueue()
+    with zenoh.open(peer_config([client_endpoint], ())) as client:
+        pump = Pump(client, "cfbci/**/event", "event", inbox)  # listens, answers nothing
+        service = SPAWN.Process(
+            target=serve, args=([endpoint], [client_endpoint], tmp_path),
+            kwargs={"limits": limits},
+        )
+        service.start()
+        try:
+            outbox = Outbox(client)
+            assert wait_for_subscribers(outbox.publisher("cfbci/u/a/config"), TIMEOUT)
+            silent = outbox.send("config", "u/silent", _config())
+            assert _next(inbox, _event("u/silent", "session_pending")).fields[
+                "config_t_ns"] == silent.t_ns
+            rejected = _next(inbox, _event("u/silent", "session_rejected"))
+            assert "answered its challenge" in rejected.fields["message"]
+            with answering_challenges(client):
+                outbox.send("config", "u/a", _config())
+                _next(inbox, _event("u/a", "session_started"))
+                outbox.send("config", "u/b", _config())  # over user u's quota of 1
+                quota = _next(inbox, _event("u/b", "session_rejected")).fields["message"]
+                assert "user 'u' runs its maximum of 1 sessions" in quota
+                outbox.send("config", "v/a", _config())  # another user: starts
+                _next(inbox, _event("v/a", "session_started"))
+            # A wrong answer to a challenge is an error, and starts nothing.
+            sent = outbox.send("config", "w/b", _config())
+            pending = _next(inbox, _event("w/b", "session_pending"))
+            outbox.send("ready", "w/b", {"config_t_ns": sent.t_ns, "challenge": "wrong"})
+            error = _next(inbox, lambda m: m.session == "w/b" and m.fields["event"] == "error")
+            assert "does not answer the session's challenge" in error.fields["message"]
+            outbox.send("ready", "w/b", {"config_t_ns": sent.t_ns,
+                                         "challenge": pending.fields["challenge"]})
+            _next(inbox, _event("w/b", "session_started"))
+            # Each user's sessions are recorded in its own folder.
+            assert sorted(p.relative_to(tmp_path).as_posix() for p in tmp_path.rglob("*.mcap")
+                          ) == ["u/a.mcap", "v/a.mcap", "w/b.mcap"]
             outbox.close()
         finally:
             service.terminate()

@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 import zenoh
 from jsonschema import Draft202012Validator
-from live import SPAWN, TIMEOUT, rewrite, service_process
+from live import SPAWN, TIMEOUT, answering_challenges, rewrite, service_process
 from mcap.reader import make_reader
 
 from acquisition.simulated_source import SourceSettings, SourceSummary, run_source
@@ -164,8 +164,9 @@ def test_malformed_messages_yield_errors_and_the_session_finishes(tmp_path: Path
     with (
         zenoh.open(peer_config([client_endpoint], ())) as client,
         service_process(endpoint, tmp_path, (client_endpoint,)),
+        answering_challenges(client),
     ):
-        events = Pump(client, "cfbci/*/event", "event", inbox)
+        events = Pump(client, "cfbci/**/event", "event", inbox)
         bad = {key: reliable_publisher(client, key) for key in (
             "cfbci/main/epoch", "cfbci/nosuch/epoch", "cfbci/_/epoch",
         )}
@@ -297,7 +298,7 @@ def _stop_mid_session(
     rng = np.random.default_rng(0)
     seen: Counter[str] = Counter()
     moves: dict[int, dict] = {}
-    with zenoh.open(peer_config([client_endpoint], ())) as client:
+    with zenoh.open(peer_config([client_endpoint], ())) as client, answering_challenges(client):
         pumps = [
             Pump(client, protocol.key(session, kind), kind, inbox)
             for kind in ("move", "state", "event")
@@ -326,7 +327,8 @@ def _stop_mid_session(
                     continue
                 declared = sum(move["target_reached"] for move in moves.values())
                 if step >= KILL_AFTER and not moves[step]["target_reached"]:
-                    if seen["event"] == 1 + declared:  # session_started, target_reached's
+                    # session_pending, session_started, target_reached's
+                    if seen["event"] == 2 + declared:
                         break
                     continue
                 fields = {"step": step, "signal": "features"}
@@ -360,7 +362,8 @@ def test_a_killed_service_leaves_a_recording_with_all_it_sent(
     # Recorded right after being sent, and before the service sent state k: all of them.
     assert counts["/move"] == k
     assert counts["/epoch"] == counts["/features"] == k - 1  # every epoch answered by a move
-    assert counts["/event"] == counts["/log"] == seen["event"]
+    # Every event heard is recorded, but the session_pending before the recording began.
+    assert counts["/event"] == counts["/log"] == seen["event"] - 1
     # The last message the service sent is state k; the kill may have cut its records.
     assert k - 1 <= counts["/state"] <= k
     assert counts["/state"] - 1 <= counts["/belief"] <= counts["/state"]
@@ -388,7 +391,7 @@ def test_an_interrupted_service_closes_its_recording(tmp_path: Path, signum: int
     counts = {topic: len(messages) for topic, messages in recording.messages.items()}
     assert counts["/move"] == counts["/state"] == counts["/belief"] == seen["state"] == k
     assert counts["/epoch"] == counts["/features"] == k - 1
-    assert counts["/event"] == counts["/log"] == seen["event"]
+    assert counts["/event"] == counts["/log"] == seen["event"] - 1  # not session_pending
     # Closed means indexed: the mcap library's seeking reader opens it.
     with open(tmp_path / "interrupted.mcap", "rb") as stream:
         summary = make_reader(stream).get_summary()

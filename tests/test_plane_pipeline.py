@@ -23,7 +23,7 @@ import numpy as np
 import pytest
 import zenoh
 from jsonschema import Draft202012Validator
-from live import SPAWN, TIMEOUT, service_process
+from live import SPAWN, TIMEOUT, answering_challenges, service_process
 from mcap.reader import make_reader
 from test_resume import KILL_AT, check_resumed_recording, run_with_a_kill
 from test_world_pipeline import check_republished, next_event_of
@@ -149,6 +149,7 @@ def test_a_bad_continuous_config_is_rejected_naming_the_field(tmp_path: Path) ->
     with (
         zenoh.open(peer_config([client_endpoint], ())) as client,
         service_process(endpoint, tmp_path, (client_endpoint,)),
+        answering_challenges(client),
     ):
         pumps = [Pump(client, f"cfbci/{sid}/event", "event", inbox)
                  for sid in ("frame", "setting", "huge", "next")]

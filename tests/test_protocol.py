@@ -61,6 +61,12 @@ EXAMPLES: dict[str, Message] = {
         "epoch", "s-01", 0, 1, {"step": 1, "signal": "features"}, rng_floats(57)
     ),
     "truth": Message("truth", "s-01", 9, 55, {"step": 10, "target": 24, "label": 1}),
+    "ready": Message("ready", "lab/s-01", 0, 18, {"config_t_ns": 17, "challenge": "9f3a"}),
+    "event_pending": Message(  # version 7: the challenge a source answers with `ready`
+        "event", "lab/s-01", 0, 2,
+        {"event": "session_pending", "message": "waits for its source",
+         "config_t_ns": 17, "challenge": "9f3a"},
+    ),
     "move": Message(
         "move", "s-01", 3, 999,
         {"step": 4, "from_state": 6, "action": "goal", "to_state": 6, "target_reached": True},
@@ -192,7 +198,7 @@ BAD_VALUES = {
     "int": "1", "count": -1, "count/null": -2, "float": "250", "float/null": "x", "bool": 1,
     "str": 3,
     "str[]": ["Fz", 1], "float[]": [1.0, "2"], "object": [], "shape": [0], "session": "a b",
-    "state": [0.5, 0.5, 0.5], "point[]": [[0.1, 0.2], [0.3]],
+    "name": "a/b", "state": [0.5, 0.5, 0.5], "point[]": [[0.1, 0.2], [0.3]],
 }  # fmt: skip
 
 
@@ -214,7 +220,7 @@ def framing_cases() -> list[tuple[bytes, str]]:
         (frame(b"[1, 2]"), "header must be a JSON object; got list"),
         (frame(b"[" * 100_000), "header is not valid JSON"),
         (frame({k: v for k, v in header.items() if k != "v"}), "missing field 'v'"),
-        (frame(header | {"v": 2}), "unknown protocol version 2; .* speaks version 6"),
+        (frame(header | {"v": 2}), "unknown protocol version 2; .* speaks version 7"),
         (frame(header | {"v": True}), "unknown protocol version true"),
         (frame(header | {"kind": "moves"}), 'unknown kind "moves"'),
         (frame(header | {"kind": ["move"]}), "unknown kind"),
@@ -304,7 +310,9 @@ def test_unknown_fields_and_out_of_range_values_are_rejected(data, problem):
     rejects(data, problem)
 
 
-@pytest.mark.parametrize("session", ["", "a b", "x" * 65, "café", "a/b", "*", "s\n", 12, None])
+@pytest.mark.parametrize(
+    "session", ["", "a b", "x" * 65, "café", "a/b/c", "/a", "a/", "*", "s\n", 12, None]
+)
 def test_an_invalid_session_id_is_rejected_without_a_session_to_report_to(session):
     error = rejects(tampered("move", session=session), "field 'session' must be a session id")
     assert error.session is None and error.seq == 3
@@ -451,7 +459,9 @@ def test_key_of_the_unusable_session_exists_for_events_only():
         key("_", "epoch")
 
 
-@pytest.mark.parametrize("session", ["", "a b", "x" * 65, "a/b", "*", "**", "é", "s$"])
+@pytest.mark.parametrize(
+    "session", ["", "a b", "x" * 65, "a/b/c", "a//b", "a/*", "*", "**", "é", "s$"]
+)
 def test_key_rejects_invalid_session_ids(session):
     with pytest.raises(ProtocolError, match=re.escape("1 to 64 characters of A-Z, a-z, 0-9")):
         key(session, "epoch")

@@ -24,7 +24,7 @@ import numpy as np
 import pytest
 import zenoh
 from jsonschema import Draft202012Validator
-from live import SPAWN, TIMEOUT, service_process
+from live import SPAWN, TIMEOUT, answering_challenges, service_process
 from mcap.reader import make_reader
 from test_resume import KILL_AT, check_resumed_recording, run_with_a_kill
 from test_world_pipeline import check_republished, next_event_of
@@ -199,6 +199,7 @@ def test_a_bad_puddle_config_is_rejected_naming_the_field(tmp_path: Path) -> Non
     with (
         zenoh.open(peer_config([client_endpoint], ())) as client,
         service_process(endpoint, tmp_path, (client_endpoint,)),
+        answering_challenges(client),
     ):
         pumps = [Pump(client, f"cfbci/{sid}/event", "event", inbox)
                  for sid in (*(c[0] for c in cases), "next")]
@@ -252,6 +253,7 @@ def test_an_epoch_with_a_malformed_reset_is_rejected_and_the_session_goes_on(
     with (
         zenoh.open(peer_config([client_endpoint], ())) as client,
         service_process(endpoint, tmp_path, (client_endpoint,)),
+        answering_challenges(client),
     ):
         pumps = [Pump(client, protocol.key(sid, kind), kind, inbox)
                  for sid in configs for kind in ("event", "move", "state")]

@@ -13,7 +13,7 @@ from pathlib import Path
 from typing import Any
 
 import zenoh
-from live import SPAWN, TIMEOUT
+from live import SPAWN, TIMEOUT, answering_challenges
 from test_pipeline import GRID, STEPS, simulated
 
 from acquisition.simulated_source import SourceSettings, SourceSummary, run_source
@@ -70,7 +70,12 @@ def wait_for_offers(client: zenoh.Session, services: set[str]) -> None:
 
 
 def next_message(inbox: queue.SimpleQueue[Received]) -> protocol.Message:
-    return protocol.decode(inbox.get(timeout=TIMEOUT).data)
+    """The next message but ``session_pending`` challenges (answered by
+    :func:`live.answering_challenges` where a test needs its sessions started)."""
+    while True:
+        message = protocol.decode(inbox.get(timeout=TIMEOUT).data)
+        if message.kind != "event" or message.fields["event"] != "session_pending":
+            return message
 
 
 def test_each_session_is_served_by_exactly_the_service_its_source_picked(
@@ -155,19 +160,26 @@ def test_a_session_whose_start_fails_leaves_no_claim(tmp_path: Path) -> None:
     config = {"seed": 0, "world": "grid", "grid": GRID, "frame": "feedback", "steps": STEPS,
               "learner": {}, "dataset": {}, "signal": "features", "service": "svc-a"}
     inbox: queue.SimpleQueue[Received] = queue.SimpleQueue()
+    x_events: queue.SimpleQueue[Received] = queue.SimpleQueue()
     with zenoh.open(peer_config([client_endpoint], ())) as client, processes(service):
         outbox = Outbox(client)
+        pumps = [Pump(client, protocol.key("x", "event"), "event", x_events)]
         assert wait_for_subscribers(outbox.publisher(protocol.key("x", "config")), TIMEOUT)
-        outbox.send("config", "x", config)
+        x_config = outbox.send("config", "x", config)
+        x_pending = protocol.decode(x_events.get(timeout=TIMEOUT).data)  # its challenge
+        assert x_pending.fields["event"] == "session_pending"
         deadline = time.monotonic() + TIMEOUT
         while claims_of(client, "x") != ["svc-a"]:  # x waits for its source, claimed
             assert time.monotonic() < deadline, "the service never claimed x"
-        pumps = [Pump(client, protocol.key("y", "event"), "event", inbox)]
+        pumps.append(Pump(client, protocol.key("y", "event"), "event", inbox))
         try:
-            outbox.send("config", "y", config)
-            assert next_message(inbox).fields["event"] == "session_started"
-            pumps.append(Pump(client, protocol.key("x", "event"), "event", inbox))
-            rejected = next_message(inbox)
+            with answering_challenges(client):
+                outbox.send("config", "y", config)
+                assert next_message(inbox).fields["event"] == "session_started"
+            # x's source answers its challenge now: x's start fails, the service is full.
+            outbox.send("ready", "x", {"config_t_ns": x_config.t_ns,
+                                       "challenge": x_pending.fields["challenge"]})
+            rejected = next_message(x_events)
             assert (rejected.session, rejected.fields["event"]) == ("x", "session_rejected")
             assert "maximum of 1" in rejected.fields["message"]
             assert claims_of(client, "x") == []
@@ -191,7 +203,11 @@ def test_of_two_services_claiming_one_session_the_smaller_id_keeps_it(tmp_path: 
     config = {"seed": 0, "world": "grid", "grid": GRID, "frame": "feedback", "steps": STEPS,
               "learner": {}, "dataset": {}, "signal": "features", "service": "svc-m"}
     inboxes: dict[str, queue.SimpleQueue[Received]] = {sid: queue.SimpleQueue() for sid in "xyw"}
-    with zenoh.open(peer_config([client_endpoint], ())) as client, processes(service):
+    with (
+        zenoh.open(peer_config([client_endpoint], ())) as client,
+        processes(service),
+        answering_challenges(client),
+    ):
         outbox = Outbox(client)
         pumps = [Pump(client, protocol.key(sid, "event"), "event", inboxes[sid])
                  for sid in "xyw"]

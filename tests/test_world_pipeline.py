@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import zenoh
 from jsonschema import Draft202012Validator
-from live import SPAWN, TIMEOUT, service_process
+from live import SPAWN, TIMEOUT, answering_challenges, service_process
 from mcap.reader import make_reader
 
 from acquisition.simulated_source import SourceSettings, run_source
@@ -171,11 +171,13 @@ def _raw_config(session: str, **fields: object) -> bytes:
 
 
 def next_event_of(inbox: queue.SimpleQueue[Received], session: str) -> dict:
-    """The fields of the next event of ``session`` in ``inbox`` (others are skipped)."""
+    """The fields of the next event of ``session`` in ``inbox`` (others, and the
+    ``session_pending`` challenges that :func:`live.answering_challenges` answers, are
+    skipped)."""
     while True:
         received = inbox.get(timeout=TIMEOUT)
         message = protocol.decode(received.data, key_expr=received.key_expr)
-        if message.session == session:
+        if message.session == session and message.fields["event"] != "session_pending":
             return message.fields
 
 
@@ -191,6 +193,7 @@ def test_an_unknown_world_is_named_and_the_service_keeps_serving(tmp_path: Path)
     with (
         zenoh.open(peer_config([client_endpoint], ())) as client,
         service_process(endpoint, tmp_path, (client_endpoint,)),
+        answering_challenges(client),
     ):
         events = Pump(client, "cfbci/*/event", "event", inbox)
         publisher = reliable_publisher(client, "cfbci/maze/config")

@@ -7,7 +7,9 @@ recording (:mod:`cfbci.publish`, ``cfbci replay --publish``) play the same part:
 send a config, then answer every move with the epoch of its step. :class:`Client` is that
 part, once: it subscribes to the session's ``move``, ``state`` and ``event`` keys before
 anything is sent, waits for a service to subscribe to the config, sends the config and
-re-sends it until its ``session_started`` arrives, hands every move to the client's own
+re-sends it until its ``session_started`` arrives (answering the service's
+``session_pending`` challenge with a ``ready`` message, re-sent with the config: the proof
+that this client listens to the session's events), hands every move to the client's own
 :class:`Answerer` once and in step order, sends the epochs the answerer gives it (with the
 step's truth) and re-sends the latest until the next move arrives, checks the sequence
 numbers of what it receives (gaps are logged), takes a repeated move or state as the one
@@ -119,6 +121,7 @@ class Client:
         self._resender = Resender(self._outbox, resend_interval)
         self._trackers = {kind: protocol.SequenceTracker() for kind in KINDS}
         self._config: protocol.Message | None = None
+        self._challenge: str | None = None  # the last session_pending's, answered
         self._last_truth: protocol.Message | None = None  # re-sent with the next epoch
         self._answerer: Answerer | None = None
         self._heard_ns = time.monotonic_ns()  # last message heard, or last epoch sent
@@ -252,16 +255,26 @@ class Client:
         elif message.kind == "state":
             self.states.setdefault(fields["n_signals"], message)
         else:
-            self._on_event(fields["event"], fields["message"], fields["config_t_ns"])
+            self._on_event(
+                fields["event"], fields["message"], fields["config_t_ns"],
+                fields.get("challenge"),
+            )
         assert self._answerer is not None
         while self.started and self.next_step in self.moves:
             self._answerer.on_move(self.moves[self.next_step])
             self.next_step += 1
 
-    def _on_event(self, event: str, text: str, config_t_ns: int | None) -> None:
+    def _on_event(
+        self, event: str, text: str, config_t_ns: int | None, challenge: str | None
+    ) -> None:
         assert self._config is not None
         own = config_t_ns == self._config.t_ns
-        if event == "session_started" and own:
+        if event == "session_pending" and own and challenge is not None and not self.started:
+            if challenge != self._challenge:  # proves this client listens: re-sent with the
+                self._challenge = challenge  # config until the session starts
+                ready = {"config_t_ns": self._config.t_ns, "challenge": challenge}
+                self._resender.send("ready", self.sid, ready, companion=True)
+        elif event == "session_started" and own:
             self.started = True
             pending = self._resender.pending
             if pending is not None and pending.kind == "config":

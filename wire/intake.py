@@ -33,9 +33,10 @@ OTHER = "/other"  # not a valid session id, so never a session's FIFO
 
 
 def session_of(key_expr: str) -> str | None:
-    """The middle segment of ``cfbci/<session>/<kind>`` (unchecked), or None."""
+    """The session of ``cfbci/<session>/<kind>`` (its one or two middle segments,
+    unchecked), or None."""
     parts = key_expr.split("/")
-    return parts[1] if len(parts) == 3 else None
+    return "/".join(parts[1:-1]) if len(parts) in (3, 4) else None
 
 
 @dataclass

@@ -25,13 +25,14 @@ import numpy as np
 
 from session.vocabulary import DISCRETE_ACTIONS, FRAMES, PLANE_FRAMES, PROBE, PUDDLE_MOVES, WORLDS
 
-VERSION: int = 6
+VERSION: int = 7
 PREFIX: str = "cfbci"
 MAX_BYTES: int = 16 * 2**20
 NO_SESSION: str = "_"  # key segment of the service's events about unusable session ids
 SIGNALS: tuple[str, ...] = ("epochs", "features")
 EVENTS: tuple[str, ...] = (
     "error", "target_reached", "session_started", "session_ended", "session_rejected", "info",
+    "session_pending",
 )
 
 #: Every world's action names, in world order then action order (a move's ``action``).
@@ -39,7 +40,10 @@ ACTION_NAMES: tuple[str, ...] = (*DISCRETE_ACTIONS, PROBE, *PUDDLE_MOVES)
 #: The worlds of a config: the discrete ones, then those of the plane.
 CONFIG_WORLDS: tuple[str, ...] = (*WORLDS, *PLANE_FRAMES)
 
-_SESSION = re.compile(r"[A-Za-z0-9_-]{1,64}")
+_NAME = r"[A-Za-z0-9_-]{1,64}"
+#: A session id: one key chunk, or two (``<user>/<name>``: the session in its user's space).
+_SESSION = re.compile(rf"{_NAME}(/{_NAME})?")
+_ONE_CHUNK = re.compile(_NAME)
 _INT64 = 2**63
 
 
@@ -88,8 +92,13 @@ TYPES: dict[str, tuple[str, Callable[[Any], bool]]] = {
     ),
     "object": ("a JSON object", lambda x: isinstance(x, dict)),
     "session": (
-        "a session id: 1 to 64 characters of A-Z, a-z, 0-9, '_' and '-'",
+        "a session id: a name, or `<user>/<name>` (a session in its user's key space); a name "
+        "or user is 1 to 64 characters of A-Z, a-z, 0-9, '_' and '-'",
         lambda x: isinstance(x, str) and _SESSION.fullmatch(x) is not None,
+    ),
+    "name": (
+        "1 to 64 characters of A-Z, a-z, 0-9, '_' and '-'",
+        lambda x: isinstance(x, str) and _ONE_CHUNK.fullmatch(x) is not None,
     ),
 }
 
@@ -157,7 +166,9 @@ class KindSpec:
 COMMON: dict[str, Field] = {
     "v": Field("int", "protocol version", (VERSION,)),
     "kind": Field("str", "message kind, the last segment of the key expression"),
-    "session": Field("session", "session id, the middle segment of the key expression"),
+    "session": Field(
+        "session", "session id, the key expression's segments between `cfbci` and the kind"
+    ),
     "seq": Field("count", "sequence number of the sender on this key expression, from 0"),
     "t_ns": Field("count", "sender's monotonic clock at publication, in nanoseconds"),
 }
@@ -196,7 +207,7 @@ SPECS: dict[str, KindSpec] = {
         },
         optional={
             "service": Field(
-                "session", "id of the service chosen to run the session (see \"Several "
+                "name", "id of the service chosen to run the session (see \"Several "
                 "services\"); absent: every service that hears the config runs it"
             ),
         },
@@ -244,6 +255,15 @@ SPECS: dict[str, KindSpec] = {
                 "guidance action's class; cardinal: the direction; mixed: 0 correct, "
                 "1 incorrect, 2-5 north, south, east, west)"
             ),
+        },
+    ),
+    "ready": KindSpec(
+        "source",
+        "The source's answer to its session's `session_pending` event: it listens to the "
+        "session's events (a session starts only then; see \"Starting a session\").",
+        {
+            "config_t_ns": Field("count", "the `t_ns` of the config it confirms"),
+            "challenge": Field("str", "the `challenge` of the `session_pending` event"),
         },
     ),
     "move": KindSpec(
@@ -299,6 +319,11 @@ SPECS: dict[str, KindSpec] = {
                 "count/null",
                 "`session_started`, `session_rejected`: the `t_ns` of the config they answer "
                 "(the running session's for a rejection after the start); null otherwise",
+            ),
+        },
+        optional={
+            "challenge": Field(
+                "str", "`session_pending` only: what the source's `ready` message repeats"
             ),
         },
     ),
@@ -425,8 +450,8 @@ def key(session: str, kind: str) -> str:
     Parameters
     ----------
     session : str
-        1 to 64 characters of ``[A-Za-z0-9_-]``; ``"_"`` (:data:`NO_SESSION`) only for
-        ``kind="event"``.
+        A name (1 to 64 characters of ``[A-Za-z0-9_-]``) or ``<user>/<name>``; ``"_"``
+        (:data:`NO_SESSION`) only for ``kind="event"``.
     kind : str
         One of :data:`KINDS`.
 
@@ -442,6 +467,12 @@ def key(session: str, kind: str) -> str:
     return f"{PREFIX}/{session}/{kind}"
 
 
+def user_of(session: str) -> str | None:
+    """The user of a session id ``<user>/<name>``; None for a one-chunk id."""
+    user, sep, _ = session.partition("/")
+    return user if sep else None
+
+
 def split_key(key_expr: str) -> tuple[str, str]:
     """The ``(session, kind)`` of a key expression built by :func:`key`.
 
@@ -451,10 +482,11 @@ def split_key(key_expr: str) -> tuple[str, str]:
         If ``key_expr`` is not ``cfbci/<session>/<kind>`` with a valid session and kind.
     """
     parts = key_expr.split("/")
-    if len(parts) != 3 or parts[0] != PREFIX:
+    if len(parts) not in (3, 4) or parts[0] != PREFIX:
         raise ProtocolError(f"key expression {key_expr!r} is not {PREFIX}/<session>/<kind>")
-    key(parts[1], parts[2])
-    return parts[1], parts[2]
+    session, kind = "/".join(parts[1:-1]), parts[-1]
+    key(session, kind)
+    return session, kind
 
 
 def _context(session: Any, seq: Any) -> dict[str, Any]:

@@ -55,7 +55,7 @@ def default_service_id() -> str:
 
 def check_service_id(service: str) -> str:
     """``service`` if it is a valid id, else a ValueError naming the rule."""
-    description, valid = TYPES["session"]
+    description, valid = TYPES["name"]
     if not valid(service):
         raise ValueError(f"a service id must be {description}; got {service!r}")
     return service
@@ -123,7 +123,7 @@ class ServiceRegistration:
         self._others: dict[str, set[str]] = {}  # session id -> the other services claiming it
         self._conflicts: dict[str, str] = {}  # our sessions also claimed by a smaller id
         self._watcher = session.liveliness().declare_subscriber(
-            claim_key("*", "*"), self._on_claim, history=True
+            claim_key("**", "*"), self._on_claim, history=True
         )
         self._queryable = session.declare_queryable(f"{SERVICES}/{service}", self._answer)
 
@@ -135,9 +135,9 @@ class ServiceRegistration:
     def _on_claim(self, sample: zenoh.Sample) -> None:
         """A claim appears (PUT) or vanishes (DELETE) on the network (Zenoh's thread)."""
         parts = str(sample.key_expr).split("/")  # <prefix>/<session>/served-by/<service>
-        if len(parts) != 4 or parts[3] == self.service:
+        if len(parts) not in (4, 5) or parts[-2] != "served-by" or parts[-1] == self.service:
             return
-        sid, service = parts[1], parts[3]
+        sid, service = "/".join(parts[1:-2]), parts[-1]
         with self._lock:
             holders = self._others.setdefault(sid, set())
             if sample.kind == zenoh.SampleKind.PUT:

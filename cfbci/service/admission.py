@@ -12,9 +12,10 @@ which every puddle session of the process shares, are built on a thread of their
 from __future__ import annotations
 
 import logging
+import secrets
 import threading
-from collections.abc import Callable
-from dataclasses import dataclass
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass, field
 from typing import Any
 
 import zenoh
@@ -83,11 +84,101 @@ def check_memory(
 
 @dataclass
 class Pending:
-    """A started config whose source has not subscribed to the session's events yet."""
+    """An admitted config waiting for its source to prove it listens: its ``ready``
+    message must repeat the ``challenge`` of the ``session_pending`` event, which only a
+    subscriber to the session's events receives (a monitor that listens but never answers
+    starts nothing)."""
 
     message: protocol.Message
     publisher: zenoh.Publisher
     deadline_ns: int
+    challenge: str = field(default_factory=lambda: secrets.token_hex(8))
+    confirmed: bool = False
+
+
+def confirm(pending: Pending | None, ready: protocol.Message) -> None:
+    """Mark ``pending`` confirmed by the source's ``ready`` message.
+
+    Raises
+    ------
+    ProtocolError
+        When no session of that id waits for its source, or the message does not repeat
+        its config's ``t_ns`` and its challenge.
+    """
+    where = {"session": ready.session, "seq": ready.seq}
+    if pending is None:
+        raise ProtocolError("ready for no session waiting for its source", **where)
+    fields = ready.fields
+    if fields["config_t_ns"] != pending.message.t_ns or not secrets.compare_digest(
+        fields["challenge"], pending.challenge
+    ):
+        raise ProtocolError(
+            "ready does not answer the session's challenge (its config_t_ns or challenge "
+            "differs)", **where,
+        )
+    pending.confirmed = True
+
+
+def take_due(
+    pending: dict[str, Pending], now_ns: int, world_ready: Callable[[dict[str, Any]], bool]
+) -> list[tuple[str, Pending, str | None]]:
+    """Take out of ``pending`` the configs due now: ``(id, entry, None)`` for one to start
+    (its source answered, its world is ready), ``(id, entry, problem)`` for one to reject:
+    ``""`` when its source did not answer by its deadline, the error when its world's
+    tables could not be built (``world_ready`` raised RuntimeError). A config whose source
+    answered waits for its world's tables with no deadline."""
+    due: list[tuple[str, Pending, str | None]] = []
+    for sid, entry in list(pending.items()):
+        if entry.confirmed:
+            try:
+                if not world_ready(entry.message.fields):
+                    continue
+            except RuntimeError as error:
+                due.append((sid, pending.pop(sid), str(error)))
+                continue
+            due.append((sid, pending.pop(sid), None))
+        elif now_ns >= entry.deadline_ns:
+            due.append((sid, pending.pop(sid), ""))
+    return due
+
+
+def make_room(pending: dict[str, Pending], reject: Reject) -> tuple[str, Pending]:
+    """Take the oldest waiting config whose source has not answered its challenge out of
+    ``pending`` (full), so that a flood of configs nobody answers cannot keep a real source
+    out; raise ``reject(problem)`` if every one has answered.
+
+    Returns
+    -------
+    (str, Pending)
+        The session id and the entry taken out (to be rejected).
+    """
+    oldest = next((sid for sid, p in pending.items() if not p.confirmed), None)
+    if oldest is None:
+        raise reject(f"{len(pending)} sessions already wait for their source")
+    return oldest, pending.pop(oldest)
+
+
+def check_quota(
+    sid: str,
+    running: Iterable[str],
+    pending: Iterable[str],
+    limits: ServiceLimits,
+    reject: Reject,
+) -> None:
+    """Raise ``reject(problem)`` when the user of ``sid`` (``<user>/<name>``) already runs
+    or waits for as many sessions as ``limits`` allow it; one-chunk ids have no user."""
+    user = protocol.user_of(sid)
+    if user is None:
+        return
+    mine = [s for s in running if protocol.user_of(s) == user]
+    if len(mine) >= limits.user_sessions:
+        raise reject(f"user {user!r} runs its maximum of {limits.user_sessions} sessions")
+    waiting = [s for s in pending if protocol.user_of(s) == user]
+    if len(waiting) >= limits.user_pending:
+        raise reject(
+            f"user {user!r} has its maximum of {limits.user_pending} sessions waiting for "
+            "their source"
+        )
 
 
 class PuddleTables:

@@ -52,10 +52,18 @@ class Events:
         self._recordings = recordings
 
     def publish(
-        self, session: str, event: str, text: str, config_t_ns: int | None = None
+        self,
+        session: str,
+        event: str,
+        text: str,
+        config_t_ns: int | None = None,
+        challenge: str | None = None,
     ) -> None:
-        """Publish an event on ``cfbci/<session>/event``; record and log it."""
-        fields = {"event": event, "message": text, "config_t_ns": config_t_ns}
+        """Publish an event on ``cfbci/<session>/event`` (with the ``challenge`` of a
+        ``session_pending``); record and log it."""
+        fields: dict[str, object] = {"event": event, "message": text, "config_t_ns": config_t_ns}
+        if challenge is not None:
+            fields["challenge"] = challenge
         message = self._outbox.send("event", session, fields)
         (log.warning if event in ("error", "session_rejected") else log.info)(
             "%s: %s", event, text

@@ -1,15 +1,16 @@
 """The service's loop: intake, dispatch, housekeeping, events and rejections.
 
-:class:`PipelineService` subscribes to ``cfbci/*/config``, ``cfbci/*/truth`` and
-``cfbci/*/epoch`` and keeps one :class:`cfbci.service.running.RunningSession` per session
-id. Messages wait in a :class:`wire.intake.Intake` (bounded, one FIFO per running session
-served round-robin, per-session rate limit); the loop never blocks on anything but the
-intake. A config is admitted (:mod:`cfbci.service.admission`) and starts once its source
-listens; an epoch goes down its session's path (:meth:`RunningSession.signal`, then
-:meth:`RunningSession.take`); a truth goes to the recordings
+:class:`PipelineService` subscribes to ``cfbci/**/config``, ``cfbci/**/ready``,
+``cfbci/**/truth`` and ``cfbci/**/epoch`` and keeps one
+:class:`cfbci.service.running.RunningSession` per session id. Messages wait in a
+:class:`wire.intake.Intake` (bounded, one FIFO per running session served round-robin,
+per-session rate limit); the loop never blocks on anything but the intake. A config is
+admitted (:mod:`cfbci.service.admission`) and starts once its source answers the
+``session_pending`` event's challenge with a ``ready`` message; an epoch goes down its
+session's path (:meth:`RunningSession.epoch`); a truth goes to the recordings
 (:class:`cfbci.service.recordings.Recordings`), never to a session. Every message the
 service cannot accept gets an ``error`` event; a session it cannot run, or stops running
-(a limit exceeded, no subscriber, idle), a ``session_rejected`` event.
+(a limit exceeded, no answer to its challenge, no epoch), a ``session_rejected`` event.
 """
 
 from __future__ import annotations
@@ -28,13 +29,17 @@ from cfbci.service.admission import (
     PuddleTables,
     Rejection,
     check_config,
-    check_memory,
+    check_quota,
+    confirm,
+    make_room,
     resolved_or_none,
+    take_due,
 )
 from cfbci.service.events import ErrorBudget, Events
 from cfbci.service.recordings import Recordings
 from cfbci.service.resume import (
     EndedAtResume,
+    end_again,
     resume_recorded,
 )
 from cfbci.service.running import RunningSession
@@ -119,12 +124,12 @@ class PipelineService:
             resume_recorded(self, record_dir)
         prefix = protocol.PREFIX
         self._pumps = [
-            Pump(session, f"{prefix}/*/{kind}", kind, self.intake, self.intake.accepts_size)
+            Pump(session, f"{prefix}/**/{kind}", kind, self.intake, self.intake.accepts_size)
             # Recorder-only: truth goes to self.recordings, never to a session. Truth is
             # declared before epoch, so that a source (re)discovering this service knows the
             # truth subscriber before its epochs are delivered: the truth re-sent with an
             # epoch after a restart is then not lost while the epoch gets through.
-            for kind in ("config", "truth", "epoch")
+            for kind in ("config", "ready", "truth", "epoch")
         ]
 
     @property
@@ -170,6 +175,8 @@ class PipelineService:
                 self.recordings.truth(received, running.step if running is not None else 0)
             elif received.tag == "config":
                 self._on_config(received)
+            elif received.tag == "ready":
+                self._on_ready(received)
             else:
                 self._on_epoch(received, (time.monotonic_ns() - received.t_ns) / 1e6)
         except ProtocolError as error:
@@ -181,36 +188,31 @@ class PipelineService:
             self._reject(ProtocolError(f"internal error: {exc!r}", session))
 
     def housekeeping(self) -> None:
-        """Start the pending sessions whose source has subscribed, reject those that waited
-        too long, end the idle sessions, and log the messages the intake dropped."""
+        """Start the pending sessions whose source has answered their challenge, reject
+        those that waited too long, end the idle sessions and those that never received an
+        epoch, and log the messages the intake dropped."""
         now = time.monotonic_ns()
-        for sid, pending in list(self._pending.items()):
-            if pending.publisher.matching_status.matching:
-                try:
-                    if not self._world_ready(pending.message.fields):
-                        continue  # its world's tables are being built: no deadline for that
-                except RuntimeError as error:
-                    del self._pending[sid]
-                    self._outbox.forget(sid)
-                    self._reject(Rejection(str(error), sid, pending.message.seq,
-                                           pending.message.t_ns))
-                    continue
-                del self._pending[sid]
+        for sid, pending, problem in take_due(self._pending, now, self._world_ready):
+            if problem is None:
                 self._guarded(sid, lambda p=pending: self._start(p.message, p.publisher))
-            elif now >= pending.deadline_ns:
-                del self._pending[sid]
-                self._outbox.forget(sid)
-                self._reject(Rejection(
-                    f"no subscriber to the session's events within "
-                    f"{self.limits.subscriber_timeout:g} s", sid, pending.message.seq,
-                    pending.message.t_ns,
-                ))
+                continue
+            self._outbox.forget(sid)
+            problem = problem or (
+                "no subscriber to the session's events answered its challenge within "
+                f"{self.limits.subscriber_timeout:g} s")
+            self._reject(Rejection(problem, sid, pending.message.seq, pending.message.t_ns))
         for sid, keeper in self.registration.take_conflicts().items():
             self._give_up(sid, f"session {sid!r} is also claimed by service {keeper!r}, which "
                           "keeps it (the smaller id)")
         idle_ns = int(self.limits.idle_timeout * 1e9)
-        for session in [s for s in self._sessions.values() if now - s.active_ns > idle_ns]:
-            self._abort(session, f"no epoch for {self.limits.idle_timeout:g} s: session ended")
+        start_ns = int(self.limits.start_timeout * 1e9)
+        for session in list(self._sessions.values()):
+            if session.last_epoch is None and now - session.active_ns > start_ns:
+                self._abort(session, f"no epoch within {self.limits.start_timeout:g} s of the "
+                            "start: session ended")
+            elif now - session.active_ns > idle_ns:
+                self._abort(session, f"no epoch for {self.limits.idle_timeout:g} s: session "
+                            "ended")
         self.recordings.close_overdue()
         drops = self.intake.take_drops()
         if drops:
@@ -260,29 +262,57 @@ class PipelineService:
                 return
             raise reject("a session with this id is already running")
         if sid in self._pending:
-            if self._pending[sid].message.t_ns == message.t_ns:
-                return  # a re-send: the pending session starts once its source subscribes
+            if self._pending[sid].message.t_ns == message.t_ns:  # a re-send: challenge again
+                self._challenge(sid, self._pending[sid])
+                return
             raise reject("a session with this id is already waiting for its source")
         limits = self.limits
         check_config(config, limits, reject)
+        check_quota(sid, self._sessions, self._pending, limits, reject)
         if len(self._sessions) >= limits.max_sessions:
             raise reject(f"the service runs its maximum of {limits.max_sessions} sessions")
         if len(self._pending) >= PENDING_PER_SESSION * limits.max_sessions:
-            raise reject(f"{len(self._pending)} sessions already wait for their source")
+            oldest, dropped = make_room(self._pending, reject)  # its source never answered
+            self._outbox.forget(oldest)
+            self._reject(Rejection(
+                f"{len(self._pending) + 1} sessions wait for their source: the oldest that "
+                "has not answered its challenge makes room for a newer config", oldest,
+                dropped.message.seq, dropped.message.t_ns,
+            ))
         try:
-            ready = self._world_ready(config)
+            self._world_ready(config)  # starts building a puddle world's tables
         except RuntimeError as error:
             raise reject(str(error)) from None
         holder = self.registration.claim(sid) if chosen is not None else None
         if holder is not None:
             raise reject(f"session {sid!r} is already served by service {holder!r}")
+        # Never wait here: the loop starts it once its source answers the challenge (and
+        # its world's tables are built).
         publisher = self._outbox.publisher(protocol.key(sid, "event"))
-        if publisher.matching_status.matching and ready:
-            self._start(message, publisher)
-        else:  # never wait here: the loop starts it once its source subscribes (and its
-            # world's tables are built)
-            deadline = time.monotonic_ns() + int(limits.subscriber_timeout * 1e9)
-            self._pending[sid] = Pending(message, publisher, deadline)
+        deadline = time.monotonic_ns() + int(limits.subscriber_timeout * 1e9)
+        self._pending[sid] = Pending(message, publisher, deadline)
+        self._challenge(sid, self._pending[sid])
+
+    def _challenge(self, sid: str, pending: Pending) -> None:
+        """Publish the ``session_pending`` event whose challenge the source answers."""
+        self.events.publish(
+            sid, "session_pending", f"session {sid!r} waits for its source to answer "
+            "(a ready message with this event's challenge)", pending.message.t_ns,
+            challenge=pending.challenge,
+        )
+
+    def _on_ready(self, received: Received) -> None:
+        """A source's answer to its session's challenge: the session starts (at once, or
+        once its world's tables are built)."""
+        message = protocol.decode(
+            received.data, key_expr=received.key_expr, max_bytes=self.limits.max_message_bytes
+        )
+        sid, fields = message.session, message.fields
+        running = self._sessions.get(sid)
+        if running is not None and running.config_t_ns == fields["config_t_ns"]:
+            return  # a re-send after the start
+        confirm(self._pending.get(sid), message)
+        self.housekeeping()  # starts it now if its world is ready
 
     def _world_ready(self, config: dict[str, Any]) -> bool:
         """Whether a config's world can start now: always, but for the puddle world while
@@ -324,40 +354,14 @@ class PipelineService:
         identity = (message.fields["step"], message.seq, message.t_ns)
         ended = self._ended_at_resume.get(message.session)
         if session is None and ended is not None and ended.last_epoch == identity:
-            self._end_again(ended)
+            end_again(ended, self._outbox, self.events.publish)
             return
         if session is None:
             problem = "before session_started" if message.session in self._pending else (
                 "for an unknown session (no running session has this id)")
             raise ProtocolError(f"epoch {problem}", **where)
-        if session.last_epoch == identity:
-            session.answer_again()
-            return
-        if session.answer_unheard:
-            session.answer_again()
-        signal_ = session.signal(message, self.limits)
-        problem = session.epochs.check(message.seq)
-        if problem is not None and not problem.startswith("gap"):
-            raise ProtocolError(problem, **where)  # a duplicate or a late epoch
-        if problem is not None:
-            self.events.publish(session.id, "info", problem)
-        if session.shape is None:
-            check_memory(
-                session.config, signal_.shape[0], self.limits,
-                lambda problem: Rejection(problem, session.id, message.seq, session.config_t_ns),
-            )
-        if session.take(message, signal_, received.t_ns, queued_ms):
+        if session.epoch(message, received.t_ns, queued_ms, self.limits):
             self._finish(session)
-
-    def _end_again(self, ended: EndedAtResume) -> None:
-        """The re-sent last epoch of a session that ended at its resumption: publish its
-        last state and ``session_ended`` again (unrecorded: its recording is closed)."""
-        self._outbox.send("state", ended.id, ended.state.fields, ended.state.confidence)
-        self.events.publish(
-            ended.id, "session_ended", f"session {ended.id!r} ended after {ended.step} "
-            "steps (sent again: it ended when the service resumed it)"
-        )
-        self._outbox.forget(ended.id)
 
     def _finish(self, session: RunningSession) -> None:
         """The session's last epoch is in: ``session_ended``, and forget it."""

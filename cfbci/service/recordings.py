@@ -1,7 +1,7 @@
 """The service's recordings: one MCAP file per session, and the only reader of ``truth``.
 
 :class:`Recordings` holds the session recorders and no learner: it owns the service's only
-``cfbci/*/truth`` subscription's messages and writes them to the recordings, so that a
+``cfbci/**/truth`` subscription's messages and writes them to the recordings, so that a
 label never reaches a learner. :func:`record_beliefs` records a state's beliefs in the
 form each world's recording holds them.
 """
@@ -31,7 +31,7 @@ def recording_path(directory: Path, session: str) -> Path:
     """Where a new recording of ``session`` goes in ``directory``: ``<session>.mcap``, or
     ``<session>.<n>.mcap`` with the smallest ``n >= 2`` that names no file, directory or
     link (a dangling link included), so that no recording is ever written over another or
-    through a link."""
+    through a link. A session ``<user>/<name>`` is recorded in the user's folder."""
     path, n = directory / f"{session}.mcap", 2
     while os.path.lexists(path):
         path, n = directory / f"{session}.{n}.mcap", n + 1
@@ -39,7 +39,8 @@ def recording_path(directory: Path, session: str) -> Path:
 
 
 def is_recording_name(name: str, session: str) -> bool:
-    """Whether a file name is one :func:`recording_path` gives ``session``'s recordings."""
+    """Whether a file name (relative to the record directory, ``/``-separated) is one
+    :func:`recording_path` gives ``session``'s recordings."""
     stem = name.removesuffix(".mcap")
     if stem == session:
         return name.endswith(".mcap")
@@ -95,7 +96,9 @@ class Recordings:
         self.directory.mkdir(parents=True, exist_ok=True)
         if session in self._recorders:  # an ended session's id reused before its last truth
             self._close(session)
-        recorder = SessionRecorder(recording_path(self.directory, session), session, config)
+        path = recording_path(self.directory, session)
+        path.parent.mkdir(exist_ok=True)  # a user's folder, for ``<user>/<name>`` ids
+        recorder = SessionRecorder(path, session, config)
         self._recorders[session] = recorder
         return recorder
 

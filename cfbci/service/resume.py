@@ -51,6 +51,15 @@ class EndedAtResume:
     state: State
 
 
+def end_again(ended: EndedAtResume, outbox: Outbox, event: EventSink) -> None:
+    """The re-sent last epoch of a session that ended at its resumption: publish its last
+    state and ``session_ended`` again (unrecorded: its recording is closed)."""
+    outbox.send("state", ended.id, ended.state.fields, ended.state.confidence)
+    event(ended.id, "session_ended", f"session {ended.id!r} ended after {ended.step} steps "
+          "(sent again: it ended when the service resumed it)")
+    outbox.forget(ended.id)
+
+
 def unfinished(recording: Recording) -> bool:
     """Whether a recorded session started and neither ended nor was rejected (for its own
     config): a session to resume."""
@@ -140,14 +149,14 @@ def answer_again(session: RunningSession, recording: Recording, rerun: Rerun) ->
 def resume_recorded(service: PipelineService, record_dir: Path) -> None:
     """Resume every unfinished session recorded in ``record_dir`` into ``service``; a
     recording that cannot be resumed is named in the log and left as is."""
-    for path in sorted(record_dir.glob("*.mcap")):
+    for path in sorted(record_dir.rglob("*.mcap")):
         if len(service._sessions) >= service.limits.max_sessions:
             log.warning("not resuming %s: the service runs its maximum of sessions", path)
             continue
         try:
             recording = read_recording(path)
             if (
-                is_recording_name(path.name, recording.session)
+                is_recording_name(path.relative_to(record_dir).as_posix(), recording.session)
                 and not path.is_symlink()
                 and unfinished(recording)
                 and recording.session not in service._sessions

@@ -18,6 +18,7 @@ from typing import Any
 
 import numpy as np
 
+from cfbci.service.admission import Rejection, check_memory
 from cfbci.service.recordings import record_beliefs
 from replay.recording import SessionRecorder
 from session.config import world_text
@@ -159,6 +160,37 @@ class RunningSession:
             return self.signals(payload)
         except ValueError as exc:
             raise ProtocolError(f"cannot extract ErrP features: {exc}", **where) from None
+
+    def epoch(
+        self, message: protocol.Message, received_ns: int, queued_ms: float, limits: Any
+    ) -> bool:
+        """An epoch of this session: answered again if it is a re-send of the last one,
+        else checked and taken (:meth:`signal`, the sequence, the memory limit once the
+        size of the features is known, :meth:`take`); True when it was the last.
+
+        Raises
+        ------
+        ProtocolError
+            As :meth:`signal`, for a duplicate or late ``seq``, and a :class:`Rejection`
+            over the memory limit.
+        """
+        if self.last_epoch == (message.fields["step"], message.seq, message.t_ns):
+            self.answer_again()
+            return False
+        if self.answer_unheard:
+            self.answer_again()
+        signal = self.signal(message, limits)
+        problem = self.epochs.check(message.seq)
+        if problem is not None and not problem.startswith("gap"):
+            raise ProtocolError(problem, session=self.id, seq=message.seq)  # duplicate, late
+        if problem is not None:
+            self.event(self.id, "info", problem)
+        if self.shape is None:
+            check_memory(
+                self.config, signal.shape[0], limits,
+                lambda problem: Rejection(problem, self.id, message.seq, self.config_t_ns),
+            )
+        return self.take(message, signal, received_ns, queued_ms)
 
     def take(
         self, message: protocol.Message, signal: np.ndarray, received_ns: int, queued_ms: float
