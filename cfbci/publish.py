@@ -64,8 +64,14 @@ log = logging.getLogger("cfbci.publish")
 
 def default_session_id(recording: Recording) -> str:
     """``<recorded session>-replay`` (a valid id; not the recorded one, so that a recording
-    service does not overwrite the original recording)."""
-    base = re.sub(r"[^A-Za-z0-9_-]", "-", recording.session)[:57] or "session"
+    service does not overwrite the original recording); a session ``<user>/<name>`` stays
+    in its user's space, ``<user>/<name>-replay``, which access control lets that user
+    publish."""
+    session = recording.session
+    user = protocol.user_of(session) if protocol.TYPES["session"][1](session) else None
+    if user is not None:
+        return f"{user}/{session.partition('/')[2][:57]}-replay"
+    base = re.sub(r"[^A-Za-z0-9_-]", "-", session)[:57] or "session"
     return f"{base}-replay"
 
 

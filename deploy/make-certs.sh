@@ -45,8 +45,10 @@ sign() {
     openssl req -new -key "$dir/$1-key.pem" -subj "/CN=$2" -out "$dir/$1.csr"
     printf '%s\n' "basicConstraints=critical,CA:FALSE" \
         "keyUsage=critical,digitalSignature" "$3" > "$dir/$1.ext"
+    # A random serial number (no serial file left beside the CA).
     openssl x509 -req -in "$dir/$1.csr" -CA "$dir/ca.pem" -CAkey "$dir/ca-key.pem" \
-        -CAcreateserial -out "$dir/$1.pem" -days 825 -sha256 -extfile "$dir/$1.ext" 2>/dev/null
+        -set_serial "0x$(openssl rand -hex 16)" -out "$dir/$1.pem" -days 825 -sha256 \
+        -extfile "$dir/$1.ext" 2>/dev/null
     rm -f "$dir/$1.csr" "$dir/$1.ext"
 }
 

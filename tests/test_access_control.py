@@ -1,16 +1,22 @@
 """The deployment of docs/deployment.md, for real: a `cfbci router` process enforcing the
 shipped policy (deploy/router.json5) over TLS with a certificate authority made here by
-deploy/make-certs.sh, a `cfbci serve` process and a `cfbci source` process, all Zenoh
-clients of the router, on loopback.
+deploy/make-certs.sh, a `cfbci serve` process and `cfbci source` processes, all Zenoh
+clients of the router, on loopback, with the shipped client files (deploy/*.json5) and the
+example credentials. The two source users, ``lab`` and ``lab-x``, have names that share a
+prefix: each owns the key chunk of its name (``cfbci/lab/*/...``, ``cfbci/lab-x/*/...``).
 
-Absence is shown causally, never by waiting a while: after the messages that must be
-dropped, the same client sends one that is allowed to the same receiver over the same
-link (Zenoh delivers a link's reliable messages in order), and the check runs once that
-one has arrived.
+Absence is shown causally, never by waiting a while. After the messages that must be
+dropped, the same client sends allowed messages of the same kinds, which travel the same
+links in order (Zenoh delivers a link's reliable messages in order, and the router
+forwards a link's messages in the order they came), and the check runs once their answers
+have arrived: the service files the configs, ready messages and epochs of sessions it does
+not run in one queue, in order (``wire/intake.py``), so the dropped message, had it come
+through, would have been answered first.
 """
 
 from __future__ import annotations
 
+import itertools
 import json
 import os
 import queue
@@ -43,8 +49,12 @@ DEPLOY = ROOT / "deploy"
 CLI = [sys.executable, "-m", "cfbci.cli"]
 TIMEOUT = 60.0  # failure guard, seconds
 STEPS = 30
-FORGED_CELL = 777  # from_state of the forged moves: no cell of a 5 x 5 grid
-
+FORGED_CELL = 777  # from_state of the forged moves, target of the forged truth: no cell of 5 x 5
+#: The client file of each user (deploy/).
+CLIENT_FILES = {"service": "service", "lab": "source", "lab-x": "source-lab-x",
+                "monitor": "monitor"}
+#: What the monitor may receive.
+WATCHED = ("move", "state", "event", "truth")
 
 
 @pytest.fixture(autouse=True)
@@ -60,25 +70,17 @@ class Deployment:
     root: Path
     endpoint: str  # the router's, tls/127.0.0.1:<port>
 
-    def client_config(self, name: str, **changes: Any) -> zenoh.Config:
-        """A client configuration: deploy/<name>.json5 with ``changes`` merged over it, and
-        the router's endpoint."""
-        document = merge(read_config_file(self.root / f"{name}.json5"), changes)
-        document = merge(document, {"connect": {"endpoints": [self.endpoint]}})
+    def client_config(self, user: str, **changes: Any) -> zenoh.Config:
+        """The shipped client file of ``user`` with ``changes`` merged over it, and the
+        router's endpoint."""
+        document = read_config_file(self.root / f"{CLIENT_FILES[user]}.json5")
+        document = merge(merge(document, changes), {"connect": {"endpoints": [self.endpoint]}})
         return build_config(document)
 
-    def as_user(self, user: str, **changes: Any) -> zenoh.Config:
-        """A client logged in as ``user`` (its password from credentials.txt)."""
-        password = self.password(user)
-        auth = {"transport": {"auth": {"usrpwd": {"user": user, "password": password}}}}
-        return self.client_config("source", **merge(auth, changes))
-
-    def password(self, user: str) -> str:
-        for line in (self.root / "credentials.txt").read_text().splitlines():
-            name, _, password = line.partition(":")
-            if name == user:
-                return password
-        raise KeyError(user)
+    def source_args(self, user: str, session: str, *more: str) -> list[str]:
+        """``cfbci source`` of ``user`` with its client file, for ``session``."""
+        return ["source", "--zenoh-config", f"{CLIENT_FILES[user]}.json5", "--connect",
+                self.endpoint, "--session", session, *more]
 
 
 def make_certs(directory: Path, *names: str) -> None:
@@ -93,8 +95,8 @@ def deployment(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Deployment:
     """The deployment's files in ``tmp_path``, which is also the working directory (the
     configurations' paths are relative to it)."""
     monkeypatch.chdir(tmp_path)
-    for name in ("router.json5", "service.json5", "source.json5"):
-        shutil.copy(DEPLOY / name, tmp_path / name)
+    for name in ("router", *CLIENT_FILES.values()):
+        shutil.copy(DEPLOY / f"{name}.json5", tmp_path / f"{name}.json5")
     shutil.copy(DEPLOY / "credentials.example.txt", tmp_path / "credentials.txt")
     make_certs(tmp_path / "certs", "127.0.0.1", "localhost")
     with socket.socket() as probe:
@@ -133,6 +135,14 @@ def cli_process(
     assert process.returncode == 0, (deployment.root / f"{name}.log").read_text()[-3000:]
 
 
+def cfbci(deployment: Deployment, *args: str) -> subprocess.CompletedProcess[str]:
+    """``cfbci *args`` in the deployment's directory, to its end."""
+    return subprocess.run(
+        [*CLI, *args], cwd=deployment.root, capture_output=True, text=True,
+        timeout=TIMEOUT * 3, env={**os.environ, "PYTHONUNBUFFERED": "1"},
+    )
+
+
 @contextmanager
 def router(deployment: Deployment, config: str = "router.json5",
            stop: signal.Signals = signal.SIGTERM) -> Iterator[None]:
@@ -148,21 +158,30 @@ def router(deployment: Deployment, config: str = "router.json5",
         yield
 
 
+@contextmanager
+def service(deployment: Deployment, *limits: str) -> Iterator[Path]:
+    """``cfbci serve`` with deploy/service.json5 and ``limits`` (flags), recording to the
+    directory it yields."""
+    records = deployment.root / "records"
+    with cli_process(deployment, "service", "serve", "--zenoh-config", "service.json5",
+                     "--connect", deployment.endpoint, "--record-dir", str(records), *limits):
+        yield records
+
+
 def _decoded(inbox: queue.SimpleQueue[Received]) -> protocol.Message:
     received = inbox.get(timeout=TIMEOUT)
     return protocol.decode(received.data, key_expr=received.key_expr)
 
 
 class Monitor:
-    """What the ``monitor`` user receives: every event, truth, and one session's moves."""
+    """What the ``monitor`` user (deploy/monitor.json5) receives: the moves, states,
+    events and truth of every session (``cfbci/**/<kind>``)."""
 
-    def __init__(self, session: zenoh.Session, watched: str) -> None:
+    def __init__(self, session: zenoh.Session) -> None:
+        self.session = session
         self.inbox: queue.SimpleQueue[Received] = queue.SimpleQueue()
-        self.pumps = [
-            Pump(session, "cfbci/*/event", "event", self.inbox),
-            Pump(session, "cfbci/*/truth", "truth", self.inbox),
-            Pump(session, protocol.key(watched, "move"), "move", self.inbox),
-        ]
+        self.pumps = [Pump(session, f"{protocol.PREFIX}/**/{kind}", kind, self.inbox)
+                      for kind in WATCHED]
         self.seen: list[protocol.Message] = []
 
     def wait_for(self, wanted: Callable[[protocol.Message], bool]) -> protocol.Message:
@@ -177,8 +196,12 @@ class Monitor:
             if wanted(message):
                 return message
 
+    def of(self, session: str, kind: str) -> list[protocol.Message]:
+        """The messages of ``kind`` of ``session`` received so far."""
+        return [m for m in self.seen if m.kind == kind and m.session == session]
+
     def events(self, session: str) -> list[str]:
-        return [m.fields["event"] for m in self.seen if m.kind == "event" and m.session == session]
+        return [m.fields["event"] for m in self.of(session, "event")]
 
     def close(self) -> None:
         for pump in self.pumps:
@@ -191,8 +214,15 @@ def _event(session: str, event: str) -> Callable[[protocol.Message], bool]:
 
 def _config(seed: int, grid: int, steps: int) -> dict[str, Any]:
     return {"seed": seed, "world": "grid", "grid": grid, "frame": "feedback", "steps": steps,
-            "learner": {},
-            "dataset": {}, "signal": "features"}
+            "learner": {}, "dataset": {}, "signal": "features"}
+
+
+def _epoch(step: int) -> dict[str, Any]:
+    return {"step": step, "signal": "features"}
+
+
+FEATURES = np.ones(4)
+FORGED_TRUTH = {"step": 1, "target": FORGED_CELL, "label": 0}
 
 
 def _matched(outbox: Outbox, session: str, kind: str) -> None:
@@ -201,90 +231,269 @@ def _matched(outbox: Outbox, session: str, kind: str) -> None:
     assert wait_for_subscribers(outbox.publisher(protocol.key(session, kind)), TIMEOUT)
 
 
-def test_only_authenticated_sources_start_sessions_and_only_the_service_moves(
+_probes = itertools.count()
+
+
+def answered_in_turn(outbox: Outbox, monitor: Monitor, user: str) -> None:
+    """Send, in ``user``'s own key space, one config, ready, epoch and truth of sessions
+    that do not run, and wait until each is answered: the config with a
+    ``session_pending`` event, the ready message and the epoch with ``error`` events, the
+    truth by its arrival at the monitor. Every config, ready message and epoch that this
+    client sent before, and that the router let through, was answered before them."""
+    sessions = [f"{user}/probe-{next(_probes)}" for _ in range(4)]
+    sends = [
+        ("config", _config(1, 3, 5), None, _event(sessions[0], "session_pending")),
+        ("ready", {"config_t_ns": 0, "challenge": "none"}, None, _event(sessions[1], "error")),
+        ("epoch", _epoch(1), FEATURES, _event(sessions[2], "error")),
+        ("truth", {"step": 1, "target": 0, "label": 0}, None,
+         lambda m, s=sessions[3]: m.kind == "truth" and m.session == s),
+    ]
+    for sid, (kind, fields, payload, answer) in zip(sessions, sends, strict=True):
+        _matched(outbox, sid, kind)
+        outbox.send(kind, sid, fields, payload)
+        monitor.wait_for(answer)
+
+
+class Source:
+    """A source started by hand, as wire/client.py does it (docs/protocol.md, "Starting a
+    session"): its config, then a ``ready`` message repeating the ``session_pending``
+    event's challenge; it answers moves only when told to (:meth:`answer`)."""
+
+    def __init__(self, session: zenoh.Session, sid: str) -> None:
+        self.sid, self.outbox = sid, Outbox(session)
+        self.inbox: queue.SimpleQueue[Received] = queue.SimpleQueue()
+        self.pumps = [Pump(session, protocol.key(sid, kind), kind, self.inbox)
+                      for kind in ("move", "event")]
+        self.moves: list[protocol.Message] = []
+
+    def start(self, fields: dict[str, Any]) -> protocol.Message:
+        """Send the config and answer the challenge; the event that answers the config
+        (``session_started`` or ``session_rejected``); the first move once started."""
+        _matched(self.outbox, self.sid, "config")
+        config = self.outbox.send("config", self.sid, fields)
+        while True:
+            message = self.next("event")
+            if message.fields["config_t_ns"] != config.t_ns:
+                continue
+            if message.fields["event"] == "session_pending":
+                ready = {"config_t_ns": config.t_ns, "challenge": message.fields["challenge"]}
+                self.outbox.send("ready", self.sid, ready)
+            elif message.fields["event"] in ("session_started", "session_rejected"):
+                if message.fields["event"] == "session_started":
+                    self.next("move")
+                return message
+
+    def next(self, kind: str) -> protocol.Message:
+        """The next message of ``kind`` received (moves are kept in :attr:`moves`)."""
+        while True:
+            message = _decoded(self.inbox)
+            if message.kind == "move":
+                self.moves.append(message)
+            if message.kind == kind:
+                return message
+
+    def close(self) -> None:
+        for pump in self.pumps:
+            pump.close()
+        self.outbox.close()
+
+
+def test_clients_without_valid_credentials_are_refused(deployment: Deployment) -> None:
+    no_auth = {"transport": {"auth": {"usrpwd": {"user": None, "password": None}}}}
+    wrong = {"transport": {"auth": {"usrpwd": {"user": "lab", "password": "guess"}}}}
+    with router(deployment):
+        with zenoh.open(deployment.client_config("lab")) as accepted:
+            assert str(accepted.info.zid())
+        for refused in (no_auth, wrong):
+            with pytest.raises(zenoh.ZError):
+                zenoh.open(deployment.client_config("lab", **refused)).close()
+
+
+def test_users_whose_names_share_a_prefix_reach_only_their_own_sessions(
     deployment: Deployment,
 ) -> None:
-    records = deployment.root / "records"
+    """``lab`` and ``lab-x`` each run a session, while each tries to start, run, answer
+    and feed a session in the other's key space (``<other>/hijack``, ``<other>/run1``):
+    nothing of it reaches the service or the monitor; the monitor receives both users'
+    moves, states, events and truth."""
+    users = ("lab", "lab-x")
     with (
         router(deployment),
-        cli_process(deployment, "service", "serve", "--zenoh-config", "service.json5",
-                    "--connect", deployment.endpoint, "--record-dir", str(records)),
-        zenoh.open(deployment.as_user("monitor")) as watcher,
+        service(deployment) as records,
+        zenoh.open(deployment.client_config("monitor")) as watcher,
+        cli_process(deployment, "source-lab",
+                    *deployment.source_args("lab", "lab/run1", "--steps", str(STEPS))) as lab,
+        cli_process(deployment, "source-lab-x", *deployment.source_args(
+            "lab-x", "lab-x/run1", "--steps", str(STEPS), "--seed", "1")) as lab_x,
     ):
-        monitor = Monitor(watcher, "lab1-demo")
-
-        # No credentials, or a wrong password: the router refuses the Zenoh session itself.
-        no_auth = {"transport": {"auth": {"usrpwd": {"user": None, "password": None}}}}
-        for refused in (
-            deployment.client_config("source", **no_auth),
-            deployment.client_config(
-                "source", transport={"auth": {"usrpwd": {"user": "lab1", "password": "guess"}}}
-            ),
-        ):
-            with pytest.raises(zenoh.ZError):
-                zenoh.open(refused).close()
-
-        # Another source user (lab2) runs its own sessions, but cannot start lab1's or
-        # inject epochs into them.
-        with zenoh.open(deployment.as_user("lab2")) as lab2_session:
-            lab2 = Outbox(lab2_session)
-            _matched(lab2, "lab2-probe", "config")  # the service is up and reachable
-            lab2.send("config", "lab2-probe", _config(1, 3, 5))
-            monitor.wait_for(_event("lab2-probe", "session_started"))
-            _matched(lab2, "lab1-demo", "config")
-            _matched(lab2, "lab1-demo", "epoch")
-            lab2.send("config", "lab1-demo", _config(999, 3, 5))
-            features = {"step": 1, "signal": "features"}
-            lab2.send("epoch", "lab1-demo", features, np.ones(4))
-            # Causal sentinel: an epoch of lab2's own session, sent after the attempts on
-            # the same link, answered with an error (no move 6 was sent).
-            lab2.send("epoch", "lab2-probe", {**features, "step": 6}, np.ones(4))
-            monitor.wait_for(_event("lab2-probe", "error"))
-            lab2.close()
-        assert monitor.events("lab1-demo") == []  # the service saw nothing of lab2's
-
-        # The real source (user lab1) runs lab1-demo; meanwhile another lab1 client forges
-        # moves of that session.
-        with cli_process(
-            deployment, "source", "source", "--zenoh-config", "source.json5", "--connect",
-            deployment.endpoint, "--session", "lab1-demo", "--steps", str(STEPS),
-        ) as source, zenoh.open(deployment.as_user("lab1")) as forger_session:
-            monitor.wait_for(lambda m: m.kind == "move" and m.session == "lab1-demo")
-            forger = Outbox(forger_session)
-            _matched(forger, "lab1-demo", "move")  # it sees the source's move subscriber
-            for step in (2, 3, 4):
-                forger.send("move", "lab1-demo", {
-                    "step": step, "from_state": FORGED_CELL, "action": "up",
-                    "to_state": FORGED_CELL, "target_reached": False,
-                })
-            _matched(forger, "lab1-sentinel", "truth")
-            forger.send("truth", "lab1-sentinel", {"step": 1, "target": 0, "label": 0})
-            monitor.wait_for(lambda m: m.kind == "truth" and m.session == "lab1-sentinel")
-            forger.close()
-            output, _ = source.communicate(timeout=TIMEOUT * 5)
-        assert source.returncode == 0
-        assert f"'lab1-demo': {STEPS} steps" in output
-        monitor.wait_for(lambda m: m.kind == "move" and m.fields["step"] == STEPS)
+        monitor = Monitor(watcher)
+        for user in users:
+            monitor.wait_for(lambda m, u=user: m.kind == "move" and m.session == f"{u}/run1")
+        clients = {user: zenoh.open(deployment.client_config(user)) for user in users}
+        try:
+            outboxes = {user: Outbox(clients[user]) for user in users}
+            for user, other in (users, users[::-1]):
+                attacker = outboxes[user]
+                hijack, running = f"{other}/hijack", f"{other}/run1"
+                for sid in (hijack, running):
+                    for kind in ("config", "ready", "epoch", "truth"):
+                        _matched(attacker, sid, kind)  # it sees the service's subscribers
+                attacker.send("config", hijack, _config(999, 3, 5))
+                for sid in (hijack, running):
+                    attacker.send("ready", sid, {"config_t_ns": 0, "challenge": "guess"})
+                    attacker.send("epoch", sid, _epoch(STEPS + 5), FEATURES)
+                    attacker.send("truth", sid, FORGED_TRUTH)
+                answered_in_turn(attacker, monitor, user)
+            for process in (lab, lab_x):
+                output, _ = process.communicate(timeout=TIMEOUT * 3)
+                assert process.returncode == 0
+                assert f"{STEPS} steps" in output
+            for user in users:  # the sessions' queues are emptied into the common one
+                monitor.wait_for(_event(f"{user}/run1", "session_ended"))
+            for user in users:
+                answered_in_turn(outboxes[user], monitor, user)
+            # Re-published as a source does, under the default id, in the user's space.
+            published = cfbci(deployment, "replay", str(records / "lab" / "run1.mcap"),
+                              "--publish", "--speed", "0", "--zenoh-config", "source.json5",
+                              "--connect", deployment.endpoint)
+            assert published.returncode == 0, published.stderr
+            assert "published session 'lab/run1-replay'" in published.stdout
+            assert f"moves equal the recorded moves: yes ({STEPS} moves)" in published.stdout
+        finally:
+            for client in clients.values():
+                client.close()
         monitor.close()
 
-    moves = [m for m in monitor.seen if m.kind == "move"]
-    assert [m.fields["step"] for m in moves] == list(range(1, STEPS + 1))
-    assert all(m.fields["from_state"] != FORGED_CELL for m in moves)
-    assert monitor.events("lab1-demo").count("session_started") == 1
-    assert "error" not in monitor.events("lab1-demo")
-    assert sorted(p.name for p in records.glob("*.mcap")) == ["lab1-demo.mcap", "lab2-probe.mcap"]
-    recording = read_recording(records / "lab1-demo.mcap")
-    assert (recording.config["seed"], recording.config["grid"]) == (0, 5)  # not lab2's 999, 3
-    result = replay_check(records / "lab1-demo.mcap")
-    assert result.divergence is None
-    assert result.moves == STEPS
+    for user, other in (users, users[::-1]):
+        assert monitor.events(f"{other}/hijack") == []  # neither started nor answered
+        run = f"{user}/run1"  # the moves, states and truth of every step; no error
+        assert {m.fields["step"] for m in monitor.of(run, "move")} == set(range(1, STEPS + 1))
+        assert {m.fields["n_signals"] for m in monitor.of(run, "state")} == set(
+            range(STEPS + 1))
+        assert {m.fields["step"] for m in monitor.of(run, "truth")} == set(range(1, STEPS + 1))
+        assert "session_ended" in monitor.events(run)
+        assert not {"error", "session_rejected"} & set(monitor.events(run))
+    assert all(m.fields["target"] != FORGED_CELL for m in monitor.seen if m.kind == "truth")
+    recorded = sorted(str(p.relative_to(records)) for p in records.rglob("*.mcap"))
+    assert recorded == ["lab-x/run1.mcap", "lab/run1-replay.mcap", "lab/run1.mcap"]
+    for user, seed in zip(users, (0, 1), strict=True):
+        path = records / user / "run1.mcap"
+        recording = read_recording(path)
+        assert recording.session == f"{user}/run1"
+        assert (recording.config["seed"], recording.config["grid"]) == (seed, 5)  # not 999, 3
+        result = replay_check(path)
+        assert result.divergence is None
+        assert result.moves == STEPS
+
+
+def test_only_the_service_moves_and_the_monitor_only_watches(deployment: Deployment) -> None:
+    """The monitor publishes a config and the epoch a session waits for; a ``lab`` client
+    that sees the session's move subscriber forges moves of ``lab``'s own session: the
+    router drops them all."""
+    held = "lab/held"
+    with (
+        router(deployment),
+        service(deployment) as records,
+        zenoh.open(deployment.client_config("monitor")) as watcher,
+        zenoh.open(deployment.client_config("lab")) as source_session,
+        zenoh.open(deployment.client_config("lab")) as forger_session,
+    ):
+        monitor = Monitor(watcher)
+        source = Source(source_session, held)
+        assert source.start(_config(0, 5, 3)).fields["event"] == "session_started"
+        forger = Outbox(forger_session)
+
+        # The monitor: a config of a new session, and the epoch of step 1 of the held one.
+        intruder = Outbox(watcher)
+        intruder.send("config", "lab/from-monitor", _config(999, 3, 5))
+        intruder.send("epoch", held, _epoch(1), np.full(4, 7.0))
+        # After them on the monitor's link, a subscription, which the router passes on to
+        # the lab clients: once the forger sees it, what it sends comes after the
+        # monitor's messages (had the router let them through) on the service's link.
+        spy = Pump(watcher, protocol.key("lab/from-monitor", "event"), "event",
+                   queue.SimpleQueue())
+        assert wait_for_subscribers(
+            forger.publisher(protocol.key("lab/from-monitor", "event")), TIMEOUT)
+        answered_in_turn(forger, monitor, "lab")
+
+        _matched(forger, held, "move")  # it sees the source's move subscriber
+        for step in (2, 3):
+            forger.send("move", held, {
+                "step": step, "from_state": FORGED_CELL, "action": "up",
+                "to_state": FORGED_CELL, "target_reached": False,
+            })
+        # After the forged moves on the same link: the epoch of step 1, which the service
+        # answers with the move of step 2.
+        _matched(forger, held, "epoch")
+        epoch = forger.send("epoch", held, _epoch(1), FEATURES)
+        assert source.next("move").fields["step"] == 2
+        monitor.wait_for(lambda m: m.kind == "move" and m.session == held
+                         and m.fields["step"] == 2)
+        spy.close()
+        intruder.close()
+        forger.close()
+        source.close()
+        monitor.close()
+
+    moves = monitor.of(held, "move")
+    assert [m.fields["step"] for m in moves] == [1, 2]
+    assert [m.fields["step"] for m in source.moves] == [1, 2]
+    assert all(m.fields["from_state"] != FORGED_CELL for m in moves + source.moves)
+    assert monitor.events("lab/from-monitor") == []
+    recording = read_recording(records / "lab" / "held.mcap")
+    assert (recording.config["seed"], recording.config["grid"]) == (0, 5)
+    # The epoch of step 1 taken is the forger's (the monitor's came first, had it come).
+    assert [m["t_ns"] for _, m in recording.messages["/features"]] == [epoch.t_ns]
+    assert sorted(p.name for p in records.rglob("*.mcap")) == ["held.mcap"]
+
+
+def test_a_users_quota_leaves_the_other_users_sessions(deployment: Deployment) -> None:
+    """With ``--user-sessions 1 --user-pending 1``: while ``lab`` runs a session, its
+    second is rejected (``cfbci source`` says why, exit 1), and ``lab-x`` runs one; a user
+    with a session waiting for its source has its next config rejected."""
+    with (
+        router(deployment),
+        service(deployment, "--user-sessions", "1", "--user-pending", "1") as records,
+        zenoh.open(deployment.client_config("monitor")) as watcher,
+        zenoh.open(deployment.client_config("lab")) as lab_session,
+        zenoh.open(deployment.client_config("lab-x")) as lab_x_session,
+    ):
+        monitor = Monitor(watcher)
+        held = Source(lab_session, "lab/held")
+        assert held.start(_config(0, 5, 10)).fields["event"] == "session_started"
+
+        second = cfbci(deployment, *deployment.source_args("lab", "lab/second", "--steps", "5"))
+        assert second.returncode == 1
+        said = " ".join(second.stderr.split())
+        assert "rejected session 'lab/second'" in said
+        assert "user 'lab' runs its maximum of 1 sessions" in said
+
+        other = cfbci(deployment, *deployment.source_args("lab-x", "lab-x/first", "--steps",
+                                                          "5"))
+        assert other.returncode == 0, other.stderr
+        assert "'lab-x/first': 5 steps" in other.stdout
+
+        waiting = Outbox(lab_x_session)  # lab-x: one config left unanswered, then another
+        for sid in ("lab-x/waits", "lab-x/next"):
+            _matched(waiting, sid, "config")
+            waiting.send("config", sid, _config(0, 3, 5))
+        monitor.wait_for(_event("lab-x/waits", "session_pending"))
+        rejected = monitor.wait_for(_event("lab-x/next", "session_rejected"))
+        assert "user 'lab-x' has its maximum of 1 sessions waiting" in rejected.fields["message"]
+        waiting.close()
+        held.close()
+        monitor.close()
+
+    assert set(monitor.events("lab/second")) == {"session_rejected"}
+    recorded = sorted(str(p.relative_to(records)) for p in records.rglob("*.mcap"))
+    assert recorded == ["lab-x/first.mcap", "lab/held.mcap"]
 
 
 def test_tls_client_certificates_from_another_authority_are_refused(
     deployment: Deployment,
 ) -> None:
-    make_certs(deployment.root / "certs", "127.0.0.1", "--client", "lab1")
-    make_certs(deployment.root / "other", "127.0.0.1", "--client", "lab1")
+    make_certs(deployment.root / "certs", "127.0.0.1", "--client", "lab")
+    make_certs(deployment.root / "other", "127.0.0.1", "--client", "lab")
     mutual = {"transport": {"link": {"tls": {"enable_mtls": True}}}}
     shipped = read_config_file(deployment.root / "router.json5")
     (deployment.root / "router-mtls.json5").write_text(json.dumps(merge(shipped, mutual)))
@@ -292,9 +501,9 @@ def test_tls_client_certificates_from_another_authority_are_refused(
     def client(directory: str | None, ca: str = "certs") -> zenoh.Config:
         tls: dict[str, Any] = {"root_ca_certificate": f"{ca}/ca.pem", "enable_mtls": True}
         if directory is not None:
-            tls |= {"connect_certificate": f"{directory}/lab1.pem",
-                    "connect_private_key": f"{directory}/lab1-key.pem"}
-        return deployment.as_user("lab1", transport={"link": {"tls": tls}})
+            tls |= {"connect_certificate": f"{directory}/lab.pem",
+                    "connect_private_key": f"{directory}/lab-key.pem"}
+        return deployment.client_config("lab", transport={"link": {"tls": tls}})
 
     with router(deployment, "router-mtls.json5", stop=signal.SIGINT):
         with zenoh.open(client("certs")) as accepted:  # a certificate of the CA
