@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import json
 import queue
-import shutil
 import threading
 import time
 import urllib.parse
@@ -42,6 +41,7 @@ from selenium import webdriver
 from selenium.webdriver.chrome.service import Service as DriverService
 from selenium.webdriver.common.by import By
 from selenium.webdriver.support.ui import Select, WebDriverWait
+from system_deps import require
 
 from acquisition.simulated_source import SourceSettings, SourceSummary, run_source
 from cfbci.publish import publish_recording
@@ -65,13 +65,8 @@ POLL = 0.02  # seconds between two readings of a page
 
 
 def _executable(name: str, debian_path: str) -> str:
-    found = shutil.which(name) or (debian_path if Path(debian_path).exists() else None)
-    if found is None:
-        pytest.fail(
-            f"{name} not found: the browser test of the live view needs Debian's chromium and "
-            "chromium-driver (apt-get install chromium chromium-driver; .ci/run installs them)"
-        )
-    return found
+    """Debian's chromium or chromium-driver (skips, or fails in CI, when absent)."""
+    return require(name, {"chromium": "chromium"}.get(name, "chromium-driver"), debian_path)
 
 
 def _view_process(listen: str, connect: list[str], access: Access, ready: Any) -> None:
