@@ -24,6 +24,14 @@ No class information lies in a constant offset: both classes share the backgroun
 outcome responses are brief waves. :func:`generate_errp_epochs` chooses ``gain`` from the
 wanted difficulty, expressed as the balanced accuracy of a shrinkage LDA on
 :class:`~decoding.features.ErrPFeatures` (see ``_CALIBRATION_ACCURACY``).
+
+Day-to-day drift (:class:`ResponseDrift`, off by default): a user's responses on another
+day are scaled in amplitude and shifted in latency. A drift multiplies the outcome responses
+(error and correct waves, and the error's theta burst) by ``amplitude`` and delays them by
+``latency`` seconds, on top of the per-trial jitter; the background and the response to
+every action are unchanged, and every random draw is the same as without it (the same seed
+gives the same background, jitters and labels). Without a drift the output is that of the
+generator before drift existed, bit for bit.
 """
 
 from __future__ import annotations
@@ -32,7 +40,7 @@ import math
 import operator
 import re
 from collections.abc import Sequence
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from typing import NamedTuple
 
 import numpy as np
@@ -42,6 +50,38 @@ from acquisition.labelled import LabelledEpochs
 from decoding.validation import check_range
 
 SeedLike = int | np.random.SeedSequence | np.random.Generator
+
+
+@dataclass(frozen=True)
+class ResponseDrift:
+    """A day's drift of a user's outcome responses (see the module docstring).
+
+    Attributes
+    ----------
+    amplitude : float, default 1
+        Factor of the outcome responses' amplitude (> 0; 1: unchanged).
+    latency : float, default 0
+        Delay of the outcome responses, s (negative: earlier; 0: unchanged).
+    """
+
+    amplitude: float = 1.0
+    latency: float = 0.0
+
+    def __post_init__(self) -> None:
+        check_range("drift amplitude", float(self.amplitude), 0.0, math.inf, inclusive=False)
+        check_range("drift latency", float(self.latency), -0.2, 0.2)
+
+    def then(self, other: ResponseDrift) -> ResponseDrift:
+        """This drift followed by ``other``: amplitudes multiply, latencies add."""
+        return ResponseDrift(self.amplitude * other.amplitude, self.latency + other.latency)
+
+    def describe(self) -> str:
+        """E.g. ``amplitude x0.8, latency +20 ms``."""
+        return f"amplitude x{self.amplitude:g}, latency {1000 * self.latency:+g} ms"
+
+
+#: No drift: the generator's responses as they are.
+NO_DRIFT = ResponseDrift()
 
 # ---------------------------------------------------------------------------------------
 # Scalp geometry.
@@ -143,6 +183,7 @@ def generate_errp_epochs(
     tmin: float = -0.2,
     tmax: float = 1.0,
     ch_names: Sequence[str] = ("Fz", "FCz", "Cz", "Pz"),
+    drift: ResponseDrift = NO_DRIFT,
 ) -> LabelledEpochs:
     """Synthetic ErrP epochs whose difficulty is a nominal decoding accuracy.
 
@@ -170,6 +211,9 @@ def generate_errp_epochs(
         (as MNE does) so that the onset falls on a sample.
     ch_names : sequence of str, default ("Fz", "FCz", "Cz", "Pz")
         Channels, 10-10 system names (e.g. "Fz", "FC1", "CPz", "T7"; case-insensitive).
+    drift : ResponseDrift, default none
+        The day's drift of the outcome responses (applied after ``accuracy`` has chosen
+        the gain: a drift of amplitude changes the difficulty).
 
     Returns
     -------
@@ -196,8 +240,10 @@ def generate_errp_epochs(
         tmin=tmin,
         tmax=tmax,
         ch_names=ch_names,
+        drift=drift,
     )
-    source = f"synthetic ErrP epochs (accuracy={accuracy:.3f}, seed={_describe(seed)})"
+    drifted = "" if drift == NO_DRIFT else f", drift {drift.describe()}"
+    source = f"synthetic ErrP epochs (accuracy={accuracy:.3f}, seed={_describe(seed)}{drifted})"
     return replace(data, source=source)
 
 
@@ -211,6 +257,7 @@ def generate_errp_epochs_at_gain(
     tmin: float = -0.2,
     tmax: float = 1.0,
     ch_names: Sequence[str] = ("Fz", "FCz", "Cz", "Pz"),
+    drift: ResponseDrift = NO_DRIFT,
 ) -> LabelledEpochs:
     """Synthetic ErrP epochs whose outcome responses are scaled by ``gain``.
 
@@ -219,8 +266,8 @@ def generate_errp_epochs_at_gain(
     seed at two gains gives the same background, jitters and labels.
 
     ``gain`` (>= 0) scales the outcome responses (0 makes the classes differ only by the
-    induced theta power); the other parameters and the result are those of
-    :func:`generate_errp_epochs`.
+    induced theta power); ``drift`` scales them again and delays them; the other parameters
+    and the result are those of :func:`generate_errp_epochs`.
     """
     n_correct = _check_count("n_correct", n_correct)
     n_error = _check_count("n_error", n_error)
@@ -240,9 +287,12 @@ def generate_errp_epochs_at_gain(
     epochs = _background(rng, n_epochs, positions, len(times), sfreq)
     epochs += _evoked(rng, _ACTION_RESPONSE, np.ones(n_epochs), positions, times)
     is_error = labels == 1
-    epochs += _evoked(rng, _ERROR_RESPONSE, gain * is_error, positions, times)
-    epochs += _evoked(rng, _CORRECT_RESPONSE, gain * ~is_error, positions, times)
-    epochs += _theta_burst(rng, is_error, positions, times)
+    # A drift's factor 1 and delay 0 change no number: the outcome times are ``times``.
+    outcome_times = times - drift.latency
+    outcome_gain = gain * drift.amplitude
+    epochs += _evoked(rng, _ERROR_RESPONSE, outcome_gain * is_error, positions, outcome_times)
+    epochs += _evoked(rng, _CORRECT_RESPONSE, outcome_gain * ~is_error, positions, outcome_times)
+    epochs += drift.amplitude * _theta_burst(rng, is_error, positions, outcome_times)
     return LabelledEpochs(
         epochs=epochs,
         sfreq=sfreq,
@@ -250,7 +300,8 @@ def generate_errp_epochs_at_gain(
         ch_names=tuple(ch_names),
         labels=labels,
         n_classes=2,
-        source=f"synthetic ErrP epochs (gain={gain:.4g}, seed={_describe(seed)})",
+        source=f"synthetic ErrP epochs (gain={gain:.4g}, seed={_describe(seed)}"
+        + ("" if drift == NO_DRIFT else f", drift {drift.describe()}") + ")",
     )
 
 

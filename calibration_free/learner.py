@@ -24,6 +24,7 @@ from calibration_free.frames import Frame
 from calibration_free.likelihood import (
     CONFIDENCES,
     label_log_matches,
+    log_match,
     normalised_likelihood,
 )
 from calibration_free.planning import PlanningInputs, greedy_action, make_planner, random_action
@@ -150,6 +151,8 @@ class TaskLearner:
         self.rng = np.random.default_rng(rng)
         self.n_signals = 0
         self.n_targets = 0
+        #: Whether the learner started from a prior's adopted labels (:meth:`adopt_prior`).
+        self.prior_adopted = False
         self._n_features: int | None = None
         self._pending_target: int | None = None
         self._visits = np.zeros(world.n_states)
@@ -171,10 +174,17 @@ class TaskLearner:
         raise NotImplementedError
 
     @property
+    def labels_adopted(self) -> bool:
+        """Whether some labels have been adopted: at a target, or from a prior. Until then
+        the learner is in its first phase (the first-target shrinkage, the stricter first
+        target, the novelty bonus)."""
+        return self.n_targets > 0 or self.prior_adopted
+
+    @property
     def _fit(self) -> DecoderFit:
-        """How the decoders are fitted now: with ``first_target_shrinkage`` until the first
-        target is reached, then with ``shrinkage``."""
-        return self._fits[min(self.n_targets, 1)]
+        """How the decoders are fitted now: with ``first_target_shrinkage`` until labels
+        are adopted (the first target, or a prior), then with ``shrinkage``."""
+        return self._fits[int(self.labels_adopted)]
 
     @property
     def shrinkage_in_use(self) -> float | str:
@@ -248,7 +258,7 @@ class TaskLearner:
         confidence = CONFIDENCES[rule](scores)
         best = first_best(scores)
         required = threshold
-        if self.n_targets == 0:
+        if not self.labels_adopted:
             required = first_target_requirement(
                 threshold, self.n_signals, self.config.frame_first_target_signals
             )
@@ -297,8 +307,15 @@ class TaskLearner:
         """
         self._pending_target = self._check_state(task)
 
+    def withdraw_declaration(self) -> None:
+        """Forget the target the last proposal declared: the next observation counts no
+        target, whatever its action (a caller that performs another learner's proposal
+        instead, :class:`calibration_free.prior.ReturningLearner`). Draws nothing."""
+        self._pending_target = None
+
     def _explore(self, state: int, beliefs: Beliefs) -> int:
-        if self.n_signals < self.config.warmup_steps:
+        # The random warm-up waits for decoders to train; a prior's are trained already.
+        if self.n_signals < self.config.warmup_steps and not self.prior_adopted:
             return random_action(self.world, self.rng)
         if self.config.planning_weights == "posterior":
             weights = np.exp(beliefs.scores - beliefs.scores.max())
@@ -322,7 +339,7 @@ class TaskLearner:
         weight of the tasks whose state each state is).
         """
         bonus = None
-        if self.config.frame_novelty_bonus > 0 and self.n_targets == 0:
+        if self.config.frame_novelty_bonus > 0 and not self.labels_adopted:
             fade = 2.0 * (1.0 - beliefs.confidence[beliefs.best_task])
             bonus = fade * self.config.frame_novelty_bonus / np.sqrt(1.0 + self._visits)
         if self.config.goal_pull > 0:
@@ -443,6 +460,10 @@ class CalibrationFreeLearner(TaskLearner):
         #: segment's first signal: measured then, on the decoders fitted for it).
         self._calibrated_segment = False
         self._evidence_temperature: float | None = None
+        #: Every task's log match ``log m_t`` of the last signal observed against the
+        #: prediction of the decoders fitted before it, untempered, shape (n_tasks,); None
+        #: before any decoder and at a declared target's step (no prediction made).
+        self.last_log_match: np.ndarray | None = None
 
     @property
     def evidence_temperature(self) -> float:
@@ -519,19 +540,7 @@ class CalibrationFreeLearner(TaskLearner):
         x = self._check_input(state, action, signal)
         self._visits[state] += 1
         if self._history is None:
-            self._history = TaskHistory(
-                self.world.n_tasks, self.frame.n_classes, x.shape[0], self.config.n_folds,
-                class_scatters=self._fit.class_scatters or self._likelihood.needs_class_scatters,
-                keeps_frame_labels=self._resplits_labels,
-                # Only where every step fits the folds' decoders too (the likelihoods that
-                # correct by the confusion); the others fit the whole history alone.
-                eigen_period=(
-                    refresh_period(self.world.n_tasks, x.shape[0])
-                    if self._likelihood.corrects_confusion
-                    and all(fit.rolling_eigen for fit in self._fits)
-                    else None
-                ),
-            )
+            self._history = self._new_history(x.shape[0])
         expected = self.frame.distribution_at(state, action)
         frame_weights = weights = self.frame.weights_at(state, action)
         models = None if self._prediction_is_discarded(state, action) else self._current_models()
@@ -547,6 +556,7 @@ class CalibrationFreeLearner(TaskLearner):
             if self.config.ambiguous_match == "resolved":
                 expected = expect_the_chosen_label(expected, frame_weights, weights)
         self._likelihood.take(expected, predicted, self.evidence_temperature)
+        self.last_log_match = None if predicted is None else log_match(expected, predicted)
         self._history.add(x, weights, frame_weights)
         self._models = None
         if self.uses_power_prior:
@@ -558,6 +568,75 @@ class CalibrationFreeLearner(TaskLearner):
             self._switch_task(target)
         self._likelihood.after_signal(self._history, self._current_models)
 
+    def _new_history(self, n_features: int) -> TaskHistory:
+        """An empty history of signals of ``n_features`` features, keeping what the
+        settings need."""
+        return TaskHistory(
+            self.world.n_tasks, self.frame.n_classes, n_features, self.config.n_folds,
+            class_scatters=self._fit.class_scatters or self._likelihood.needs_class_scatters,
+            keeps_frame_labels=self._resplits_labels,
+            # Only where every step fits the folds' decoders too (the likelihoods that
+            # correct by the confusion); the others fit the whole history alone.
+            eigen_period=(
+                refresh_period(self.world.n_tasks, n_features)
+                if self._likelihood.corrects_confusion
+                and all(fit.rolling_eigen for fit in self._fits)
+                else None
+            ),
+        )
+
+    def adopt_prior(
+        self, signals: np.ndarray, label_weights: np.ndarray, weights: np.ndarray
+    ) -> None:
+        """Start from earlier sessions' signals and the labels adopted for them, before
+        any observation (:mod:`calibration_free.prior`).
+
+        Each signal joins the history as if it had been observed and its labels adopted at
+        a target, counted with its weight in every statistic (a weighted pseudo-observation,
+        :meth:`~calibration_free.task_decoders.TaskHistory.add`; weight 1 is exactly a
+        signal observed live). The learner then starts as after a target on that history:
+        every task has those labels, the shrinkage after a target is in force (chosen on
+        them with ``shrinkage="cv"``), the power prior takes its form after a target, and
+        the first segment's evidence is calibrated on them where ``calibrated_evidence``
+        applies and the history holds ``calibration_signals``. Today's signals count from
+        0 (:attr:`n_signals`); the stricter first target and the novelty bonus do not apply.
+
+        Parameters
+        ----------
+        signals : ndarray, shape (n, n_features)
+            Feature vectors (float32 values, as the wire's).
+        label_weights : ndarray, shape (n, n_classes)
+            The adopted label weights of each signal, each row summing to 1.
+        weights : ndarray, shape (n,)
+            Each signal's weight, > 0.
+
+        Raises
+        ------
+        RuntimeError
+            After an observation or an earlier prior.
+        ValueError
+            On arrays of the wrong shapes or values.
+        """
+        if self._history is not None:
+            raise RuntimeError("a prior is adopted before any signal, once")
+        x = check_array("prior signals", signals, shape=(None, None), dtype=np.float32)
+        n, n_features = x.shape
+        labels = check_array(
+            "prior label weights", label_weights, shape=(n, self.frame.n_classes)
+        )
+        weight = check_array("prior weights", weights, shape=(n,))
+        if n == 0 or n_features == 0:
+            raise ValueError(f"prior signals must be non-empty; got shape {x.shape}")
+        if np.any(weight <= 0) or not np.allclose(labels.sum(axis=1), 1.0):
+            raise ValueError("prior weights must be > 0 and label weights rows sum to 1")
+        self._n_features = n_features
+        self._history = self._new_history(n_features)
+        every_task = (self.world.n_tasks, self.frame.n_classes)
+        for row, label, w in zip(x.astype(np.float64), labels, weight, strict=True):
+            self._history.add(row, np.broadcast_to(w * label, every_task), weight=w)
+        self._switch_task(0)
+        self.prior_adopted = True
+
     def _choose_first_target_shrinkage(self) -> None:
         """With ``first_target_shrinkage="cv"``, until the first target, every
         :data:`FIRST_CHOICE_PERIOD` signals from the :data:`FIRST_CHOICE_START`-th, choose
@@ -566,7 +645,7 @@ class CalibrationFreeLearner(TaskLearner):
         keeps the current one."""
         if (
             not self.config.chooses_first_target_shrinkage
-            or self.n_targets > 0
+            or self.labels_adopted
             or self.n_signals < FIRST_CHOICE_START
             or self.n_signals % FIRST_CHOICE_PERIOD
         ):

@@ -213,11 +213,23 @@ class TaskHistory:
         return self.n_signals - self._n_shared
 
     def add(
-        self, signal: np.ndarray, weights: np.ndarray, frame_weights: np.ndarray | None = None
+        self,
+        signal: np.ndarray,
+        weights: np.ndarray,
+        frame_weights: np.ndarray | None = None,
+        weight: float = 1.0,
     ) -> None:
         """Append ``signal`` (n_features,) with every task's label weights (n_tasks, K)
         and, if the history keeps them, the frame's weights they were split from (the
-        same shape; default ``weights``)."""
+        same shape; default ``weights``).
+
+        ``weight`` (> 0): how much the signal counts in the shared statistics (its fold's
+        scatter ``w x x^T``, sum ``w x`` and size ``w``; the decomposed scatters get ``sqrt(w)
+        x``): a pseudo-observation of an earlier session (:mod:`calibration_free.prior`),
+        whose label weights the caller scales by ``w`` too, so that the signal's unit of
+        weight is ``w`` in every statistic. 1: a signal observed live (the same numbers as
+        without the argument).
+        """
         if self.n_signals == len(self._signals):
             self._signals = np.concatenate([self._signals, np.empty_like(self._signals)])
         if self._n_own == self._own_weights.shape[1]:
@@ -232,13 +244,16 @@ class TaskHistory:
                 weights if frame_weights is None else frame_weights
             )
         fold = index % self.n_folds
-        self._scatter[fold] += np.outer(signal, signal)
+        live = weight == 1.0
+        outer = np.outer(signal, signal)
+        self._scatter[fold] += outer if live else weight * outer  # symmetric either way
         self._set_scatters = None
-        self._signal_sum[fold] += signal
-        self._fold_size[fold] += 1
+        self._signal_sum[fold] += signal if live else weight * signal
+        self._fold_size[fold] += weight
         if self._eigen is not None:
             members = np.arange(self.n_folds + 1) != fold
-            self._eigen.add(signal, members, self._training_scatters())
+            root = signal if live else np.sqrt(weight) * signal
+            self._eigen.add(root, members, self._training_scatters())
         self._split_labellings(weights, *(() if frame_weights is None else (frame_weights,)))
         self._counts.add(fold, weights)
         self._sums.add(fold, weights[:, :, None] * signal)

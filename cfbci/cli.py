@@ -154,6 +154,11 @@ def _add_simulate(commands: argparse._SubParsersAction, chosen: Preset | None) -
     )
     p.add_argument("--user-error-rate", type=float, default=0.0)
     p.add_argument(
+        "--prior", type=Path, nargs="+", metavar="FILE.mcap",
+        help="earlier recordings of the user: the learner starts from the signals and the "
+        "labels adopted at their targets (grid, line and pick-and-place worlds)",
+    )
+    p.add_argument(
         "--set", action="append", default=[], metavar="KEY=VALUE",
         help="any other learner setting (see calibration_free.config.LearnerConfig)",
     )
@@ -266,6 +271,9 @@ def _run_simulate(args: argparse.Namespace, console: Console) -> int:
             "dataset's classes in another world, write them permuted to a file (README, "
             "\"Finger guidance under another BLAS thread count and a permuted class order\")"
         )
+    if args.prior and (args.world in PLANE_WORLDS or args.frame == "hypotheses"):
+        raise ValueError("--prior starts the learner of the grid, line and pick-and-place "
+                         "worlds; not the plane worlds' nor --frame hypotheses'")
     if args.world in PLANE_WORLDS:
         report = simulate_plane_world(args, data_spec(args), console)
         print_plane_report(report, console)
@@ -286,6 +294,12 @@ def _run_simulate(args: argparse.Namespace, console: Console) -> int:
         world=args.world,
     )
     data = data_spec(args)
+    if args.prior:
+        from dataclasses import replace
+
+        from cfbci.bench_returning import simulation_prior
+
+        config = replace(config, prior=simulation_prior(args.prior, data, args.frame))
     seeds = list(range(args.first_seed, args.first_seed + args.seeds))
     scheduler = Scheduler.from_options(args.scheduler, args.jobs)
     report = simulate(
@@ -303,6 +317,9 @@ def _add_bench(commands: argparse._SubParsersAction) -> None:
     from cfbci.bench import add_bench_parsers  # update, simulate
 
     add_bench_parsers(which)
+    from cfbci.bench_returning import add_returning_parser  # returning
+
+    add_returning_parser(which)
     latency = which.add_parser(
         "latency",
         help="end-to-end latency over Zenoh (source to service and back) and the learner's share",

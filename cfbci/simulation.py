@@ -24,6 +24,7 @@ from acquisition.user import SimulatedUser
 from calibration_free.baseline import DEFAULT_CALIBRATION_TRIALS, CalibratedBaseline
 from calibration_free.config import LearnerConfig
 from calibration_free.learner import TaskLearner
+from calibration_free.prior import Prior
 from calibration_free.streams import StepRecord, session_streams
 from calibration_free.world import World
 from calibration_free.worlds import WORLDS, make_world
@@ -37,6 +38,7 @@ from replay.calibration import (
     pool_counts_by_rule,
     rule_summary,
 )
+from session.core import Step
 from session.sessions import task_learner
 from session.tasks import TaskSession
 
@@ -62,6 +64,9 @@ class SessionConfig:
         Probability that the simulated user gives the wrong label.
     world : {"grid", "line", "pick-and-place"}
         The world (:func:`calibration_free.worlds.make_world`).
+    prior : Prior or None
+        Earlier sessions of the user the learner starts from (:mod:`calibration_free.prior`);
+        None: none (the report's config then has no ``prior`` key).
     """
 
     steps: int = 500
@@ -71,17 +76,25 @@ class SessionConfig:
     calibration_trials: int = DEFAULT_CALIBRATION_TRIALS
     user_error_rate: float = 0.0
     world: str = "grid"
+    prior: Prior | None = None
 
     def __post_init__(self) -> None:
         check_option("world", self.world, WORLDS)
+        if self.prior is not None and self.baseline is not None:
+            raise ValueError("the calibrated baseline takes no prior: it calibrates")
 
     def make_world(self) -> World:
         """The session's world (its large tables are built on first use)."""
         return make_world(self.world, grid=self.grid)
 
     def to_dict(self) -> dict[str, Any]:
-        """Every setting, the learner's as :meth:`LearnerConfig.to_dict` writes them."""
-        return asdict(self) | {"learner": self.learner.to_dict()}
+        """Every setting, the learner's as :meth:`LearnerConfig.to_dict` writes them, the
+        prior's description (:meth:`Prior.describe`) if there is one."""
+        settings = asdict(dataclasses.replace(self, prior=None))
+        del settings["prior"]
+        if self.prior is not None:
+            settings["prior"] = self.prior.describe()
+        return settings | {"learner": self.learner.to_dict()}
 
 
 #: Steps between two samples of the user's task likelihood (:class:`SessionResult`).
@@ -140,6 +153,7 @@ def run_session(
     data: LabelledFeatures | Callable[[np.random.Generator], LabelledFeatures],
     on_step: Callable[[StepRecord], None] | None = None,
     after_observe: Callable[[TaskLearner], None] | None = None,
+    on_move: Callable[[TaskSession, Step], None] | None = None,
 ) -> SessionResult:
     """Run one closed-loop session: a simulated user answering a
     :class:`session.tasks.TaskSession`.
@@ -156,6 +170,10 @@ def run_session(
     after_observe : callable, optional
         Called with the learner after it observes each step's signal (for measurements of
         its state, e.g. ``tools/labellings.py``); it must not change the learner.
+    on_move : callable, optional
+        Called with the session and every step it produced (the first move, then each
+        observation's), to record the session as the service does
+        (:mod:`cfbci.bench_returning`); it must not change the learner.
     """
     data_rng, user_rng, learner_rng = session_streams(seed)
     dataset = data(data_rng) if callable(data) else data
@@ -166,7 +184,7 @@ def run_session(
     )
     calibration = None if config.baseline is None else (
         user.target, config.calibration_trials)
-    learner = task_learner(world, config.learner, learner_rng, calibration)
+    learner = task_learner(world, config.learner, learner_rng, calibration, config.prior)
     session = TaskSession(world, learner, seed, config.steps, decisions=True)
     observer = None if after_observe is None else (lambda _, learner: after_observe(learner))
     first_target = first_correct = first_confident = confident_correct = None
@@ -178,6 +196,8 @@ def run_session(
     shrinkages: list[float | str] = []
     temperatures: list[float] = []
     move = session.start()
+    if on_move is not None:
+        on_move(session, move)
     for step in range(1, config.steps + 1):
         beliefs, state, action = move.decision, session.agent, session.action
         assert move.move is not None
@@ -204,6 +224,8 @@ def run_session(
             beliefs.confident, beliefs.best_task, event,
         )
         move = session.observe(signals[index], on_observe=observer)
+        if on_move is not None:
+            on_move(session, move)
         if isinstance(learner, CalibratedBaseline) and step == learner.n_calibration:
             record = dataclasses.replace(record, event="calibration_done")
             user.new_target()

@@ -16,6 +16,7 @@ import numpy as np
 from calibration_free.baseline import CalibratedBaseline
 from calibration_free.config import LearnerConfig
 from calibration_free.learner import CalibrationFreeLearner, TaskLearner
+from calibration_free.prior import Prior, ReturningLearner
 from calibration_free.streams import session_streams
 from calibration_free.world import World
 from session.config import config_world, learner_settings
@@ -29,8 +30,11 @@ def task_learner(
     settings: LearnerConfig,
     rng: np.random.Generator,
     calibration: tuple[int, int] | None = None,
-) -> TaskLearner:
-    """The calibration-free learner of ``world``, or the calibrated baseline.
+    prior: Prior | None = None,
+) -> TaskLearner | ReturningLearner:
+    """The calibration-free learner of ``world``, or the calibrated baseline; with a
+    prior, the calibration-free learner started from it and checked against the blank
+    learner (:class:`calibration_free.prior.ReturningLearner`).
 
     Parameters
     ----------
@@ -42,7 +46,19 @@ def task_learner(
         ``(target, trials)``: the calibrated baseline, told the user's first target and
         calibrated on that many actions (its only calibration input, given here and
         nowhere else); None for the calibration-free learner.
+    prior : Prior, optional
+        Earlier sessions of the user (:mod:`calibration_free.prior`), given here and nowhere
+        else; not with the calibrated baseline.
+
+    Raises
+    ------
+    ValueError
+        On a prior with the calibrated baseline.
     """
+    if prior is not None:
+        if calibration is not None:
+            raise ValueError("the calibrated baseline takes no prior: it calibrates")
+        return ReturningLearner(world, settings, rng, prior)
     if calibration is None:
         return CalibrationFreeLearner(world, settings, rng)
     target, trials = calibration
