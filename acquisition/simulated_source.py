@@ -264,16 +264,33 @@ def replay_session(
 
     def config() -> dict[str, Any]:
         chosen = {"service": _chosen_service(session, sid)} if settings.pick_service else {}
-        return {
-            **chosen, "seed": settings.seed, **settings.world_fields(),
-            "frame": settings.frame, "steps": settings.steps, "learner": settings.learner,
-            "dataset": signals.dataset, **signals.config,
-        }
+        return {**chosen, **_config_fields(settings, signals)}
 
     with Client(session, sid, log, settings.timeout, settings.resend_interval) as client:
         user = _user(settings, signals, user_rng, client, on_step)
         client.run(config, user)
         return user.summary()
+
+
+def session_config(settings: SourceSettings) -> dict[str, Any]:
+    """The config message's fields the source of ``settings`` sends (but the chosen
+    ``service``): its data loaded or generated as the source does, so that a bad dataset
+    or setting is found before any network is started.
+
+    Raises
+    ------
+    ValueError, OSError
+        On a dataset that cannot be read or settings that do not fit it.
+    """
+    return _config_fields(settings, _Signals(settings, session_streams(settings.seed)[0]))
+
+
+def _config_fields(settings: SourceSettings, signals: _Signals) -> dict[str, Any]:
+    return {
+        "seed": settings.seed, **settings.world_fields(), "frame": settings.frame,
+        "steps": settings.steps, "learner": settings.learner, "dataset": signals.dataset,
+        **signals.config,
+    }
 
 
 def _chosen_service(session: zenoh.Session, sid: str) -> str:

@@ -7,6 +7,7 @@ import argparse
 import json
 import sys
 from collections.abc import Sequence
+from dataclasses import replace
 from importlib import metadata
 from pathlib import Path
 from typing import Any
@@ -28,6 +29,7 @@ from cfbci.compare import add_compare_command
 from cfbci.curves import add_curves_command
 from cfbci.export import add_export_command
 from cfbci.flood import add_flood_parser
+from cfbci.limits import ServiceLimits
 from cfbci.limits import add_options as add_limit_options
 from cfbci.make_datasets import add_datasets_command
 from cfbci.memory import keep_freed_memory
@@ -354,6 +356,45 @@ def _add_bench(commands: argparse._SubParsersAction) -> None:
     latency.set_defaults(run=_run_bench_latency)
     add_soak_parser(which)
     add_flood_parser(which)
+    fuzz = which.add_parser(
+        "fuzz-recordings",
+        help="damaged recordings (bit flips, cuts, garbage) through replay, report, recover "
+        "and export: tracebacks, hangs, inputs modified",
+        description="Mutate a real recording, seeded (one flipped bit, several, a cut, a cut "
+        "with garbage after it, garbage appended, a zeroed block) and run 'cfbci replay', "
+        "'report', 'recover' and 'export' on each mutant in a child process killed after "
+        "--timeout seconds. Counted: tracebacks, hangs, inputs modified (SHA-256 before and "
+        "after), exit statuses docs/recordings.md does not document for the mutant, errors "
+        "not said as 'error: ...', recovered copies that do not read back complete; and "
+        "the statuses of each command by mutation kind (cfbci/bench_fuzz.py). Exit 1 if any "
+        "mutant failed a check.",
+    )
+    fuzz.add_argument("--mutants", type=int, default=300, help="mutants (default 300)")
+    fuzz.add_argument("--seed", type=int, default=0, help="mutation seed (default 0)")
+    fuzz.add_argument("--recording", type=Path, action="append", default=[],
+                      help="a recording to mutate (repeatable; default: a `cfbci session` "
+                      "of --steps steps on a 3 x 3 grid, synthetic raw epochs, recorded first)")
+    fuzz.add_argument("--steps", type=int, default=60, help="that session's steps (default 60)")
+    fuzz.add_argument("--jobs", type=int, default=2, help="mutants checked at once (default 2)")
+    fuzz.add_argument("--timeout", type=float, default=60.0,
+                      help="seconds a mutant's four commands may take, else a hang (default 60)")
+    fuzz.add_argument("--cli-every", type=int, default=25,
+                      help="every N-th mutant also through `cfbci` processes (default 25; 0: "
+                      "none)")
+    fuzz.add_argument("--json", type=Path, help="write the counts and failures as JSON")
+    fuzz.add_argument("--check-file", nargs=2, type=Path, metavar=("FILE", "DIR"),
+                      help=argparse.SUPPRESS)  # one mutant's commands, in the child process
+    fuzz.set_defaults(run=_run_bench_fuzz)
+
+
+def _run_bench_fuzz(args: argparse.Namespace, console: Console) -> int:
+    from cfbci.bench_fuzz import check_file, fuzz_recordings
+
+    if args.check_file:
+        check_file(main, *args.check_file)
+        return 0
+    return fuzz_recordings(args.recording, args.mutants, args.seed, args.steps, args.jobs,
+                           args.timeout, args.cli_every, args.json, console)
 
 
 def _run_bench_latency(args: argparse.Namespace, console: Console) -> int:
@@ -425,7 +466,7 @@ def _add_source_options(p: argparse.ArgumentParser) -> None:
     _add_data_options(p)
     p.add_argument("--seed", type=int, default=0, help="session seed (default 0)")
     p.add_argument("--steps", type=int, default=500, help="actions in the session (default 500)")
-    p.add_argument("--grid", type=int, default=5, help="grid side (default 5)")
+    p.add_argument("--grid", type=int, help="grid side, grid world only (default 5)")
     p.add_argument("--world", choices=(*WORLDS, *LIVE_PLANE_WORLDS), default="grid",
                    help="the world (default grid)")
     p.add_argument("--frame", choices=(*FRAMES, *LIVE_PLANE_WORLDS.values()), default="feedback")
@@ -445,6 +486,13 @@ def _add_source_options(p: argparse.ArgumentParser) -> None:
     )
 
 
+def _grid(args: argparse.Namespace) -> int:
+    """The grid side: ``--grid``, which only the grid world takes (default 5)."""
+    if args.grid is not None and args.world != "grid":
+        raise ValueError(f"--grid applies to --world grid only; this world is {args.world!r}")
+    return 5 if args.grid is None else args.grid
+
+
 def _source_settings(args: argparse.Namespace, session: str) -> Any:
     from acquisition.simulated_source import SourceSettings
 
@@ -454,7 +502,7 @@ def _source_settings(args: argparse.Namespace, session: str) -> Any:
     plane = live_source_fields(args.world, args.frame, learner, args.class_order)  # fail early
     return SourceSettings(
         session=session, data=data_spec(args), seed=args.seed,
-        steps=args.steps, grid=args.grid, frame=args.frame, learner=learner,
+        steps=args.steps, grid=_grid(args), frame=args.frame, learner=learner,
         interval=args.interval, user_error_rate=args.user_error_rate, world=args.world,
         pick_service=getattr(args, "pick_service", False), **plane,
     )
@@ -510,11 +558,15 @@ def _run_source(args: argparse.Namespace, console: Console) -> int:
 def _add_session(commands: argparse._SubParsersAction) -> None:
     p = commands.add_parser(
         "session",
-        help="a live session: service and replay source over an embedded Zenoh network",
-        description="Start the service and the replay source as separate processes on a "
-        "loopback Zenoh network, show the session live, record it and summarise it.",
+        help="a live session: service and simulated source over an embedded Zenoh network",
+        description="Start the service and the simulated source as separate processes on a "
+        "loopback Zenoh network, show the session live, record it and summarise it. Every "
+        "input (dataset, world and options, the service's limits) is checked before anything "
+        "starts. The service's limits are those of cfbci serve, but --max-session-mb, which "
+        "defaults to the machine's physical memory.",
     )
     _add_source_options(p)
+    add_limit_options(p)
     p.add_argument(
         "--record", type=Path, help="MCAP recording to write (default runs/<timestamp>.mcap)"
     )
@@ -534,21 +586,30 @@ def _add_session(commands: argparse._SubParsersAction) -> None:
 def _run_session(args: argparse.Namespace, console: Console) -> int:
     import time
 
+    from acquisition.simulated_source import session_config
+    from cfbci.limits import from_args
     from cfbci.live import (
         default_recording,
+        own_limits,
         print_summary,
         run_live_session,
         session_id_for,
         write_json,
     )
+    from cfbci.service.admission import check_config
 
     record = args.record or default_recording()
     settings = _source_settings(args, session_id_for(record))
+    limits = from_args(args)
+    if limits.max_session_mb == ServiceLimits().max_session_mb:  # the flag's default
+        limits = replace(limits, max_session_mb=own_limits().max_session_mb)
+    # Before anything starts: the data load, and the service would admit the config.
+    check_config(session_config(settings), limits, ValueError)
     start = time.monotonic()
     try:
         result = run_live_session(
             settings, record, listen=args.listen, connect=args.connect, console=console,
-            zenoh_config=args.zenoh_config, overwrite=args.overwrite,
+            zenoh_config=args.zenoh_config, overwrite=args.overwrite, limits=limits,
         )
     except FileExistsError as error:
         Console(stderr=True).print(f"[bold red]error:[/] {error}")
@@ -565,15 +626,29 @@ def _run_session(args: argparse.Namespace, console: Console) -> int:
 def _add_recover(commands: argparse._SubParsersAction) -> None:
     p = commands.add_parser(
         "recover",
-        help="rewrite a (possibly truncated) recording as a clean, indexed MCAP file",
-        description="Read every complete message of a session recording, even one whose "
-        "writer was killed, and write them to a clean, indexed MCAP file.",
+        help="rewrite a (possibly truncated or damaged) recording as a clean, indexed MCAP file",
+        description="Read every intact message of a session recording, even one whose "
+        "writer was killed or whose bytes are damaged (every chunk whose CRC and lengths "
+        "check, around damaged ones; see docs/recordings.md), and write them to a clean, "
+        "indexed MCAP file; say where the input is cut and which byte ranges were dropped. "
+        "The input is only read. Exit 0 when nothing was dropped but a killed writer's cut "
+        "(the input complete, or truncated), 3 when damaged records were dropped (or the "
+        "input's summary was damaged), 2 on an error (not an MCAP file, no such file).",
     )
     p.add_argument("file", type=Path, help="the recording (.mcap) to recover")
     p.add_argument(
         "--out", type=Path, help="the clean copy to write (default <stem>.recovered.mcap)"
     )
     p.set_defaults(run=_run_recover)
+
+
+def _print_damage(recording: Any, console: Console, limit: int = 10) -> None:
+    """Each damaged region of a recording (at most ``limit``), one line each."""
+    for damage in recording.damage[:limit]:
+        console.print(f"damaged: {damage.describe()}", soft_wrap=True, markup=False)
+    if len(recording.damage) > limit:
+        console.print(f"damaged: ... {len(recording.damage) - limit} more regions",
+                      soft_wrap=True)
 
 
 def _run_recover(args: argparse.Namespace, console: Console) -> int:
@@ -583,15 +658,30 @@ def _run_recover(args: argparse.Namespace, console: Console) -> int:
     out: Path = args.out or source.with_name(f"{source.stem}.recovered.mcap")
     if out.resolve() == source.resolve():
         raise ValueError(f"--out {out} is the input file; give another path")
-    recording = read_recording(source)  # ValueError naming the file if it is not MCAP
+    # a ValueError naming the file if it is not MCAP
+    recording = read_recording(source, salvage=True)
     n_messages = recover(source, out)
-    console.print(f"recovered {n_messages} messages of session {recording.session!r} into {out}")
+    console.print(f"recovered {n_messages} messages of session {recording.session!r} into {out}",
+                  soft_wrap=True, markup=False)
     if recording.truncated:
-        console.print(f"input truncated: {recording.warning}", soft_wrap=True)
-    else:
+        console.print(f"input truncated: {recording.warning}", soft_wrap=True, markup=False)
+    elif recording.complete:
         console.print(f"input complete: closed by its writer (data ends at byte "
                       f"{recording.end_offset})")
-    return 0
+    if recording.damage:
+        lost = sum(d.messages for d in recording.damage)
+        console.print(f"input damaged: {len(recording.damage)} region"
+                      f"{'s' * (len(recording.damage) != 1)} dropped ({lost} message"
+                      f"{'s' * (lost != 1)} apparently lost), every intact chunk around them "
+                      "kept", soft_wrap=True)
+        _print_damage(recording, console)
+    if recording.dropped:
+        console.print(f"dropped {recording.dropped} intact messages whose channel is defined "
+                      "only in a damaged chunk (or not JSON)", soft_wrap=True)
+    if recording.config and not recording.messages.get("/config") and recording.damage:
+        console.print("the /config message was in a damaged chunk: rebuilt from the "
+                      "cfbci.config metadata record, which holds the same", soft_wrap=True)
+    return 3 if recording.damage or recording.dropped else 0
 
 
 def _add_replay(commands: argparse._SubParsersAction) -> None:
@@ -601,8 +691,12 @@ def _add_replay(commands: argparse._SubParsersAction) -> None:
         "or re-publish it to a running service",
         description="Three uses of a session recording. (1) Plain: rebuild the learner from "
         "the recording's configuration and seeds, feed it the recorded epochs, and compare "
-        "every move, state and target event with the recording; exit 0 when identical, 1 "
-        "at the first divergence. (2) --option/--compare: open-loop re-analysis: learners "
+        "every move, state and target event with the recording; exit 0 when identical and "
+        "the file complete (closed by its writer, undamaged), 1 at the first divergence, 3 "
+        "when identical as far as a cut or damaged file goes (its whole steps compared, a "
+        "step cut between its messages only in what the file holds; the output says where "
+        "the file ends or is damaged and what was not compared; docs/recordings.md), 2 on "
+        "an error (not a recording). (2) --option/--compare: open-loop re-analysis: learners "
         "with other settings observe the recorded states, actions and epochs in order (they "
         "choose no action; they switch task where the recording declared a target) and the "
         "report compares when each becomes confident, on which cell, and whether it is the "
@@ -694,20 +788,33 @@ def _run_replay(args: argparse.Namespace, console: Console) -> int:
 
     from replay.rerun import replay_check
 
+    _refuse_overwriting(args.file, args.json)
     result = replay_check(args.file)
     if args.json:
-        divergence = result.divergence
-        args.json.write_text(json.dumps({
-            "file": str(args.file), "identical": divergence is None, "moves": result.moves,
-            "states": result.states, "events": result.events,
-            "divergence": None if divergence is None else vars(divergence),
-        }, indent=2, default=str) + "\n")
+        args.json.write_text(json.dumps(result.to_json(args.file), indent=2, default=str)
+                             + "\n")
+    counts = f"{result.moves} moves, {result.states} states, {result.events} events"
     if result.divergence is not None:
-        console.print(result.divergence.describe(), soft_wrap=True)
-        return 1
-    console.print(f"identical: {result.moves} moves, {result.states} states, "
-                  f"{result.events} events")
-    return 0
+        console.print(result.divergence.describe(), soft_wrap=True, markup=False)
+    elif result.complete:
+        console.print(f"identical: {counts}")
+    else:
+        console.print(f"identical as far as the file goes: {counts} compared (steps 1-"
+                      f"{result.steps_compared} of {result.steps_configured} whole)",
+                      soft_wrap=True)
+    if not result.complete:
+        if result.warning:
+            console.print(f"file: {result.warning}", soft_wrap=True, markup=False)
+        for note in result.notes:
+            console.print(f"note: {note}", soft_wrap=True, markup=False)
+    return result.status
+
+
+def _refuse_overwriting(source: Path, *outputs: Path | None) -> None:
+    """A ValueError if an output would overwrite the input recording."""
+    for out in outputs:
+        if out is not None and out.resolve() == source.resolve():
+            raise ValueError(f"{out} is the input recording; give another output path")
 
 
 def _replay_reanalyse(args: argparse.Namespace, console: Console) -> int:
@@ -749,8 +856,10 @@ def _add_report(commands: argparse._SubParsersAction) -> None:
         description="Measure every recording (targets, decoder accuracy against the truth by "
         "re-running the learner, latency, confidence), draw its figures and write "
         "DIR/metrics.json, DIR/<session>_<figure>.png and a self-contained DIR/index.html. "
-        "Truncated recordings are reported as far as they go. Exit 0 when every file was "
-        "reported, 1 when some could not be (the others are).",
+        "Truncated recordings are reported as far as they go, damaged ones as far as their "
+        "steps go (docs/recordings.md), each said. Exit 0 when every file was reported, 1 "
+        "when some could not be (the others are), 3 when all were but some are damaged "
+        "(records dropped; a truncated file alone is 0).",
     )
     p.add_argument("files", type=Path, nargs="+", metavar="FILE", help="recordings (.mcap)")
     p.add_argument("--out", type=Path, required=True, metavar="DIR", help="output directory")
@@ -761,6 +870,9 @@ def _add_report(commands: argparse._SubParsersAction) -> None:
 def _run_report(args: argparse.Namespace, console: Console) -> int:
     from cfbci.report import print_summary, run_report
 
+    for name in ("metrics.json", "index.html"):
+        for source in args.files:
+            _refuse_overwriting(source, args.out / name)
     scheduler = Scheduler.from_options(args.scheduler, args.jobs)
     reports = run_report(args.files, args.out, scheduler=scheduler, console=console)
     print_summary(reports, console)
@@ -768,7 +880,8 @@ def _run_report(args: argparse.Namespace, console: Console) -> int:
     for error in errors:
         Console(stderr=True).print(f"[bold red]error:[/] {error}", soft_wrap=True)
     console.print(f"report: {args.out / 'index.html'} (metrics {args.out / 'metrics.json'})")
-    return 1 if errors else 0
+    damaged = [r for r in reports if r.metrics is not None and r.metrics.damage]
+    return 1 if errors else 3 if damaged else 0
 
 
 def build_parser(chosen: Preset | None = None) -> argparse.ArgumentParser:

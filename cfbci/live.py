@@ -166,6 +166,7 @@ def run_live_session(
     console: Console,
     zenoh_config: Path | None = None,
     overwrite: bool = False,
+    limits: ServiceLimits | None = None,
 ) -> dict[str, Any]:
     """Run one live session with a display; return the JSON summary.
 
@@ -184,6 +185,8 @@ def run_live_session(
     zenoh_config : Path or None
         Zenoh JSON5 configuration merged over the defaults, for the service, the source
         and the display alike (the endpoints stay the ones above).
+    limits : ServiceLimits, optional
+        The embedded service's limits (default :func:`own_limits`).
     overwrite : bool
         Replace ``record`` if it exists (else an existing ``record`` is kept: the
         recording stays in a folder beside it and the error says where).
@@ -216,7 +219,9 @@ def run_live_session(
         service = context.Process(
             target=serve,
             args=(service_endpoints, [display_endpoint, *connect], private),
-            kwargs={"zenoh_config": zenoh_config, "resume": False, "limits": own_limits()},
+            kwargs={
+                "zenoh_config": zenoh_config, "resume": False, "limits": limits or own_limits(),
+            },
             name="cfbci-service",
         )
         service.start()
