@@ -69,7 +69,7 @@ class SourceSettings:
     Attributes
     ----------
     session : str
-        Session id (``[A-Za-z0-9_-]{1,64}``).
+        Session id: ``NAME`` or ``USER/NAME`` (each ``[A-Za-z0-9_-]{1,64}``).
     data : DataSpec
         A dataset file, or synthetic data (ErrP epochs, sent raw; Gaussian signals, sent
         as feature vectors).

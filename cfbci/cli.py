@@ -517,7 +517,10 @@ def _add_source(commands: argparse._SubParsersAction) -> None:
         "it or kept the source waiting longer than --timeout (the reason on one line of "
         "stderr); 2 on bad options or data.",
     )
-    p.add_argument("--session", required=True, help="session id ([A-Za-z0-9_-], 1-64)")
+    p.add_argument(
+        "--session", required=True,
+        help="session id: NAME, or USER/NAME in a user's key space (each 1-64 of A-Za-z0-9_-)",
+    )
     _add_source_options(p)
     p.add_argument(
         "--pick-service", action="store_true",

@@ -47,7 +47,10 @@ def _stop_on_signals() -> threading.Event:
 
 
 def _add_session_options(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--session", required=True, help="session id ([A-Za-z0-9_-], 1-64)")
+    p.add_argument(
+        "--session", required=True,
+        help="session id: NAME, or USER/NAME in a user's key space (each 1-64 of A-Za-z0-9_-)",
+    )
     p.add_argument("--seed", type=int, default=0, help="session seed (default 0)")
     p.add_argument("--grid", type=int, default=5, help="grid side (default 5)")
     p.add_argument("--frame", choices=FRAMES, default="feedback")

@@ -317,8 +317,9 @@ SPECS: dict[str, KindSpec] = {
             "message": Field("str", "human-readable explanation"),
             "config_t_ns": Field(
                 "count/null",
-                "`session_started`, `session_rejected`: the `t_ns` of the config they answer "
-                "(the running session's for a rejection after the start); null otherwise",
+                "`session_pending`, `session_started`, `session_rejected`: the `t_ns` of the "
+                "config they answer (the running session's for a rejection after the start); "
+                "null otherwise",
             ),
         },
         optional={
