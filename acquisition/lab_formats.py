@@ -26,10 +26,11 @@ convention: feedback 1 = correct, 2 = error; guidance 1..4.
 **XDF recordings** (:func:`read_xdf_epochs`): exactly one stream of type ``EEG`` (numeric,
 regular rate, channel labels in its metadata, ``desc/channels/channel/label``; units from
 ``.../unit``: microvolts when absent, as XDF's EEG convention says, or millivolts or volts,
-converted) and one of type ``Markers`` (strings). Each marker whose value names a class (see
-above) is an action onset: the epoch is cut around it exactly as ``cfbci lsl-bridge`` cuts
-a live stream (:meth:`acquisition.lsl_epochs.SampleBuffer.cut`, MNE's way): from the sample
-nearest the marker's time, ``round(tmin * sfreq)`` to ``round(tmax * sfreq)`` samples
+by name or as a power of ten of volts as mne-lsl writes them, converted) and one of type
+``Markers`` (strings). Each marker whose value names a class (see above) is an action
+onset: the epoch is cut around it exactly as ``cfbci lsl-bridge`` cuts a live stream
+(:meth:`acquisition.lsl_epochs.SampleBuffer.cut`, MNE's way): from the sample nearest
+the marker's time, ``round(tmin * sfreq)`` to ``round(tmax * sfreq)`` samples
 around it (both included; ``tmin``, ``tmax`` :data:`XDF_EPOCH_WINDOW`), so its ``tmin`` is
 ``round(tmin * sfreq) / sfreq``; samples as float32 (the wire format), then scaled to
 microvolts. Other markers (trial starts, comments, the bridge's ``onset <step>``, which
@@ -37,18 +38,36 @@ carry no label) are ignored. A marker whose window is not entirely inside the EE
 or spans a discontinuity in it, gives no epoch; how many were left out, and why the first
 was, is said in a warning. Timestamps are pyxdf's: clocks synchronised and the EEG's jitter
 removed.
+
+**A session recorded in XDF** (:func:`read_xdf_session`): a LabRecorder file of an
+``cfbci lsl-bridge`` session, read back with the streams named: every onset marker
+``onset <step>`` of the marker stream (the bridge's rule, with its correction of mne-lsl's
+``PlayerLSL`` annotations, one sample early) and its epoch, cut as the bridge cuts it (the
+samples scaled to microvolts in float64, then float32: the bridge's own arithmetic), to
+compare with the session's recording. :func:`write_xdf` writes an XDF file (the
+specification's FileHeader, StreamHeader, Samples, ClockOffset and StreamFooter chunks)
+from streams recorded off LSL, as LabRecorder does.
 """
 
 from __future__ import annotations
 
 import functools
+import struct
 import warnings
+from collections.abc import Sequence
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from acquisition.lsl_epochs import Epoch, SampleBuffer
+from acquisition.lsl_epochs import (
+    Epoch,
+    SampleBuffer,
+    microvolts_per_unit,
+    parse_onset_marker,
+    player_annotation_shift,
+)
 from calibration_free.frames import Frame
 from calibration_free.world import MOVES, GridWorld, World
 from calibration_free.worlds import WORLDS, make_world
@@ -61,12 +80,6 @@ TAGGED_WORLDS: tuple[str, ...] = tuple(kind for kind in WORLDS if kind != "grid"
 #: Epoch window around an XDF marker (tmin, tmax), seconds: that of the synthetic epochs.
 XDF_EPOCH_WINDOW = (-0.2, 1.0)
 
-#: Factor from each accepted XDF channel unit to microvolts.
-_TO_MICROVOLTS = {
-    "microvolts": 1.0, "microvolt": 1.0, "uv": 1.0, "µv": 1.0, "μv": 1.0,
-    "millivolts": 1e3, "millivolt": 1e3, "mv": 1e3,
-    "volts": 1e6, "volt": 1e6, "v": 1e6,
-}
 _VOLTS_TO_MICROVOLTS = 1e6
 
 Arrays = dict[str, Any]
@@ -252,11 +265,7 @@ def read_xdf_epochs(
         unit, or no marker gives an epoch; the message names the file.
     """
     where = str(path)
-    pyxdf = _optional("pyxdf", "xdf", where, "reading XDF recordings")
-    try:
-        streams, _ = pyxdf.load_xdf(str(path))
-    except Exception as exc:  # pyxdf raises OSError, struct.error, ParseError, ...
-        raise ValueError(f"{where}: could not be read as an XDF file: {exc}") from exc
+    streams = _load_xdf(path)
     eeg = _only_stream(streams, "EEG", where)
     markers = _only_stream(streams, "Markers", where)
     sfreq = float(eeg["info"]["nominal_srate"][0])
@@ -340,10 +349,222 @@ def _channels(eeg: dict[str, Any], where: str) -> tuple[list[str], np.ndarray]:
     if len(names) != n_channels:
         raise ValueError(f"{where}: the EEG stream {_name(eeg)!r} has {n_channels} channels "
                          f"but {len(names)} channel labels")
-    units = [str(channel.get("unit", ["microvolts"])[0]).strip().lower() for channel in channels]
-    unknown = sorted(set(units) - set(_TO_MICROVOLTS))
+    units = [channel.get("unit", [None])[0] for channel in channels]
+    scales = [microvolts_per_unit(unit) for unit in units]
+    unknown = sorted({str(unit) for unit, scale in zip(units, scales, strict=True)
+                      if scale is None})
     if unknown:
         raise ValueError(f"{where}: the EEG stream {_name(eeg)!r} has unknown unit(s) "
-                         f"{unknown}; expected microvolts, millivolts or volts")
-    return names, np.array([_TO_MICROVOLTS[unit] for unit in units])
+                         f"{unknown}; expected microvolts, millivolts or volts (by name, or "
+                         "as a power of ten of volts: '0', '-3', '-6')")
+    return names, np.array(scales, dtype=np.float64)
 
+
+
+def _load_xdf(path: Path) -> list[dict[str, Any]]:
+    """pyxdf's streams of an XDF file (clocks synchronised, jitter removed)."""
+    where = str(path)
+    pyxdf = _optional("pyxdf", "xdf", where, "reading XDF recordings")
+    try:
+        streams, _ = pyxdf.load_xdf(str(path))
+    except Exception as exc:  # pyxdf raises OSError, struct.error, ParseError, ...
+        raise ValueError(f"{where}: could not be read as an XDF file: {exc}") from exc
+    return streams
+
+
+def _named_stream(streams: list[dict[str, Any]], name: str, where: str) -> dict[str, Any]:
+    """The one stream called ``name``."""
+    found = [s for s in streams if _name(s) == name]
+    if len(found) != 1:
+        raise ValueError(f"{where}: needs exactly one stream named {name!r}; found "
+                         f"{len(found)} among {[_name(s) for s in streams]}")
+    return found[0]
+
+
+def _channel_field(stream: dict[str, Any], key: str) -> list[str] | None:
+    """Every channel's ``key`` (``label``, ``type``) from a stream's header, or None."""
+    try:
+        channels = stream["info"]["desc"][0]["channels"][0]["channel"]
+        return [str(channel[key][0]) for channel in channels]
+    except (KeyError, IndexError, TypeError):
+        return None
+
+
+def read_xdf_session(
+    path: Path, eeg: str, markers: str, window: tuple[float, float] = XDF_EPOCH_WINDOW,
+    onset_marker: str = "onset", marker_shift: int | None = None,
+) -> Arrays:
+    """Read an ``cfbci lsl-bridge`` session back from an XDF recording (see the module
+    docstring).
+
+    Parameters
+    ----------
+    path : Path
+        An ``.xdf`` file holding the two streams (others are ignored).
+    eeg, markers : str
+        Names of the EEG stream and of the stimulus program's marker stream.
+    window : (float, float)
+        ``tmin``, ``tmax`` of the epochs around each onset, s.
+    onset_marker : str
+        The onset marker's word (``"<word> <step>"``).
+    marker_shift : int or None
+        EEG sample periods added to every marker timestamp; None: from the marker stream's
+        header, as the bridge decides (1 for mne-lsl's ``PlayerLSL`` annotations, else 0).
+
+    Returns
+    -------
+    dict
+        ``steps`` int (n,), the step each onset marker names (-1: none); ``onsets`` float64
+        (n,), the timestamp of each onset's nearest EEG sample, s (NaN where no epoch);
+        ``epochs`` float32 (n_cut, n_channels, n_times) microvolts of the onsets whose
+        window is whole, in order, and ``cut`` int (n_cut,) their positions in ``steps``;
+        ``sfreq``, ``tmin``, ``ch_names`` as :func:`read_xdf_epochs`; ``marker_shift``
+        int, the shift applied.
+
+    Raises
+    ------
+    ValueError
+        If pyxdf is missing, the file is not XDF, a named stream is missing or not
+        unique, the EEG stream lacks a regular rate, channel labels or a known unit, or
+        the marker stream does not hold strings; the message names the file.
+    """
+    where = str(path)
+    streams = _load_xdf(path)
+    signal, marks = _named_stream(streams, eeg, where), _named_stream(streams, markers, where)
+    sfreq = float(signal["info"]["nominal_srate"][0])
+    if sfreq <= 0 or signal["info"]["channel_format"][0] == "string":
+        raise ValueError(f"{where}: the EEG stream {eeg!r} must be numeric with a regular "
+                         "rate")
+    marker_format = str(marks["info"]["channel_format"][0])
+    if marker_format != "string":
+        raise ValueError(f"{where}: the marker stream {markers!r} must hold strings; it has "
+                         f"format {marker_format!r}")
+    if marker_shift is None:
+        marker_shift = player_annotation_shift(
+            str(marks["info"]["type"][0]), marker_format, _channel_field(marks, "label"),
+            _channel_field(marks, "type"),
+        )
+    ch_names, scale = _channels(signal, where)
+    stamps = np.asarray(signal["time_stamps"], dtype=np.float64)
+    buffer = SampleBuffer(len(ch_names), sfreq, seconds=len(stamps) / sfreq + 1.0)
+    microvolts = np.asarray(signal["time_series"], dtype=np.float64) * scale
+    buffer.append(microvolts.astype(np.float32), stamps, arrival_ns=0)
+    first, last = round(window[0] * sfreq), round(window[1] * sfreq)
+    steps, onsets, epochs, cut = [], [], [], []
+    for stamp, value in zip(marks["time_stamps"], marks["time_series"], strict=True):
+        is_onset, step = parse_onset_marker(str(value[0]), onset_marker)
+        if not is_onset:
+            continue
+        epoch = buffer.cut(float(stamp) + marker_shift / sfreq, first, last)
+        steps.append(-1 if step is None else step)
+        onsets.append(epoch.onset_time if isinstance(epoch, Epoch) else np.nan)
+        if isinstance(epoch, Epoch):
+            epochs.append(epoch.data)
+            cut.append(len(steps) - 1)
+    n_times = last - first + 1
+    return {
+        "steps": np.array(steps, dtype=np.int64),
+        "onsets": np.array(onsets, dtype=np.float64),
+        "epochs": (np.stack(epochs) if epochs
+                   else np.zeros((0, len(ch_names), n_times), dtype=np.float32)),
+        "cut": np.array(cut, dtype=np.int64),
+        "sfreq": sfreq, "tmin": first / sfreq, "ch_names": np.array(ch_names, dtype=str),
+        "marker_shift": marker_shift,
+    }
+
+
+#: XDF's little-endian sample formats, by the header's ``channel_format``.
+_XDF_FORMATS = {"float32": "<f4", "double64": "<f8", "int8": "<i1", "int16": "<i2",
+                "int32": "<i4", "int64": "<i8"}
+
+
+@dataclass
+class XdfStream:
+    """One stream as recorded off LSL, for :func:`write_xdf`.
+
+    Attributes
+    ----------
+    header : str
+        The stream's info as LSL gives it (an XML ``<info>`` document: name, type,
+        channel_count, nominal_srate, channel_format, desc, ...).
+    channel_format : str
+        ``"string"`` or a numeric format of :data:`_XDF_FORMATS` (the header's).
+    times : ndarray, shape (n_samples,)
+        Timestamps as received (the stream's clock), s.
+    values : ndarray, shape (n_samples, n_channels), or list of list of str
+    clock_offsets : list of (float, float)
+        ``(collection time, offset)`` pairs, s: the recorder's clock minus the stream's
+        (``time_correction()``) measured at that time of the recorder's clock.
+    """
+
+    header: str
+    channel_format: str
+    times: np.ndarray
+    values: Any
+    clock_offsets: list[tuple[float, float]] = field(default_factory=list)
+
+
+def _varlen(n: int) -> bytes:
+    """XDF's variable-length integer: the width (1, 4 or 8 bytes), then the value."""
+    if n < 1 << 8:
+        return b"\x01" + struct.pack("<B", n)
+    if n < 1 << 32:
+        return b"\x04" + struct.pack("<I", n)
+    return b"\x08" + struct.pack("<Q", n)
+
+
+def _chunk(tag: int, content: bytes) -> bytes:
+    """A chunk: [NumLengthBytes][Length][Tag (uint16)][Content]."""
+    body = struct.pack("<H", tag) + content
+    return _varlen(len(body)) + body
+
+
+def _samples_chunk(stream_id: int, stream: XdfStream) -> bytes:
+    """A Samples chunk (tag 3): every sample with its timestamp."""
+    out = bytearray(struct.pack("<I", stream_id) + _varlen(len(stream.times)))
+    if stream.channel_format == "string":
+        for time, value in zip(stream.times, stream.values, strict=True):
+            out += b"\x08" + struct.pack("<d", time)
+            for text in value:
+                encoded = str(text).encode()
+                out += _varlen(len(encoded)) + encoded
+        return bytes(out)
+    values = np.asarray(stream.values, dtype=_XDF_FORMATS[stream.channel_format])
+    for time, row in zip(stream.times, values, strict=True):
+        out += b"\x08" + struct.pack("<d", time) + row.tobytes()
+    return bytes(out)
+
+
+def write_xdf(path: Path, streams: Sequence[XdfStream]) -> Path:
+    """Write streams recorded off LSL as an XDF file, as LabRecorder lays it out.
+
+    The file holds the magic ``XDF:``, a FileHeader chunk (version 1.0), a StreamHeader
+    per stream (ids from 1, in order), one Samples chunk per stream with every sample and
+    its timestamp, the stream's ClockOffset chunks, and a StreamFooter per stream
+    (first and last timestamp, sample count).
+
+    Raises
+    ------
+    ValueError
+        If a stream's channel format is not XDF's.
+    """
+    data = bytearray(b"XDF:")
+    data += _chunk(1, b'<?xml version="1.0"?><info><version>1.0</version></info>')
+    for sid, stream in enumerate(streams, start=1):
+        if stream.channel_format != "string" and stream.channel_format not in _XDF_FORMATS:
+            raise ValueError(f"{path}: stream {sid} has channel format "
+                             f"{stream.channel_format!r}, not one of XDF's")
+        data += _chunk(2, struct.pack("<I", sid) + stream.header.encode())
+    for sid, stream in enumerate(streams, start=1):
+        data += _chunk(3, _samples_chunk(sid, stream))
+        for collected, offset in stream.clock_offsets:
+            data += _chunk(4, struct.pack("<Idd", sid, collected, offset))
+    for sid, stream in enumerate(streams, start=1):
+        times = np.asarray(stream.times, dtype=np.float64)
+        bounds = (f"<first_timestamp>{float(times[0])!r}</first_timestamp>"
+                  f"<last_timestamp>{float(times[-1])!r}</last_timestamp>") if len(times) else ""
+        footer = (f'<?xml version="1.0"?><info>{bounds}<sample_count>{len(times)}'
+                  "</sample_count></info>")
+        data += _chunk(6, struct.pack("<I", sid) + footer.encode())
+    path.write_bytes(bytes(data))
+    return path

@@ -20,6 +20,16 @@ rule), corrected by ``baseline`` if one is given (none by default: the service's
 extraction band-passes every epoch, and the raw window stays identical to the samples
 the amplifier sent).
 
+Streams the project did not write. The EEG stream's channel labels, units and nominal
+rate are its own metadata; units may be named (microvolts, millivolts, volts) or, as
+mne-lsl writes them, a power of ten of volts (``"0"``: volts). The markers must be
+strings. mne-lsl's ``PlayerLSL`` (``annotations=True, annotations_encoding="string"``)
+plays a raw ``.fif`` as an amplifier and its annotations ``onset <step>`` as the
+stimulus program's markers (stream ``<name>-annotations``), but stamps every annotation
+one sample period early (the chunk's start against the data's last-sample stamps); the
+bridge recognises that stream by its metadata and adds the period back
+(``marker_shift``; :func:`acquisition.lsl_streams.marker_stream_shift`).
+
 Faults. A discontinuity of the EEG timestamps (samples dropped, a restarted stream) is
 reported and splits the buffer (:class:`acquisition.lsl_epochs.SampleBuffer`); an epoch
 is never cut across one. When the window of the awaited step is broken (by a gap, or by a
@@ -50,6 +60,7 @@ from acquisition.lsl_streams import (
     as_float32,
     eeg_stream_meta,
     marker_outlet,
+    marker_stream_shift,
     move_marker,
     parse_onset_marker,
     resolve_inlet,
@@ -90,6 +101,9 @@ class BridgeSettings:
         MNE-style baseline interval, s; None: no correction.
     onset_marker : str
         The marker word of an action onset (``"<word>"`` or ``"<word> <step>"``).
+    marker_shift : int or None
+        EEG sample periods added to every marker timestamp; None: from the marker stream's
+        metadata (1 for an mne-lsl ``PlayerLSL`` annotation stream, else 0).
     gap_tolerance : float
         Deviation of a timestamp interval from the sample period, in periods, beyond
         which it is a discontinuity.
@@ -116,6 +130,7 @@ class BridgeSettings:
     tmax: float = 1.0
     baseline: tuple[float | None, float | None] | None = None
     onset_marker: str = "onset"
+    marker_shift: int | None = None
     gap_tolerance: float = 0.5
     buffer_seconds: float = DEFAULT_BUFFER_SECONDS
     late_marker: float = 0.5
@@ -266,13 +281,20 @@ def bridge_session(
         config); ``error`` events about single messages are only logged.
     ValueError
         If the EEG stream's metadata do not describe EEG (see
-        :func:`acquisition.lsl_streams.eeg_stream_meta`).
+        :func:`acquisition.lsl_streams.eeg_stream_meta`) or the marker stream does not
+        carry strings.
     """
     summary = BridgeSummary(settings.session)
     eeg = _Input(settings.eeg, settings, summary, keep_running)
     meta = eeg_stream_meta(eeg.inlet.info())
     first, last = settings.window(meta.sfreq)
     markers = _Input(settings.markers, settings, summary, keep_running)
+    shift = settings.marker_shift
+    if shift is None:
+        shift = marker_stream_shift(markers.inlet.info())
+        if shift:
+            log.info("marker stream %r is mne-lsl's PlayerLSL annotations: timestamps "
+                     "moved %d sample later", settings.markers, shift)
     for stream in (eeg, markers):  # the first estimate takes a while: get it now
         stream.clock_offset()
     moves = marker_outlet(settings.moves, f"cfbci-bridge-{settings.session}-moves")
@@ -288,7 +310,8 @@ def bridge_session(
         "ch_names": list(meta.ch_names),
     }
     with Client(session, settings.session, log, settings.timeout) as client:
-        bridge = _Bridge(settings, meta, (first, last), eeg, markers, moves, client, summary)
+        bridge = _Bridge(settings, meta, (first, last), shift / meta.sfreq, eeg, markers,
+                         moves, client, summary)
         client.run(config, bridge, keep_running)
     return summary
 
@@ -299,10 +322,11 @@ class _Bridge:
 
     def __init__(
         self, settings: BridgeSettings, meta: StreamMeta, window: tuple[int, int],
-        eeg: _Input, markers: _Input, moves: pylsl.StreamOutlet, client: Client,
-        summary: BridgeSummary,
+        marker_shift: float, eeg: _Input, markers: _Input, moves: pylsl.StreamOutlet,
+        client: Client, summary: BridgeSummary,
     ) -> None:
         self.settings, self.meta, self.window = settings, meta, window
+        self.marker_shift = marker_shift  # s added to every marker timestamp
         self.eeg, self.markers, self.moves, self.client = eeg, markers, moves, client
         self.summary = summary
         self.buffer = SampleBuffer(len(meta.ch_names), meta.sfreq, settings.buffer_seconds,
@@ -352,7 +376,7 @@ class _Bridge:
     def _on_onset(self, stamp: float, named_step: int | None, arrived: float) -> None:
         """Take an onset marker (its timestamp, the step it names, when it was pulled in
         this machine's LSL clock, s)."""
-        local = stamp + self.markers.clock_offset()
+        local = stamp + self.marker_shift + self.markers.clock_offset()
         awaited = self.awaited
         if awaited is None or awaited.onset is not None:
             self._ignore(f"onset at t={local:.4f} s while no move awaits one")

@@ -10,6 +10,10 @@ MNE's way: the onset is the sample nearest the onset time, the epoch runs from
 epoch is only ever cut from one segment: a window that reaches across a discontinuity,
 or whose onset falls into one, is refused; a window whose last sample has not arrived
 yet is waited for.
+
+Two descriptions shared by the live bridge and the XDF reader: :func:`microvolts_per_unit`
+(a channel unit as LSL streams and XDF files declare it) and
+:func:`player_annotation_shift` (the marker offset of mne-lsl's ``PlayerLSL``).
 """
 
 from __future__ import annotations
@@ -17,6 +21,72 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+
+#: Microvolts per unit of the channel units streams declare by name (case-insensitive).
+_MICROVOLTS_PER_NAMED_UNIT = {
+    "microvolts": 1.0, "microvolt": 1.0, "uv": 1.0, "µv": 1.0, "μv": 1.0,
+    "millivolts": 1e3, "millivolt": 1e3, "mv": 1e3,
+    "volts": 1e6, "volt": 1e6, "v": 1e6,
+}  # fmt: skip
+#: What a stream with no unit carries (XDF's EEG convention).
+DEFAULT_UNIT = "microvolts"
+
+
+def microvolts_per_unit(unit: str | None) -> float | None:
+    """Microvolts per unit of an EEG channel's declared unit; None if it is no voltage.
+
+    ``unit`` is a name (``microvolts``, ``mV``, ``volts``, ...; none or empty: microvolts)
+    or, as mne-lsl writes it, the FIFF unit multiplier: a decimal integer exponent ``e``
+    of the channel's SI unit, volts for EEG, so the values are ``10**e`` V (``"0"``
+    volts, ``"-3"`` millivolts, ``"-6"`` microvolts).
+    """
+    text = (unit or DEFAULT_UNIT).strip().lower()
+    if text in _MICROVOLTS_PER_NAMED_UNIT:
+        return _MICROVOLTS_PER_NAMED_UNIT[text]
+    digits = text.removeprefix("-").removeprefix("+")
+    if digits.isdigit() and int(digits) <= 24:  # FIFF's multipliers span 1e-24 .. 1e24
+        return 10.0 ** (int(text) + 6)
+    return None
+
+
+def parse_onset_marker(text: str, word: str) -> tuple[bool, int | None]:
+    """Whether a marker is an action onset, and the step it names (None if it names none).
+
+    ``"<word>"`` and ``"<word> <step>"`` are onsets; anything else is not.
+    """
+    head, _, rest = text.strip().partition(" ")
+    if head != word:
+        return False, None
+    rest = rest.strip()
+    return True, int(rest) if rest.isdigit() else None
+
+
+def player_annotation_shift(
+    stream_type: str, channel_format: str, labels: list[str] | None, types: list[str] | None
+) -> int:
+    """Samples to add to a marker stream's timestamps: 1 for the annotations of mne-lsl's
+    ``PlayerLSL`` (string encoding), 0 for any other stream.
+
+    The player stamps an annotation at ``chunk start + (onset - chunk's first sample
+    time)``, where the chunk's start is the previous chunk's last-sample stamp, while its
+    data's samples are stamped from the chunk's last sample back: every annotation is one
+    sample period before the sample it annotates (mne-lsl 1.14). Its annotation stream
+    is recognised by what the player declares: type ``annotations``, one string channel
+    labelled ``description`` of type ``annotations``.
+
+    Parameters
+    ----------
+    stream_type, channel_format : str
+        The stream's ``type`` and ``channel_format`` (``"string"``).
+    labels, types : list of str or None
+        Its channels' ``label`` and ``type`` (``desc/channels/channel``), if declared.
+    """
+    is_player = (
+        stream_type.lower() == "annotations" and channel_format == "string"
+        and labels == ["description"] and types is not None
+        and [kind.lower() for kind in types] == ["annotations"]
+    )
+    return int(is_player)
 
 
 @dataclass(frozen=True)

@@ -5,10 +5,13 @@ Three streams connect a stimulus program (or ``cfbci lsl-simulator``) and the br
 * the **EEG** stream: regularly sampled, numeric, one channel per electrode; its channel
   labels (``desc/channels/channel/label``) and nominal rate are the epochs' ``ch_names``
   and ``sfreq``; its units (``desc/channels/channel/unit``) microvolts, millivolts or
-  volts (scaled to microvolts; none declared: microvolts);
+  volts, by name or as mne-lsl writes them, a power of ten of volts (``"0"``, ``"-6"``;
+  :func:`acquisition.lsl_epochs.microvolts_per_unit`), scaled to microvolts (none
+  declared: microvolts);
 * the **marker** stream of the stimulus program: one string channel, irregular; the
   marker ``"onset <step>"`` (or just ``"onset"``; the word is configurable) stamps the
-  moment the subject saw the action of that step;
+  moment the subject saw the action of that step (mne-lsl's ``PlayerLSL`` annotations,
+  string-encoded, are such a stream, one sample early: :func:`marker_stream_shift`);
 * the **move** stream of the bridge: one string channel, irregular; every move of the
   service as a JSON object (:func:`move_marker`), which the stimulus program shows.
 
@@ -30,17 +33,12 @@ from typing import Any
 import numpy as np
 import pylsl
 
+from acquisition.lsl_epochs import microvolts_per_unit, player_annotation_shift
+from acquisition.lsl_epochs import parse_onset_marker as parse_onset_marker  # re-exported
+
 #: Keys of a move marker: the service's move fields, and ``repeat``, how many times the
 #: bridge has asked again for the epoch of that step (0 the first time).
 MOVE_MARKER_KEYS = ("step", "action", "from_state", "to_state", "target_reached", "repeat")
-#: Microvolts per unit of the channel units LSL streams declare (case-insensitive).
-_MICROVOLTS_PER_UNIT = {
-    "microvolts": 1.0, "microvolt": 1.0, "uv": 1.0, "µv": 1.0,
-    "millivolts": 1e3, "millivolt": 1e3, "mv": 1e3,
-    "volts": 1e6, "volt": 1e6, "v": 1e6,
-}  # fmt: skip
-
-
 def loopback_config(session_id: str) -> str:
     """The text of an ``lsl_api.cfg`` keeping LSL discovery on this machine's loopback.
 
@@ -140,7 +138,7 @@ def eeg_stream_meta(info: pylsl.StreamInfo) -> StreamMeta:
     ------
     ValueError
         Naming the stream: an irregular rate, a string format, missing or duplicate
-        channel labels, or units other than (micro/milli)volts.
+        channel labels, or units other than one voltage unit for every channel.
     """
     where = f"LSL stream {info.name()!r}"
     if info.nominal_srate() <= 0:
@@ -155,16 +153,38 @@ def eeg_stream_meta(info: pylsl.StreamInfo) -> StreamMeta:
         )
     if len(set(labels)) != len(labels):
         raise ValueError(f"{where} has duplicate channel labels: {labels}")
-    units = {(unit or "microvolts").strip().lower() for unit in info.get_channel_units() or [""]}
-    unknown = sorted(units - _MICROVOLTS_PER_UNIT.keys())
-    if unknown or len({_MICROVOLTS_PER_UNIT[u] for u in units}) > 1:
+    units = info.get_channel_units() or [None]
+    scales = {microvolts_per_unit(unit) for unit in units}
+    if None in scales or len(scales) > 1:
         raise ValueError(
-            f"{where}: channel units {sorted(units)}; expected one of microvolts, millivolts "
-            "or volts for every channel"
+            f"{where}: channel units {sorted({str(unit) for unit in units})}; expected the "
+            "same voltage for every channel: microvolts, millivolts or volts, by name or as "
+            "a power of ten of volts (mne-lsl's '0' for volts, '-6' for microvolts)"
         )
     return StreamMeta(
-        float(info.nominal_srate()), tuple(str(label) for label in labels),
-        _MICROVOLTS_PER_UNIT[units.pop()],
+        float(info.nominal_srate()), tuple(str(label) for label in labels), scales.pop()
+    )
+
+
+def marker_stream_shift(info: pylsl.StreamInfo) -> int:
+    """Samples of the EEG to add to a marker stream's timestamps, checked: 1 for mne-lsl's
+    ``PlayerLSL`` annotations (:func:`acquisition.lsl_epochs.player_annotation_shift`), 0
+    otherwise.
+
+    Raises
+    ------
+    ValueError
+        Naming the stream, if its channel format is not string (a ``PlayerLSL`` plays its
+        annotations as strings only with ``annotations_encoding="string"``).
+    """
+    if info.channel_format() != pylsl.cf_string:
+        raise ValueError(
+            f"LSL stream {info.name()!r} (type {info.type()!r}) does not carry strings; the "
+            "markers must be text such as 'onset 3' (an mne-lsl PlayerLSL: "
+            "annotations_encoding='string')"
+        )
+    return player_annotation_shift(
+        info.type(), "string", info.get_channel_labels(), info.get_channel_types()
     )
 
 
@@ -188,18 +208,6 @@ def parse_move_marker(text: str) -> dict[str, Any]:
     if not isinstance(move, dict) or sorted(move) != sorted(MOVE_MARKER_KEYS):
         raise ValueError(f"move marker {text[:80]!r} must hold exactly {list(MOVE_MARKER_KEYS)}")
     return move
-
-
-def parse_onset_marker(text: str, word: str) -> tuple[bool, int | None]:
-    """Whether a marker is an action onset, and the step it names (None if it names none).
-
-    ``"<word>"`` and ``"<word> <step>"`` are onsets; anything else is not.
-    """
-    head, _, rest = text.strip().partition(" ")
-    if head != word:
-        return False, None
-    rest = rest.strip()
-    return True, int(rest) if rest.isdigit() else None
 
 
 def as_float32(samples: np.ndarray, scale: float) -> np.ndarray:
