@@ -94,6 +94,11 @@ def _add_bridge(commands: argparse._SubParsersAction) -> None:
     p.add_argument("--buffer", type=float, default=30.0, help="seconds of EEG kept (default 30)")
     p.add_argument("--late-marker", type=float, default=0.5,
                    help="report onset markers arriving this many s late (default 0.5)")
+    p.add_argument(
+        "--marker-shift", type=int,
+        help="EEG sample periods added to every marker timestamp (default: from the marker "
+        "stream's metadata: 1 for mne-lsl's PlayerLSL annotations, else 0)",
+    )
     p.add_argument("--json", type=Path, help="write the bridge's report as JSON")
     p.set_defaults(run=_run_bridge)
 
@@ -122,6 +127,7 @@ def _run_bridge(args: argparse.Namespace, console: Console) -> int:
         tmin=args.tmin, tmax=args.tmax, baseline=_baseline(args.baseline),
         onset_marker=args.onset_marker, gap_tolerance=args.gap_tolerance,
         buffer_seconds=args.buffer, late_marker=args.late_marker, timeout=args.timeout,
+        marker_shift=args.marker_shift,
     )
     stop = _stop_on_signals()
     try:
