@@ -145,11 +145,14 @@ def regenerate(body: str, kind: str, scratch: Path) -> str:
         for column, value in zip(figures, values, strict=True):
             cells[column] = value
         lines[index] = "| " + " | ".join(cells) + " |"
-    produced = [i for i, line in enumerate(lines) if line.startswith("*Produced")]
-    if produced:
-        lines[produced[0]] = produced_line()
-    else:
-        lines.insert(0, produced_line())
+    produced = next((i for i, line in enumerate(lines) if line.startswith("*Produced")), None)
+    if produced is None:
+        lines[0:0] = [produced_line(), ""]
+    else:  # the whole paragraph
+        end = produced
+        while end < len(lines) and lines[end].strip():
+            end += 1
+        lines[produced:end] = [produced_line()]
     return "\n".join(lines) + "\n"
 
 

@@ -307,7 +307,7 @@ def limits_reference() -> str:
     from dataclasses import fields
 
     from cfbci.cli import build_parser
-    from cfbci.limits import ServiceLimits
+    from cfbci.service.limits import ServiceLimits
 
     serve = _subparser(build_parser(), "serve")
     flags = {f"--{spec.name.replace('_', '-')}" for spec in fields(ServiceLimits)}
