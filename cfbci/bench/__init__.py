@@ -1,0 +1,1 @@
+"""Benchmarks (``cfbci bench ...``): per-step cost, live latency, floods, soak, memory."""

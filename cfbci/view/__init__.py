@@ -1,0 +1,1 @@
+"""The browser view (``cfbci view``): its server, its model of the sessions, its pages."""
