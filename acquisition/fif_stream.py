@@ -21,7 +21,6 @@ epoch cut, the service's answer, the move forwarded). Needs mne and mne-lsl
 
 from __future__ import annotations
 
-import argparse
 import logging
 import xml.etree.ElementTree as ET
 from collections.abc import Sequence
@@ -199,19 +198,3 @@ def play_and_record(
             stream.values = np.concatenate([values for values, _ in pulled])
     return write_xdf(xdf, [stream for _, stream in recorded])
 
-
-def main(argv: Sequence[str] | None = None) -> None:
-    """``python -m acquisition.fif_stream FIF --name N --moves M --xdf OUT``."""
-    parser = argparse.ArgumentParser(description=play_and_record.__doc__)
-    parser.add_argument("fif", type=Path)
-    parser.add_argument("--name", required=True, help="name of the EEG stream")
-    parser.add_argument("--moves", required=True, help="name of the bridge's move stream")
-    parser.add_argument("--xdf", type=Path, required=True, help="the XDF file to write")
-    parser.add_argument("--timeout", type=float, default=60.0)
-    args = parser.parse_args(argv)
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
-    play_and_record(args.fif, args.name, args.moves, args.xdf, args.timeout)
-
-
-if __name__ == "__main__":
-    main()

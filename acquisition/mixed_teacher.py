@@ -12,7 +12,7 @@ task, then per action the feedback-or-guidance coin, the mistake coin, the direc
 
 The signals themselves (:func:`gaussian_signals`, on the session's data stream) are six
 classes of the Gaussian generator, 20-D, nominal accuracy 0.95, as many per class as the
-ErrP synthetic pools: the offline sessions (:mod:`cfbci.puddle`) and the live source
+ErrP synthetic pools: the offline sessions (:mod:`cfbci.offline.puddle`) and the live source
 (:mod:`acquisition.simulated_source`) draw them here.
 """
 

@@ -1,6 +1,6 @@
 """The simulated source: a simulated user answering the live service's moves over Zenoh.
 
-It plays the part of :func:`cfbci.simulation.run_session`'s user against the pipeline
+It plays the part of :func:`cfbci.offline.simulation.run_session`'s user against the pipeline
 service (docs/protocol.md): it publishes the session's ``config``, waits for
 ``session_started``, then answers every ``move`` with the ``epoch`` of that step and the
 step's ``truth``, until ``session_ended``. The loop (re-sending, sequence numbers, the
@@ -24,7 +24,7 @@ their float32 feature vectors (``signal`` "features").
 In the worlds of the plane the source is the environment and its teacher: the continuous
 world's :class:`acquisition.cardinal_teacher.CardinalTeacher` answers each probe point; the
 puddle world's :class:`acquisition.mixed_teacher.MixedTeacher` (its task drawn first from
-the user stream, as :func:`cfbci.puddle.run_puddle_session` draws it) answers each move
+the user stream, as :func:`cfbci.offline.puddle.run_puddle_session` draws it) answers each move
 ``(from_state, action)`` with a signal of :func:`acquisition.mixed_teacher.gaussian_signals`
 (the data stream's, as offline) and, since it knows its task, says ``reset`` on the epoch
 when the move's ``to_state`` is in the task's goal cell: the service then restarts the
@@ -153,7 +153,7 @@ class SourceSummary:
     correct_targets, wrong_targets : int
         Declared targets that were (not) the user's target.
     records : list of StepRecord
-        Every step as :func:`cfbci.simulation.run_session` traces it (``confident`` and
+        Every step as :func:`cfbci.offline.simulation.run_session` traces it (``confident`` and
         ``best_task`` from the ``state`` that accompanied the move).
     latency_ns : list of int
         Round trip of each epoch but the last, in step order: from the epoch of step k

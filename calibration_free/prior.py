@@ -238,10 +238,11 @@ class PriorCheck:
         ``logsumexp_t(A_t(informed) + P_t) - logsumexp_t(A_t(blank) + P_t)``
 
     and the check's statistic ``D`` sums it over today's segments (a target ends one; both
-    learners adopt the same labels there). While the check is undecided the learner whose
-    model explains today's signals better so far acts (the informed one while ``D >= 0``),
-    and the informed learner declares a target only while ``D >= declare`` (a declaring
-    move is otherwise replaced by the blank learner's proposal). The prior is
+    learners adopt the same labels there). While the check is undecided, the informed
+    learner acts while ``D >= declare``; below, the blank learner acts when it is confident
+    (its target, as from scratch) or ``D < 0``, else the informed one, whose targets are
+    then withheld (a declaring move is replaced by the blank learner's proposal). The prior
+    is
 
     * abandoned once ``D <= -refute``: the blank learner acts from then on;
     * trusted for good at the first target the informed learner declares, or once ``D >=
@@ -303,8 +304,9 @@ class ReturningLearner:
     world : World
     config : LearnerConfig
     rng : Generator
-        The session's learner stream: the informed learner's; the blank learner draws from
-        a stream spawned from it (drawing nothing from it).
+        The session's learner stream: the blank learner's, so that a session whose prior is
+        abandoned before its first signal is the session from scratch; the informed learner
+        draws from a stream spawned from it (spawning draws nothing).
     prior : Prior
     check : PriorCheck, optional
     """
@@ -320,12 +322,12 @@ class ReturningLearner:
         self.prior = prior
         self.check = check or PriorCheck()
         #: The learner started from the prior, and the blank one (None once dropped).
-        self.informed: CalibrationFreeLearner | None = CalibrationFreeLearner(world, config, rng)
-        observations = prior.pseudo_observations()
-        self.informed.adopt_prior(*observations)
-        self.blank: CalibrationFreeLearner | None = CalibrationFreeLearner(
+        self.informed: CalibrationFreeLearner | None = CalibrationFreeLearner(
             world, config, rng.spawn(1)[0]
         )
+        observations = prior.pseudo_observations()
+        self.informed.adopt_prior(*observations)
+        self.blank: CalibrationFreeLearner | None = CalibrationFreeLearner(world, config, rng)
         self.decision = PriorDecision()
         self._segment = np.zeros((2, world.n_tasks))  # A_t of the informed and blank
         self._settled = 0.0  # D of the segments that targets ended
@@ -338,11 +340,14 @@ class ReturningLearner:
     @property
     def acting(self) -> CalibrationFreeLearner:
         """The learner whose proposals are taken now (see :class:`PriorCheck`)."""
-        if self.blank is None or self.informed is None:
-            learner = self.informed or self.blank
+        informed, blank = self.informed, self.blank
+        if blank is None or informed is None:
+            learner = informed or blank
             assert learner is not None
             return learner
-        return self.informed if self.statistic >= 0 else self.blank
+        if self.statistic >= self.check.declare:
+            return informed
+        return blank if self.statistic < 0 or blank.beliefs().confident else informed
 
     @property
     def statistic(self) -> float:

@@ -40,8 +40,8 @@ from rich.text import Text
 from acquisition.simulated_source import SourceSettings, SourceSummary, run_source
 from calibration_free.puddle import puddle_tasks
 from calibration_free.world import GridWorld, World
-from cfbci.limits import ServiceLimits
 from cfbci.service import serve
+from cfbci.service.limits import ServiceLimits
 from session.plane import PLANE_FRAMES
 from wire import protocol
 from wire.protocol import ProtocolError

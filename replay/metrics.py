@@ -253,7 +253,11 @@ class SessionMetrics:
         The first divergence, or why the re-run failed.
     truncated : bool
     warning : str or None
-        Where a truncated recording ends (byte offset, messages, last step).
+        Where a truncated recording ends (byte offset, messages, last step), and where a
+        damaged one is damaged.
+    damage : dict or None
+        A damaged recording's damaged regions and what of it the report uses
+        (:func:`replay.extent.usable_part`; set by :mod:`cfbci.recordings.report`); None if undamaged.
     distance : list of float or None
         Continuous world: the best particle's distance to the goal after each epoch
         (None elsewhere; see :mod:`replay.plane_report`).
@@ -340,6 +344,7 @@ class SessionMetrics:
     decision_threshold: list[float] | None = None
     target_requirement: list[float | None] | None = None
     settings: SessionSettings | None = None
+    damage: dict[str, Any] | None = None
 
     def scalars(self) -> dict[str, float | int | None]:
         """The :data:`SCALAR_METRICS` that apply to this session's world

@@ -46,28 +46,31 @@ decay time, Foxglove's 3D panel draws the trajectory).
 from __future__ import annotations
 
 import base64
-import io
 import json
 import os
 import sys
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from types import TracebackType
 from typing import Any
 
 import numpy as np
-from mcap.exceptions import EndOfFile, McapError
-from mcap.records import Channel, DataEnd, Header, McapRecord, Message, Metadata, Schema
-from mcap.stream_reader import StreamReader
+from mcap.records import Channel, Header, Message, Metadata, Schema
 from mcap.writer import CompressionType, Writer
 
 from calibration_free.world import GridWorld, World
+from replay.damage import (
+    CONFIG_METADATA,
+    HEADER_LIBRARY,
+    HEADER_PROFILE,
+    Damage,
+    NotMcap,
+    Scan,
+    scan_mcap,
+)
 from session.config import recorded_config
 
-_MAGIC = b"\x89MCAP0\r\n"
-#: Metadata record holding ``{"session": name, "config": JSON of the configuration}``.
-CONFIG_METADATA = "cfbci.config"
 LOG_LEVELS = ("UNKNOWN", "DEBUG", "INFO", "WARNING", "ERROR", "FATAL")
 _NUMERIC_TYPES = tuple("UNKNOWN UINT8 INT8 UINT16 INT16 UINT32 INT32 FLOAT32 FLOAT64".split())
 _FLOAT32 = _NUMERIC_TYPES.index("FLOAT32")
@@ -513,9 +516,23 @@ class Recording:
     end_offset : int
         Byte offset just past the last complete record read.
     warning : str or None
-        Where and why reading stopped early; None for a closed file.
+        Where and why reading stopped early, and where the file is damaged; None for a
+        closed, undamaged file.
     path : str
         The file it was read from.
+    damage : tuple of Damage
+        Damaged regions (:class:`replay.damage.Damage`), in file order; read with
+        ``salvage=True``, the messages around them are kept.
+    offsets : dict of str to list of int
+        Per topic, the byte offset of the chunk holding each message (the order of
+        ``messages``): where each message is in the file.
+    order : dict of str to list of int
+        Per topic, each message's rank among all the messages read, in file order.
+    size : int
+        File size, bytes.
+    dropped : int
+        Messages read whole but left out: of a channel no intact record defines, or not
+        JSON.
     """
 
     session: str
@@ -525,11 +542,25 @@ class Recording:
     end_offset: int
     warning: str | None
     path: str
+    damage: tuple[Damage, ...] = ()
+    offsets: dict[str, list[int]] = field(default_factory=dict)
+    order: dict[str, list[int]] = field(default_factory=dict)
+    size: int = 0
+    dropped: int = 0
 
     @property
     def n_messages(self) -> int:
         """Number of messages read, all topics."""
         return sum(len(messages) for messages in self.messages.values())
+
+    @property
+    def complete(self) -> bool:
+        """Closed by its writer and undamaged: the file holds what was written, whole."""
+        return not self.truncated and not self.damage and not self.dropped
+
+    def data_damage(self) -> list[Damage]:
+        """The damaged regions before the summary (where messages may have been lost)."""
+        return [d for d in self.damage if d.section != "summary"]
 
     def accepted_epochs(self) -> list[dict[str, Any]]:
         """The ``/epoch`` messages the service accepted (and its learner observed), in order.
@@ -546,107 +577,144 @@ class Recording:
         return [message for message in epochs if message["seq"] in accepted]
 
 
-_KEPT = (Header, Schema, Channel, Message, Metadata)
+@dataclass
+class _Read:
+    """The records a recording yields: header, schemas, channels, metadata and messages
+    (``(offset, record, topic)``), from :func:`_read`."""
+
+    scan: Scan
+    header: Header
+    schemas: list[Schema]
+    channels: list[Channel]
+    metadata: list[Metadata]
+    messages: list[tuple[int, Message, str]]
+    dropped: int
 
 
-class _WholeReads(io.BytesIO):
-    """A file's bytes in memory where a read past the end raises ``EndOfFile``.
-
-    The mcap library reads a record field by field and takes a short read for the data
-    itself (a cut field fails to unpack, a cut payload is padded over); refusing short reads
-    turns every cut record into ``EndOfFile`` before any part of it is parsed.
-    """
-
-    def read(self, size: int | None = -1) -> bytes:
-        data = super().read(size)
-        if size is not None and 0 <= size != len(data):
-            raise EndOfFile()
-        return data
-
-
-def _scan(path: Path) -> tuple[list[McapRecord], int, str | None]:
-    """Linear pass over an MCAP data section with the mcap library's :class:`StreamReader`.
-
-    The reader yields a record only once all its bytes are read (the messages of a chunk
-    once the whole chunk is, its CRC checked); over :class:`_WholeReads` it raises
-    ``EndOfFile`` at the first incomplete record, so stopping there keeps every complete
-    record of a cut file.
-
-    Returns the Header, Schema, Channel, Message and Metadata records in file order
-    (messages of chunks in place of the chunks), the offset past the last complete record,
-    and a warning if the file ends before its DataEnd record.
-    """
+def _read(path: Path, salvage: bool) -> _Read:
+    """Scan a recording (:func:`replay.damage.scan_mcap`); without ``salvage``, damage
+    before the summary is a ``ValueError``. Messages whose channel no intact record defines
+    (the first chunk damaged) take their channel from an intact summary, else are dropped."""
     if not path.exists():
         raise FileNotFoundError(f"{path}: no such file")
     if not path.is_file():
         raise ValueError(f"{path}: is not a regular file (a directory?)")
-    stream = _WholeReads(path.read_bytes())
-    magic = stream.read1(len(_MAGIC))
-    if magic != _MAGIC:
-        if _MAGIC.startswith(magic):
-            warning = f"{path}: truncated at byte 0 (in the MCAP magic); 0 complete messages read"
-            return [], 0, warning
-        raise ValueError(f"{path}: not an MCAP file (bad magic)")
-    records: list[McapRecord] = []
-    offset = stream.tell()
     try:
-        for record in StreamReader(stream, skip_magic=True, validate_crcs=True).records:
-            if isinstance(record, DataEnd):
-                return records, stream.tell(), None
-            if isinstance(record, _KEPT):
-                records.append(record)
-            offset = stream.tell()  # past the record (past its chunk, for a chunk's records)
-    except EndOfFile:
-        pass
-    except (McapError, ValueError) as error:  # a CRC mismatch, an impossible length
-        raise ValueError(f"{path}: corrupt MCAP record after byte {offset}: {error}") from error
-    n_messages = sum(isinstance(record, Message) for record in records)
-    size = stream.getbuffer().nbytes
-    warning = (
-        f"{path}: truncated at byte {offset} of {size} (the writer did not close it); "
-        f"{n_messages} complete messages read"
-    )
-    return records, offset, warning
+        scan = scan_mcap(path.read_bytes())
+    except NotMcap as error:
+        raise ValueError(f"{path}: {error}") from None
+    first = next((d for d in scan.damage if d.section != "summary"), None)
+    if first is not None and not salvage:
+        raise ValueError(f"{path}: corrupt MCAP record after byte {first.start}: "
+                         f"{first.what} (`cfbci recover` salvages the rest)")
+    records = [record for _, record in scan.records]
+    schemas = [r for r in records if isinstance(r, Schema)]
+    channels = [r for r in records if isinstance(r, Channel)]
+    known = {c.id for c in channels}
+    used = {r.channel_id for r in records if isinstance(r, Message)}
+    for record in scan.summary:  # the first chunk damaged: the summary's definitions
+        if isinstance(record, Channel) and record.id in used - known:
+            channels.append(record)
+            known.add(record.id)
+    defined = {s.id for s in schemas}
+    needed = {c.schema_id for c in channels} - defined
+    schemas += [r for r in scan.summary if isinstance(r, Schema) and r.id in needed]
+    topics = {c.id: c.topic for c in channels}
+    messages = [(at, r, topics[r.channel_id]) for at, r in scan.records
+                if isinstance(r, Message) and r.channel_id in topics]
+    header = next((r for r in records if isinstance(r, Header)),
+                  Header(HEADER_PROFILE, HEADER_LIBRARY))
+    metadata = [r for r in records if isinstance(r, Metadata)]
+    n_messages = sum(isinstance(r, Message) for r in records)
+    return _Read(scan, header, schemas, channels, metadata, messages,
+                 n_messages - len(messages))
 
 
-def read_recording(path: str | os.PathLike[str]) -> Recording:
+def _warning(path: Path, scan: Scan, n_messages: int, dropped: int) -> str | None:
+    """Where a cut file ends, and where a file is damaged; None for an intact one."""
+    parts = []
+    if not scan.closed:
+        if scan.cut == 0:
+            parts.append(f"{path}: truncated at byte 0 (in the MCAP magic); 0 complete "
+                         "messages read")
+        else:
+            parts.append(f"{path}: truncated at byte {scan.data_end} of {scan.size} (the "
+                         f"writer did not close it); {n_messages} complete messages read")
+    damage = scan.damage
+    if damage:
+        lost = sum(d.messages for d in damage)
+        first = damage[0]
+        text = (f"damaged: {len(damage)} region{'s' * (len(damage) != 1)} not read, the first "
+                f"{first.describe()}")
+        if lost:
+            text += f"; {lost} message{'s' * (lost != 1)} apparently lost in all"
+        parts.append(text if parts else f"{path}: {text}; {n_messages} messages read")
+    if dropped:
+        parts.append(f"{dropped} messages dropped (their channel is defined only in a damaged "
+                     "chunk, or they are not JSON)")
+    return "; ".join(parts) or None
+
+
+def read_recording(path: str | os.PathLike[str], *, salvage: bool = False) -> Recording:
     """Read a recording, complete or cut anywhere (killed writer, copy of a live file).
 
     Parameters
     ----------
     path : str or PathLike
         An MCAP file written by :class:`SessionRecorder` (or :func:`recover`).
+    salvage : bool, default False
+        Also read a damaged file: every intact record around the damaged regions (see
+        :mod:`replay.damage`), which ``damage`` and ``warning`` then name. Without it, a
+        damaged record before the summary is an error (a damaged summary, which no message
+        is read from, is only said in ``damage`` and ``warning``).
 
     Returns
     -------
     Recording
-        Every complete message before the first incomplete record.
+        Every intact message (without ``salvage``: before the first incomplete record).
 
     Raises
     ------
     FileNotFoundError
         If there is no such file.
     ValueError
-        If it is not a regular file, not MCAP, or a complete record is corrupt.
+        If it is not a regular file, not MCAP, or (without ``salvage``) a record before the
+        summary is damaged.
     """
-    records, end_offset, warning = _scan(Path(path))
-    topics: dict[int, str] = {}
-    messages: dict[str, list[tuple[int, dict[str, Any]]]] = {}
-    for record in records:
-        if isinstance(record, Channel):
-            topics[record.id] = record.topic
-            messages.setdefault(record.topic, [])
-        elif isinstance(record, Message):
-            messages[topics[record.channel_id]].append((record.log_time, json.loads(record.data)))
-    first = messages.get("/config") or [(0, {"session": "", "config": {}})]
+    read = _read(Path(path), salvage)
+    messages: dict[str, list[tuple[int, dict[str, Any]]]] = {c.topic: [] for c in read.channels}
+    offsets: dict[str, list[int]] = {c.topic: [] for c in read.channels}
+    order: dict[str, list[int]] = {c.topic: [] for c in read.channels}
+    undecodable = 0
+    for rank, (at, record, topic) in enumerate(read.messages):
+        try:
+            message = json.loads(record.data)
+        except ValueError:  # an intact chunk of another writer's non-JSON message
+            undecodable += 1
+            continue
+        messages[topic].append((record.log_time, message))
+        offsets[topic].append(at)
+        order[topic].append(rank)
+    first = messages.get("/config") or []
+    session, config = ("", {}) if not first else (first[0][1]["session"], first[0][1]["config"])
+    if not first and salvage and read.metadata:  # the /config chunk damaged: the metadata's
+        session = read.metadata[0].metadata["session"]
+        config = json.loads(read.metadata[0].metadata["config"])
+    dropped = read.dropped + undecodable
+    n_messages = len(read.messages) - undecodable
     return Recording(
-        session=first[0][1]["session"],
-        config=recorded_config(first[0][1]["config"]),
+        session=session,
+        config=recorded_config(config),
         messages=messages,
-        truncated=warning is not None,
-        end_offset=end_offset,
-        warning=warning,
+        truncated=not read.scan.closed,
+        end_offset=read.scan.data_end,
+        warning=_warning(Path(path), read.scan, n_messages, dropped),
         path=str(path),
+        damage=tuple(read.scan.damage),
+        offsets=offsets,
+        order=order,
+        size=read.scan.size,
+        dropped=dropped,
     )
 
 
@@ -668,48 +736,78 @@ def decode_array(message: dict[str, Any]) -> np.ndarray:
 
 
 def recover(src: str | os.PathLike[str], dst: str | os.PathLike[str]) -> int:
-    """Rewrite what :func:`read_recording` reads of ``src`` as a clean, indexed MCAP file.
+    """Rewrite what ``read_recording(src, salvage=True)`` reads as a clean, indexed MCAP file.
 
     Same header, schemas, channels, metadata and messages (data, log and publish times;
-    messages in file order). ``dst`` is chunked (uncompressed), with chunk and message
-    indexes and a summary, so any MCAP reader can seek in it.
+    messages in file order): every intact record of ``src``, around damaged regions too
+    (:mod:`replay.damage`). ``dst`` is chunked (uncompressed), with chunk and message
+    indexes and a summary, so any MCAP reader can seek in it. ``src`` is only read.
 
     Parameters
     ----------
     src : str or PathLike
-        A possibly truncated recording.
+        A possibly truncated or damaged recording.
     dst : str or PathLike
-        The file to write (overwritten).
+        The file to write (overwritten); not ``src``.
 
     Returns
     -------
     int
         Number of messages written.
     """
-    records, _, _ = _scan(Path(src))
-    header = next((r for r in records if isinstance(r, Header)), Header("", "cfbci"))
+    source, target = Path(src), Path(dst)
+    if target.exists() and source.exists() and os.path.samefile(source, target):
+        raise ValueError(f"{dst} is the input file; give another path")
+    read = _read(source, salvage=True)
+    undecodable = {id(r) for _, r, _ in read.messages if not _is_json(r.data)}
     schema_ids, channel_ids = {0: 0}, {}
     n_messages = 0
-    with open(dst, "wb") as file:
+    with open(target, "wb") as file:
         writer = Writer(file, compression=CompressionType.NONE)
-        writer.start(profile=header.profile, library=header.library)
-        for record in records:
-            if isinstance(record, Schema) and record.id not in schema_ids:
-                schema_ids[record.id] = writer.register_schema(
-                    record.name, record.encoding, record.data
-                )
-            elif isinstance(record, Channel) and record.id not in channel_ids:
-                schema_id = schema_ids[record.schema_id]
-                channel_ids[record.id] = writer.register_channel(
-                    record.topic, record.message_encoding, schema_id, record.metadata
-                )
-            elif isinstance(record, Metadata):
-                writer.add_metadata(record.name, record.metadata)
-            elif isinstance(record, Message):
-                channel_id = channel_ids[record.channel_id]
-                writer.add_message(
-                    channel_id, record.log_time, record.data, record.publish_time, record.sequence
-                )
+        writer.start(profile=read.header.profile, library=read.header.library)
+        for schema in read.schemas:
+            if schema.id not in schema_ids:
+                schema_ids[schema.id] = writer.register_schema(
+                    schema.name, schema.encoding, schema.data)
+        for channel in read.channels:
+            if channel.id not in channel_ids and channel.schema_id in schema_ids:
+                channel_ids[channel.id] = writer.register_channel(
+                    channel.topic, channel.message_encoding, schema_ids[channel.schema_id],
+                    channel.metadata)
+        for metadata in read.metadata:
+            writer.add_metadata(metadata.name, metadata.metadata)
+        config = _lost_config(read, channel_ids)
+        if config is not None:  # the /config chunk damaged: its message from the metadata
+            channel, data, log_time = config
+            writer.add_message(channel, log_time, data, log_time)
+            n_messages += 1
+        for _, record, _ in read.messages:
+            if record.channel_id in channel_ids and id(record) not in undecodable:
+                writer.add_message(channel_ids[record.channel_id], record.log_time, record.data,
+                                   record.publish_time, record.sequence)
                 n_messages += 1
         writer.finish()
     return n_messages
+
+
+def _lost_config(read: _Read, channel_ids: dict[int, int]) -> tuple[int, bytes, int] | None:
+    """The ``/config`` message rebuilt from the :data:`CONFIG_METADATA` record when the
+    chunk holding it is lost (the recorder writes both with the same content): its new
+    channel id, data and log time (that of the first message read); None if not lost."""
+    if any(topic == "/config" for _, _, topic in read.messages) or not read.metadata:
+        return None
+    channel = next((c for c in read.channels if c.topic == "/config"), None)
+    if channel is None or channel.id not in channel_ids:
+        return None
+    metadata = read.metadata[0].metadata
+    message = {"session": metadata["session"], "config": json.loads(metadata["config"])}
+    log_time = min((r.log_time for _, r, _ in read.messages), default=0)
+    return channel_ids[channel.id], _to_json(message), log_time
+
+
+def _is_json(data: bytes) -> bool:
+    try:
+        json.loads(data)
+    except ValueError:
+        return False
+    return True

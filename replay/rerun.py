@@ -18,6 +18,8 @@ from typing import Any
 import numpy as np
 
 from calibration_free.config import LearnerConfig
+from replay.damage import Damage
+from replay.extent import usable_part
 from replay.recording import Recording, decode_array, read_recording
 from session.core import Observer, SignalPath, Step
 from session.plane import is_plane
@@ -49,12 +51,47 @@ class Divergence:
 
 @dataclass(frozen=True)
 class ReplayResult:
-    """Counts of compared messages, and the first divergence (None when identical)."""
+    """Counts of compared messages, and the first divergence (None when identical).
+
+    ``complete``: the file is closed and intact, so the whole recording was compared; else
+    ``notes`` say what was not (where the file is cut or damaged, a step cut between its
+    messages, the steps not in the file) and ``warning`` is the reading's (byte offsets).
+    """
 
     moves: int
     states: int
     events: int
     divergence: Divergence | None
+    complete: bool = True
+    steps_compared: int | None = None
+    steps_configured: int | None = None
+    notes: tuple[str, ...] = ()
+    warning: str | None = None
+    damage: tuple[Damage, ...] = ()
+
+    @property
+    def status(self) -> int:
+        """The exit status of ``cfbci replay``: :data:`IDENTICAL` (0), :data:`DIVERGED`
+        (1) or :data:`IDENTICAL_SO_FAR` (3)."""
+        if self.divergence is not None:
+            return DIVERGED
+        return IDENTICAL if self.complete else IDENTICAL_SO_FAR
+
+    def to_json(self, file: str | Path) -> dict[str, Any]:
+        divergence = self.divergence
+        return {
+            "file": str(file), "status": self.status, "identical": divergence is None,
+            "complete": self.complete, "moves": self.moves, "states": self.states,
+            "events": self.events, "steps_compared": self.steps_compared,
+            "steps_configured": self.steps_configured, "warning": self.warning,
+            "notes": list(self.notes), "damage": [d.to_json() for d in self.damage],
+            "divergence": None if divergence is None else vars(divergence),
+        }
+
+
+#: Exit statuses of ``cfbci replay`` (plain check): identical and the file complete; a
+#: divergence; identical as far as a cut or damaged file goes (2: an error, no comparison).
+IDENTICAL, DIVERGED, IDENTICAL_SO_FAR = 0, 1, 3
 
 
 def recorded_signals(recording: Recording) -> list[np.ndarray]:
@@ -144,13 +181,95 @@ def recompute(
 
 
 def replay_check(path: str | Path) -> ReplayResult:
-    """Re-run the learner over a recording and compare (see the module docstring)."""
-    recording = read_recording(path)
+    """Re-run the learner over a recording and compare (see the module docstring).
+
+    A cut or damaged file (read with ``salvage``) is compared as far as its steps go
+    (:func:`replay.extent.usable_part`; :func:`first_divergence` on a file not complete).
+    """
+    recording = read_recording(path, salvage=True)
     if not recording.config:
-        raise ValueError(f"{path}: the recording holds no session configuration")
-    moves, states, events = recompute(recording)
-    divergence = first_divergence(recording, moves, states, events)
-    return ReplayResult(len(moves), len(states), len(events), divergence)
+        detail = f" ({recording.warning})" if recording.warning else ""
+        raise ValueError(f"{path}: the recording holds no session configuration{detail}")
+    extent = usable_part(recording)
+    usable = extent.recording
+    if not usable.messages.get("/move"):
+        raise ValueError(f"{path}: no move of the session could be read, nothing to compare "
+                         f"({recording.warning or 'the session has no step'})")
+    moves, states, events = recompute(usable)
+    extent_of = compared_extent(usable, moves, states, events)
+    divergence = first_divergence(usable, moves, states, events)
+    notes = [*extent.notes(), *extent_of.notes] if not usable.complete else []
+    if extent.unaccepted and not usable.complete:
+        notes.append(f"{extent.unaccepted} epoch{'s' * (extent.unaccepted != 1)} recorded "
+                     "without features (not accepted by the service) not fed")
+    return ReplayResult(
+        extent_of.moves, extent_of.states, extent_of.events, divergence,
+        complete=usable.complete, steps_compared=extent_of.steps,
+        steps_configured=usable.config.get("steps"), notes=tuple(notes),
+        warning=recording.warning, damage=recording.damage,
+    )
+
+
+@dataclass(frozen=True)
+class Compared:
+    """How much of a recording :func:`first_divergence` compares: moves, states and target
+    events (recomputed ones beyond these are not in the file), the steps whose messages
+    are all compared, and notes on what is not."""
+
+    moves: int
+    states: int
+    events: int
+    steps: int
+    notes: tuple[str, ...]
+
+
+def compared_extent(
+    recording: Recording, moves: list[dict], states: list[dict], events: list[str]
+) -> Compared:
+    """What of :func:`recompute`'s output a recording is compared with.
+
+    A complete recording (closed, intact): all of it, a different count being a
+    divergence. A cut or damaged one (its usable part): the re-run observed its ``K``
+    accepted epochs, so steps ``1..K`` are whole in the file (the service wrote a step's
+    move, state and target event before it could receive its epoch): their messages must
+    all be there. The next step's (its epoch never recorded, or the final state after the
+    last epoch) may be cut between its messages: each one the file holds is compared, the
+    others are not (a note says which). Steps after it are not in the file.
+    """
+    if recording.complete:
+        return Compared(len(moves), len(states), len(events), len(moves), ())
+    n_steps = len(states) - 1  # epochs observed
+    recorded = _recorded(recording)
+    n_moves = max(min(n_steps, len(moves)), min(len(recorded[0]), len(moves)))
+    n_states = max(n_steps, min(len(recorded[1]), len(states)))
+    whole_events = sum(bool(m.get("target_reached")) for m in moves[:n_steps])
+    n_events = max(whole_events, min(len(recorded[2]), len(events)))
+    notes = []
+    cut = [what for what, missing in (
+        (f"its move (step {n_steps + 1})", n_moves < len(moves)),
+        (f"its state (after {n_steps} epochs)", n_states < len(states)),
+        ("its target event", n_events < len(events)),
+    ) if missing]
+    if cut:
+        step = f"step {n_steps + 1}" if n_steps < len(moves) else "the end of the session"
+        notes.append(f"{step} is cut: {' and '.join(cut)} not in the file, not compared")
+    configured = recording.config.get("steps")
+    if isinstance(configured, int) and n_steps < configured:
+        notes.append(f"steps {n_steps + 1}-{configured} of {configured} have no epoch in the "
+                     f"file: compared steps 1-{n_steps} whole"
+                     + (f" and what the file holds of step {n_steps + 1}"
+                        if n_moves > n_steps or n_states > n_steps else ""))
+    return Compared(n_moves, n_states, n_events, n_steps, tuple(notes))
+
+
+def _recorded(recording: Recording) -> tuple[list[dict], list[dict], list[str]]:
+    """The recorded moves, states and target events' texts."""
+    return (
+        [m for _, m in recording.messages.get("/move", [])],
+        [m for _, m in recording.messages.get("/state", [])],
+        [m["message"] for _, m in recording.messages.get("/event", [])
+         if m.get("event") == "target_reached"],
+    )
 
 
 def first_divergence(
@@ -158,15 +277,13 @@ def first_divergence(
 ) -> Divergence | None:
     """The first difference between a recording and :func:`recompute`'s output, or None.
 
-    Moves first, then states, then target events; a different count is a divergence.
+    Moves first, then states, then target events; a different count is a divergence. Of
+    a recording not complete (cut or damaged: its usable part), only what
+    :func:`compared_extent` says is compared.
     """
-    recorded_moves = [m for _, m in recording.messages.get("/move", [])]
-    recorded_states = [m for _, m in recording.messages.get("/state", [])]
-    recorded_events = [
-        m["message"]
-        for _, m in recording.messages.get("/event", [])
-        if m.get("event") == "target_reached"
-    ]
+    extent = compared_extent(recording, moves, states, events)
+    moves, states, events = moves[:extent.moves], states[:extent.states], events[:extent.events]
+    recorded_moves, recorded_states, recorded_events = _recorded(recording)
     fields = STATE_MESSAGE_FIELDS if is_plane(recording.config) else STATE_FIELDS
     return move_divergence(recorded_moves, moves) or state_divergence(
         recorded_states, states, recorded_events, events, moves, fields
@@ -175,7 +292,8 @@ def first_divergence(
 
 def replay_verdict(recording: Recording) -> tuple[bool | None, str | None]:
     """Whether :func:`recompute` reproduces the recording, and the first divergence's
-    description; ``(None, why)`` if the re-run failed."""
+    description; ``(None, why)`` if the re-run failed. A recording not complete is
+    compared as far as its steps go (:func:`first_divergence`)."""
     try:
         divergence = first_divergence(recording, *recompute(recording))
     except (ValueError, KeyError, TypeError) as error:

@@ -1,6 +1,6 @@
 """An upper estimate of the memory one session's learner commits, term by term.
 
-The service checks it against its ``max_session_mb`` limit (:mod:`cfbci.limits`). It
+The service checks it against its ``max_session_mb`` limit (:mod:`cfbci.service.limits`). It
 follows the learner's data structures (:mod:`calibration_free.task_decoders`,
 :mod:`calibration_free.learner`, :mod:`calibration_free.frames`,
 :mod:`calibration_free.planning`) as functions of the sizes of the world (T tasks, S
@@ -50,7 +50,7 @@ u = T K d, u' = T K' d, v = T K d² and w = T K n d:
   resident tables.
 
 ``python tools/session_memory.py`` measures sessions against this estimate (peak
-resident growth in a fresh process, :mod:`cfbci.memory_probe`).
+resident growth in a fresh process, :mod:`cfbci.bench.memory_probe`).
 """
 
 from __future__ import annotations

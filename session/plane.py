@@ -6,7 +6,7 @@ A session config of ``world`` "continuous" (frame "cardinal") carries the
 object (``n_hypotheses``, ``sampling``, ``probing``, ...). :class:`ContinuousSession` runs
 the :class:`~calibration_free.continuous_goals.ContinuousGoalLearner` on the session's
 learner stream (``session_streams(seed)[2]``) in the order of
-:func:`cfbci.continuous.run_continuous_session`: ``move`` proposes the next probe point
+:func:`cfbci.offline.continuous.run_continuous_session`: ``move`` proposes the next probe point
 (resampling the particles), ``observe`` scores them with the epoch of that probe. A move's
 ``from_state`` and ``to_state`` both hold the probe point ``[x, y]`` (the device
 teleports there; its ``action`` is "probe"); the state accompanying it holds the
@@ -23,7 +23,7 @@ thread (:data:`ONE_BLAS_THREAD`), whatever the process's setting, as
 A config of ``world`` "puddle" (frame "mixed") carries the
 :class:`calibration_free.puddle_learner.PuddleConfig` settings in its ``learner`` object.
 :class:`PuddleSession` runs the :class:`~calibration_free.puddle_learner.PuddleLearner` in
-the order of :func:`cfbci.puddle.run_puddle_session`, and owns the agent's state and the
+the order of :func:`cfbci.offline.puddle.run_puddle_session`, and owns the agent's state and the
 session's world stream (:func:`calibration_free.streams.world_stream`), which the source
 never sees: the start state is its first draw (``uniform(size=2)``); ``move`` proposes the
 action at the state and draws its outcome at once (:meth:`PuddleWorld.move`), so that the

@@ -37,7 +37,7 @@ import pytest
 import zenoh
 from system_deps import require
 
-from cfbci.router import READY
+from cfbci.service.router import READY
 from replay.recording import read_recording
 from replay.rerun import replay_check
 from wire import protocol

@@ -5,7 +5,7 @@ import json
 
 import numpy as np
 
-from cfbci.bench import NAIVE_TASKS, naive_slice
+from cfbci.bench.steps import NAIVE_TASKS, naive_slice
 from cfbci.cli import main
 
 

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from cfbci.cli import main
-from cfbci.compare import rank_test
+from cfbci.offline.compare import rank_test
 
 
 def _run(path: Path, values: list[object], metric: str = "final_distance") -> Path:

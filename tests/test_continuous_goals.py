@@ -23,7 +23,7 @@ from calibration_free.sampled_confidence import (
     shrunk_class_moments,
     soft_class_statistics,
 )
-from cfbci.continuous import run_continuous_session
+from cfbci.offline.continuous import run_continuous_session
 
 CENTRE = np.array([[0.5, 0.5]])
 

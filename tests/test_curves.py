@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from cfbci.cli import main
-from cfbci.curves import plot_curves, run_series
+from cfbci.offline.curves import plot_curves, run_series
 
 PNG = b"\x89PNG\r\n\x1a\n"
 

@@ -216,7 +216,7 @@ def test_results_commands_parse(where: str, command: str) -> None:
     """Every command of a regenerated results table is a valid ``cfbci`` command line (what
     ``make results`` will run), with the data set paths the reader's."""
     from cfbci.cli import build_parser
-    from cfbci.presets import PRESETS
+    from cfbci.offline.presets import PRESETS
 
     assert command.startswith("`cfbci ") and command.endswith("`"), (where, command)
     line = re.sub(r'"\$\(cfbci datasets path (\w+)\)"', r"/data/\1.mat", command.strip("`"))

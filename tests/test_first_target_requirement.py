@@ -8,7 +8,7 @@ import pytest
 from acquisition.sources import DataSpec
 from calibration_free.config import SETTINGS_BEFORE_THEY_EXISTED, LearnerConfig
 from calibration_free.learner import CalibrationFreeLearner, first_target_requirement
-from cfbci.simulation import SessionConfig, run_session
+from cfbci.offline.simulation import SessionConfig, run_session
 from session.config import learner_settings, recorded_config
 
 

@@ -7,8 +7,8 @@ from pathlib import Path
 
 from calibration_free.config import LearnerConfig
 from calibration_free.world import GridWorld
-from cfbci.flood import attacks, bench_flood, largest_fitting_features, memory_bound
-from cfbci.limits import ServiceLimits, world_memory_bytes
+from cfbci.bench.flood import attacks, bench_flood, largest_fitting_features, memory_bound
+from cfbci.service.limits import ServiceLimits, world_memory_bytes
 from wire import protocol
 
 LIMITS = ServiceLimits(

@@ -14,7 +14,7 @@ from calibration_free.config import LearnerConfig
 from calibration_free.frame_hypotheses import FRAME_DEFAULTS, FrameHypothesesLearner, beats_chance
 from calibration_free.worlds import make_world
 from cfbci.cli import main
-from cfbci.frame_sessions import frame_hypotheses_report, run_frame_session
+from cfbci.offline.frame_sessions import frame_hypotheses_report, run_frame_session
 
 CONFIG = LearnerConfig(**{**FRAME_DEFAULTS, "decoder": "student_t", "eps": 0.01})
 

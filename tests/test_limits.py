@@ -19,9 +19,10 @@ from calibration_free.config import LearnerConfig
 from calibration_free.learner import CalibrationFreeLearner
 from calibration_free.world import GridWorld
 from calibration_free.worlds import make_world
-from cfbci.limits import ServiceLimits, add_options, from_args, world_memory_bytes
-from cfbci.memory_probe import MemoryCase, measure
+from cfbci.bench.memory_probe import MemoryCase, measure
+from cfbci.cli.service import add_limit_options, limits_from_args
 from cfbci.service import serve, unfinished
+from cfbci.service.limits import ServiceLimits, world_memory_bytes
 from replay.recording import read_recording
 from session import memory as memory_estimate
 from wire import protocol
@@ -55,9 +56,9 @@ def _event(sid: str, kind: str) -> Callable[[protocol.Message], bool]:
 
 def test_the_cli_flags_give_the_limits_and_bad_ones_are_refused() -> None:
     parser = argparse.ArgumentParser()
-    add_options(parser)
-    assert from_args(parser.parse_args([])) == ServiceLimits()
-    limits = from_args(parser.parse_args(["--max-sessions", "3", "--idle-timeout", "9.5"]))
+    add_limit_options(parser)
+    assert limits_from_args(parser.parse_args([])) == ServiceLimits()
+    limits = limits_from_args(parser.parse_args(["--max-sessions", "3", "--idle-timeout", "9.5"]))
     assert (limits.max_sessions, limits.idle_timeout) == (3, 9.5)
     with pytest.raises(ValueError, match="max_sessions must be positive"):
         ServiceLimits(max_sessions=0)

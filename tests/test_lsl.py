@@ -37,8 +37,8 @@ from acquisition.lsl_streams import (
     parse_onset_marker,
 )
 from acquisition.sources import DataSpec
+from cfbci.offline.simulation import SessionConfig, run_session
 from cfbci.service import PipelineService
-from cfbci.simulation import SessionConfig, run_session
 from replay.recording import read_recording
 from wire import protocol
 from wire.transport import Outbox, Pump, Received

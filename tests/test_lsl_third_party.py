@@ -37,7 +37,7 @@ from acquisition.lab_formats import read_xdf_session
 from acquisition.lsl_epochs import microvolts_per_unit, player_annotation_shift
 from acquisition.lsl_streams import eeg_stream_meta, loopback_config, parse_move_marker
 from acquisition.sources import DataSpec
-from cfbci.simulation import SessionConfig, run_session
+from cfbci.offline.simulation import SessionConfig, run_session
 from replay.recording import decode_array, read_recording
 from wire.zenoh_config import free_tcp_endpoint
 
@@ -45,6 +45,14 @@ STEPS, SEED = 16, 3
 LEAD_IN, GAP = 8.0, 1.7  # s
 TMIN, TMAX = -0.2, 1.0  # s
 
+
+#: The player process: the file played on LSL and the session recorded to XDF.
+PLAYER = (
+    "import logging, sys; from pathlib import Path; "
+    "from acquisition.fif_stream import play_and_record; "
+    "logging.basicConfig(level=logging.INFO); "
+    "play_and_record(Path(sys.argv[1]), sys.argv[2], sys.argv[3], Path(sys.argv[4]))"
+)
 
 def require_mne_lsl() -> None:
     """Skip when mne-lsl is not installed (``pip install -e '.[dev]'`` installs it), or
@@ -119,8 +127,7 @@ def test_a_session_on_mne_lsls_player_cuts_mnes_epochs_and_reads_back_from_xdf(
         ))
         with (tmp_path / "player.log").open("w") as log:
             player = subprocess.Popen(
-                [sys.executable, "-m", "acquisition.fif_stream", str(fif), "--name",
-                 f"amp-{name}", "--moves", f"moves-{name}", "--xdf",
+                [sys.executable, "-c", PLAYER, str(fif), f"amp-{name}", f"moves-{name}",
                  str(tmp_path / "session.xdf")],
                 env=os.environ | {"LSLAPICFG": str(tmp_path / "lsl_api.cfg")},
                 stdout=log, stderr=subprocess.STDOUT,

@@ -28,8 +28,8 @@ from acquisition.sources import DataSpec
 from calibration_free.streams import StepRecord
 from calibration_free.world import ACTIONS, GridWorld
 from cfbci.cli import main
+from cfbci.offline.simulation import SessionConfig, run_session
 from cfbci.service import serve
-from cfbci.simulation import SessionConfig, run_session
 from replay.recording import decode_array, read_recording
 from replay.rerun import replay_check
 from wire import protocol

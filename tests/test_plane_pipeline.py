@@ -34,7 +34,7 @@ from acquisition.simulated_source import SourceSettings, run_source
 from acquisition.sources import DataSpec
 from calibration_free.continuous_goals import ContinuousConfig, ContinuousGoalLearner
 from cfbci.cli import main
-from cfbci.continuous import run_continuous_session
+from cfbci.offline.continuous import run_continuous_session
 from replay.recording import read_recording
 from replay.rerun import replay_check
 from wire.transport import Outbox, Pump, Received, wait_for_subscribers

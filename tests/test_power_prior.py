@@ -11,7 +11,7 @@ from calibration_free.power_prior import (
     MeanPowerRatio,
     make_power_prior,
 )
-from cfbci.simulation import SessionConfig, run_session
+from cfbci.offline.simulation import SessionConfig, run_session
 
 
 def signals_with_powers(rng: np.random.Generator, n: int, dims: int = 6) -> np.ndarray:

@@ -6,8 +6,9 @@ import json
 
 import pytest
 
-from cfbci.cli import build_parser, main, parse_settings
-from cfbci.presets import PRESETS, preset
+from cfbci.cli import build_parser, main
+from cfbci.cli.options import parse_settings
+from cfbci.offline.presets import PRESETS, preset
 
 
 def _parsed(*argv: str):

@@ -30,9 +30,9 @@ from calibration_free.prior import (
 )
 from calibration_free.streams import session_streams
 from calibration_free.world import GridWorld
-from cfbci.bench_returning import DayOneTape, recorded_config
+from cfbci.bench.returning import DayOneTape, recorded_config
 from cfbci.cli import main
-from cfbci.simulation import SessionConfig, run_session
+from cfbci.offline.simulation import SessionConfig, run_session
 from replay.prior import read_prior, read_prior_session
 from replay.recording import SessionRecorder, decode_array, read_recording
 from replay.rerun import Rerun, recorded_signals
@@ -369,6 +369,12 @@ def test_the_power_premise_refuses_a_complemented_errp_prior() -> None:
     assert right.decision.outcome == "testing"
     assert (wrong.decision.outcome, wrong.decision.step) == ("fallen back", 0)
     assert wrong.informed is None and not wrong.acting.prior_adopted
+    # Abandoned before the first signal, it costs nothing: the session is the one from
+    # scratch, step for step.
+    session = SessionConfig(steps=60, grid=3, learner=config)
+    plain = replace(data, features=signals.astype(np.float64))
+    assert run_session(5, replace(session, prior=prior.complemented()), plain) == run_session(
+        5, session, plain)
 
 
 def test_the_generators_drift() -> None:

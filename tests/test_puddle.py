@@ -7,7 +7,7 @@ import pytest
 
 from calibration_free.puddle import MIXED_LABELS, PuddleWorld, mixed_frame, puddle_tasks
 from calibration_free.puddle_learner import PuddleConfig, kernel_map
-from cfbci.puddle import run_puddle_session
+from cfbci.offline.puddle import run_puddle_session
 
 
 @pytest.fixture(scope="module")

@@ -35,9 +35,9 @@ from acquisition.simulated_source import SourceSettings, run_source
 from calibration_free.puddle import ACTIONS
 from calibration_free.puddle_learner import PuddleConfig
 from calibration_free.streams import session_streams
+from cfbci.bench.memory_probe import measure_puddle
 from cfbci.cli import main
-from cfbci.memory_probe import measure_puddle
-from cfbci.puddle import PuddleResult, PuddleStep, run_puddle_session
+from cfbci.offline.puddle import PuddleResult, PuddleStep, run_puddle_session
 from replay.recording import read_recording
 from replay.rerun import replay_check
 from session.plane import PuddleSession, goal_probabilities, puddle_world

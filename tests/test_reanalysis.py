@@ -19,7 +19,7 @@ from live import TIMEOUT, rewrite, service_process
 from acquisition.simulated_source import SourceSettings, run_source
 from calibration_free.config import LearnerConfig
 from cfbci.cli import main
-from cfbci.reanalysis import (
+from cfbci.recordings.reanalysis import (
     OWN,
     alternative_settings,
     reanalyse,

@@ -19,7 +19,7 @@ from acquisition.simulated_source import SourceSettings, run_source
 from acquisition.sources import DEFAULT_SYNTHETIC_ACCURACY, DataSpec, synthetic_features
 from calibration_free.streams import StepRecord
 from cfbci.cli import main
-from cfbci.simulation import SessionConfig, run_session
+from cfbci.offline.simulation import SessionConfig, run_session
 from replay.recording import Recording, decode_array, read_recording
 from replay.rerun import replay_check
 from wire.zenoh_config import free_tcp_endpoint

@@ -27,7 +27,7 @@ from calibration_free.config import DEFAULT_BETA, LearnerConfig
 from calibration_free.learner import first_target_requirement
 from calibration_free.puddle import puddle_tasks
 from cfbci.cli import main
-from cfbci.report import ReportJob, report_session
+from cfbci.recordings.report import ReportJob, report_session
 from replay.calibration import (
     CalibrationPanel,
     calibration_counts,

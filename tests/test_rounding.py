@@ -19,7 +19,7 @@ from acquisition.loaders import load_labelled
 from acquisition.sources import DataSpec
 from calibration_free.config import LearnerConfig
 from calibration_free.ties import TIE_TOLERANCE, first_best, near_best
-from cfbci.simulation import SessionConfig, run_session
+from cfbci.offline.simulation import SessionConfig, run_session
 from decoding.statistics import EMPTY_WEIGHT, at_least, more_than
 
 

@@ -17,9 +17,9 @@ from live import SPAWN, TIMEOUT, answering_challenges
 from test_pipeline import GRID, STEPS, simulated
 
 from acquisition.simulated_source import SourceSettings, SourceSummary, run_source
-from cfbci.limits import ServiceLimits
-from cfbci.router import run_router
 from cfbci.service import serve
+from cfbci.service.limits import ServiceLimits
+from cfbci.service.router import run_router
 from replay.recording import read_recording
 from wire import protocol
 from wire.services import ask_for_offers, claim_key, claims_of, pick_service

@@ -15,7 +15,7 @@ from calibration_free.shrinkage_choice import SHRINKAGE_GRID
 from calibration_free.streams import StepRecord
 from calibration_free.world import ACTIONS, GOAL, MOVES, GridWorld
 from cfbci.cli import main
-from cfbci.simulation import SessionConfig, SessionResult, run_session, summarise
+from cfbci.offline.simulation import SessionConfig, SessionResult, run_session, summarise
 
 SHARED = Path(__file__).resolve().parents[1].parent / "shared" / "datasets"
 

@@ -12,8 +12,9 @@ import numpy as np
 import pytest
 from rich.console import Console
 
+from cfbci.bench.soak import bench_soak
+from cfbci.bench.soak_report import plot_soak, print_soak
 from cfbci.cli import main
-from cfbci.soak import bench_soak, plot_soak, print_soak
 
 STEPS, EVERY, SESSIONS, SESSION_STEPS = 300, 100, 20, 10
 #: Bound on the median RSS growth from one step to the next over the long session's last

@@ -1,4 +1,4 @@
-"""``cfbci sweep`` on a real Dask cluster, and where jobs run (:mod:`cfbci.parallel`)."""
+"""``cfbci sweep`` on a real Dask cluster, and where jobs run (:mod:`cfbci.offline.parallel`)."""
 
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ from rich.console import Console
 
 from acquisition.sources import DEFAULT_SYNTHETIC_ACCURACY, synthetic_features
 from cfbci.cli import main
-from cfbci.parallel import Scheduler, run_parallel
+from cfbci.offline.parallel import Scheduler, run_parallel
 from wire.zenoh_config import free_tcp_endpoint
 
 STEPS, SIDE, SEEDS = 30, 3, 2

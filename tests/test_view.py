@@ -11,7 +11,7 @@ the messages the service published. Chromium resolves every ``*.test`` name to 1
 a page of another site (``attacker.test``, served by a plain HTTP server of the test) and a
 rebound name of the view's own address are then real to the browser. Without Chromium the
 tests fail (CI installs it). The last tests check the view's bookkeeping
-(:mod:`cfbci.view_model`) on real encoded messages; tests/test_view_security.py checks the
+(:mod:`cfbci.view.model`) on real encoded messages; tests/test_view_security.py checks the
 access rules over HTTP and the model's refusal of malformed messages.
 """
 
@@ -44,9 +44,10 @@ from selenium.webdriver.support.ui import Select, WebDriverWait
 from system_deps import require
 
 from acquisition.simulated_source import SourceSettings, SourceSummary, run_source
-from cfbci.publish import publish_recording
-from cfbci.view_model import SessionBook, SessionView, layout_of
-from cfbci.view_server import STATIC, Access, run_view
+from cfbci.recordings.publish import publish_recording
+from cfbci.view.checks import layout_of
+from cfbci.view.model import SessionBook, SessionView
+from cfbci.view.server import STATIC, Access, run_view
 from replay.recording import read_recording
 from wire import protocol
 from wire.transport import Outbox, Pump, Received

@@ -5,9 +5,9 @@ keeps per session is bounded.
 
 The HTTP tests run the real command (``python -m cfbci.cli view``) in a process of its own,
 a real aiohttp server on loopback and a real Zenoh peer, and talk to it with urllib and
-aiohttp's WebSocket client. The model tests feed :class:`cfbci.view_model.SessionBook`
+aiohttp's WebSocket client. The model tests feed :class:`cfbci.view.model.SessionBook`
 messages of every world (grid, line, pick-and-place, continuous, puddle), and
-:class:`cfbci.view_server.ViewServer` real wire bytes. The pages in a real Chromium are
+:class:`cfbci.view.server.ViewServer` real wire bytes. The pages in a real Chromium are
 tested in ``tests/test_view.py``.
 """
 
@@ -35,16 +35,15 @@ import numpy as np
 import pytest
 
 from cfbci.view import TOKEN_ENV
-from cfbci.view_model import (
+from cfbci.view.checks import MAX_TASKS, PENDING_STEPS
+from cfbci.view.model import (
     MAX_SESSIONS,
-    MAX_TASKS,
-    PENDING_STEPS,
     SERIES_LENGTH,
     TARGETS_KEPT,
     TEXT_LENGTH,
     SessionBook,
 )
-from cfbci.view_server import ViewServer
+from cfbci.view.server import ViewServer
 from wire import protocol
 from wire.transport import Received
 from wire.zenoh_config import free_tcp_endpoint

@@ -28,7 +28,7 @@ from calibration_free.config import LearnerConfig
 from calibration_free.streams import StepRecord
 from calibration_free.worlds import make_world
 from cfbci.cli import main
-from cfbci.simulation import SessionConfig, SessionResult, run_session
+from cfbci.offline.simulation import SessionConfig, SessionResult, run_session
 from replay.recording import RANKED, read_recording
 from replay.rerun import replay_check
 from wire import protocol

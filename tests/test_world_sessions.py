@@ -8,7 +8,7 @@ from acquisition.user import SimulatedUser
 from calibration_free.config import LearnerConfig
 from calibration_free.world import transition_draws
 from calibration_free.worlds import make_world
-from cfbci.simulation import SessionConfig, run_session
+from cfbci.offline.simulation import SessionConfig, run_session
 
 
 def separated(n_classes: int, n_per_class: int = 150, seed: int = 0) -> LabelledFeatures:

@@ -21,7 +21,7 @@ import numpy as np
 from acquisition.sources import synthetic_features
 from calibration_free.config import LearnerConfig
 from calibration_free.learner import CalibrationFreeLearner, TaskLearner
-from cfbci.simulation import SessionConfig, run_session
+from cfbci.offline.simulation import SessionConfig, run_session
 
 
 def labellings_per_step(

@@ -27,7 +27,7 @@ from calibration_free.learner import CalibrationFreeLearner
 from calibration_free.streams import session_streams
 from calibration_free.world import GridWorld
 from cfbci.blas import single_threaded_blas
-from cfbci.cli import parse_settings
+from cfbci.cli.options import parse_settings
 from session.tasks import TaskSession
 
 

@@ -3,7 +3,7 @@ by message", "Re-sending", "Errors and rejections").
 
 The simulated user (:mod:`acquisition.simulated_source`, ``cfbci source``), the LSL bridge
 (:mod:`acquisition.lsl_bridge`, ``cfbci lsl-bridge``) and the re-publication of a
-recording (:mod:`cfbci.publish`, ``cfbci replay --publish``) play the same part: they
+recording (:mod:`cfbci.recordings.publish`, ``cfbci replay --publish``) play the same part: they
 send a config, then answer every move with the epoch of its step. :class:`Client` is that
 part, once: it subscribes to the session's ``move``, ``state`` and ``event`` keys before
 anything is sent, waits for a service to subscribe to the config, sends the config and

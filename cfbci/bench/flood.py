@@ -28,7 +28,7 @@ import queue
 import tempfile
 import time
 from collections import Counter
-from dataclasses import asdict, dataclass, replace
+from dataclasses import dataclass, replace
 from multiprocessing.synchronize import Event
 from pathlib import Path
 from typing import Any
@@ -42,9 +42,9 @@ from acquisition.simulated_source import SourceSettings, SourceSummary, run_sour
 from acquisition.sources import DataSpec
 from calibration_free.config import LearnerConfig
 from calibration_free.world import GridWorld
-from cfbci.limits import ServiceLimits, world_memory_bytes
+from cfbci.offline.simulation import SessionConfig, run_session
 from cfbci.service import serve
-from cfbci.simulation import SessionConfig, run_session
+from cfbci.service.limits import ServiceLimits, world_memory_bytes
 from replay.recording import read_recording
 from replay.rerun import replay_check
 from wire import protocol
@@ -137,7 +137,7 @@ def attacks(live: str, limits: ServiceLimits, round_: int) -> list[tuple[str, st
 def largest_fitting_features(limits: ServiceLimits, grid: int, steps: int) -> int:
     """The longest feature vector (<= ``max_features``) with which a session of
     :func:`_config` (``grid``, ``steps``, feedback, default learner) stays within
-    ``max_session_mb`` by :func:`~cfbci.limits.world_memory_bytes`; 0 if none does."""
+    ``max_session_mb`` by :func:`~cfbci.service.limits.world_memory_bytes`; 0 if none does."""
     world, learner, budget = GridWorld(grid), LearnerConfig(), limits.max_session_mb * 2**20
     fits = [
         d for d in range(1, limits.max_features + 1)
@@ -408,45 +408,4 @@ def print_flood(report: FloodReport, console: Console) -> None:
     ):
         console.print(line, soft_wrap=True)
 
-
-def add_flood_parser(which: Any) -> None:
-    """Register ``cfbci bench flood`` under the ``bench`` subcommands."""
-    p = which.add_parser(
-        "flood",
-        help="a real session while a hostile client floods the service",
-        description="One real session (synthetic data) against a recording service, first "
-        "alone (the reference), then while a hostile client floods the service with "
-        "malformed and adversarial messages; checks the session's decisions and "
-        "recording, reports its queueing delay and latency, the service's peak memory "
-        "and its exit on SIGTERM.",
-    )
-    p.add_argument("--steps", type=int, default=300, help="steps of the real session")
-    p.add_argument("--grid", type=int, default=5, help="grid side of the real session")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument(
-        "--rounds", type=int, default=100_000,
-        help="most rounds of hostile messages (15 each; the flood stops with the session)",
-    )
-    p.add_argument("--json", type=Path, help="write the figures as JSON")
-    p.set_defaults(run=_run)
-
-
-def _run(args: Any, console: Console) -> int:
-    """The reference (the same session, no flood), then the flood, in the same run."""
-    reports = {
-        "reference": bench_flood(args.steps, args.grid, args.seed, 0),
-        "flood": bench_flood(args.steps, args.grid, args.seed, args.rounds),
-    }
-    for name, report in reports.items():
-        console.rule(name)
-        print_flood(report, console)
-    if args.json:
-        figures = {name: asdict(report) for name, report in reports.items()}
-        args.json.write_text(json.dumps(figures, indent=2) + "\n")
-    ok = all(
-        report.decisions_equal_simulation and report.replay_identical
-        and report.peak_rss_mb <= report.rss_bound_mb and report.exit_code == 0
-        for report in reports.values()
-    )
-    return 0 if ok else 1
 

@@ -44,8 +44,8 @@ from rich.console import Console
 from rich.table import Table
 
 from acquisition.simulated_source import SourceSettings, SourceSummary, replay_session
-from cfbci.limits import ServiceLimits
 from cfbci.service import serve
+from cfbci.service.limits import ServiceLimits
 from wire import protocol
 from wire.transport import reliable_publisher, wait_for_subscribers
 from wire.zenoh_config import free_tcp_endpoint, peer_config

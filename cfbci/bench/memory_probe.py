@@ -1,5 +1,5 @@
 """Measure the memory one learner session really commits: peak resident growth in a fresh
-process, beside :func:`cfbci.limits.world_memory_bytes`' estimate of it.
+process, beside :func:`cfbci.service.limits.world_memory_bytes`' estimate of it.
 
 Each measurement (:func:`measure`) runs in its own spawned process, set up as the service
 runs (:func:`cfbci.memory.keep_freed_memory`, one BLAS thread). There it draws the
@@ -8,7 +8,7 @@ class, :func:`acquisition.gaussian.generate_gaussian_features`), runs a 12-step 
 session on a 2 x 2 grid with the same learner settings (what a service pays once, not per
 session: lazy imports, LAPACK workspaces), gives the heap's free memory back to the kernel,
 resets the kernel's peak-RSS counter (``/proc/self/clear_refs``), reads ``VmRSS`` and runs
-the session (:func:`cfbci.simulation.run_session`, the learner's session and a simulated
+the session (:func:`cfbci.offline.simulation.run_session`, the learner's session and a simulated
 user, no network) with the learner stepped as the service steps it: every observation is
 followed by the state message's fields (its ``after_observe``:
 :func:`session.tasks.state_fields`, whose cross-validated
@@ -42,10 +42,10 @@ from calibration_free.puddle_learner import PuddleConfig
 from calibration_free.world import World
 from calibration_free.worlds import make_world
 from cfbci.blas import single_threaded_blas
-from cfbci.limits import world_memory_bytes
 from cfbci.memory import keep_freed_memory
-from cfbci.puddle import run_puddle_session
-from cfbci.simulation import SessionConfig, run_session
+from cfbci.offline.puddle import run_puddle_session
+from cfbci.offline.simulation import SessionConfig, run_session
+from cfbci.service.limits import world_memory_bytes
 from session.plane import puddle_memory_bytes, puddle_world
 from session.tasks import state_fields
 
@@ -92,7 +92,7 @@ class MemoryCase:
         )
 
     def estimate_bytes(self) -> int:
-        """:func:`cfbci.limits.world_memory_bytes` of this session."""
+        """:func:`cfbci.service.limits.world_memory_bytes` of this session."""
         return world_memory_bytes(self.make_world(), self.settings, self.steps, self.features)
 
     def describe(self) -> str:

@@ -19,20 +19,18 @@ at most ``NAIVE_TASKS`` tasks (all of them at T = 25, an evenly spaced slice of 
 beyond) and, on larger grids, extrapolated linearly to T.
 
 ``bench simulate``: the wall time of whole offline sessions (``cfbci simulate``'s
-:func:`~cfbci.simulation.run_session`) in one process, process start and dataset loading
+:func:`~cfbci.offline.simulation.run_session`) in one process, process start and dataset loading
 excluded, and how much faster than real time they run at ``SECONDS_PER_ACTION`` per
 device action.
 """
 
 from __future__ import annotations
 
-import argparse
-import json
 import resource
 import sys
 import time
 from concurrent.futures import ProcessPoolExecutor
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from multiprocessing import get_context
 from pathlib import Path
 from typing import Any
@@ -51,10 +49,9 @@ from calibration_free.config import LearnerConfig
 from calibration_free.learner import CalibrationFreeLearner
 from calibration_free.streams import session_streams
 from calibration_free.world import GridWorld
-from cfbci.bench_continuous import bench_continuous_step, print_continuous
 from cfbci.blas import single_threaded_blas
 from cfbci.memory import keep_freed_memory
-from cfbci.simulation import SessionConfig, run_session
+from cfbci.offline.simulation import SessionConfig, run_session
 from decoding.lda import DEFAULT_SHRINKAGE
 from session.tasks import TaskSession
 
@@ -234,30 +231,6 @@ def print_rows(rows: list[BenchRow], console: Console) -> None:
     )
 
 
-def run_bench_update(args: argparse.Namespace, console: Console) -> int:
-    """``cfbci bench update``: run, print, and write the JSON if asked."""
-    rows = bench_update(
-        tuple(args.grids), tuple(sorted(set(args.histories))),
-        measured_steps=args.measured_steps, naive_repeats=args.naive_repeats,
-        seed=args.seed, console=console,
-    )
-    print_rows(rows, console)
-    report: dict[str, Any] = {"rows": [asdict(r) for r in rows]}
-    if args.continuous_history > 0:
-        with console.status("continuous-goal step"), ProcessPoolExecutor(
-            1, mp_context=get_context("spawn")
-        ) as pool:
-            continuous = pool.submit(
-                bench_continuous_step, args.continuous_history, args.measured_steps,
-                seed=args.seed,
-            ).result()
-        print_continuous(continuous, SECONDS_PER_ACTION, console)
-        report["continuous"] = asdict(continuous)
-    if args.json:
-        args.json.write_text(json.dumps(report, indent=2) + "\n")
-    return 0
-
-
 def bench_simulate(
     dataset: Path, seeds: int, steps: int, frame: str, grid: int, console: Console
 ) -> dict[str, Any]:
@@ -290,54 +263,3 @@ def bench_simulate(
     }
 
 
-def run_bench_simulate(args: argparse.Namespace, console: Console) -> int:
-    """``cfbci bench simulate``: run, print, and write the JSON if asked."""
-    report = bench_simulate(
-        args.dataset, args.seeds, args.steps, args.frame, args.grid, console
-    )
-    wall = report["wall_s"]
-    console.print(
-        f"{len(report['sessions'])} sessions of {report['steps']} steps on {args.dataset} "
-        f"({report['frame']}, {args.grid} x {args.grid}): wall time per session median "
-        f"{wall['median']:.2f} s (min {wall['min']:.2f}, max {wall['max']:.2f}); "
-        f"{report['realtime_factor']:.0f}x faster than real time at "
-        f"{SECONDS_PER_ACTION:g} s per action (median over sessions)",
-        soft_wrap=True,  # the dataset's path stays on one line, for copying
-    )
-    if args.json:
-        args.json.write_text(json.dumps(report, indent=2) + "\n")
-    return 0
-
-
-def add_bench_parsers(which: argparse._SubParsersAction) -> None:
-    """Register ``cfbci bench update`` and ``cfbci bench simulate``."""
-    update = which.add_parser(
-        "update",
-        help="the learner's per-step cost against a naive scikit-learn reference",
-    )
-    update.add_argument("--grids", type=int, nargs="+", default=[5, 10, 20])
-    update.add_argument("--histories", type=int, nargs="+", default=[100, 500, 1000])
-    update.add_argument("--measured-steps", type=int, default=30)
-    update.add_argument("--naive-repeats", type=int, default=5)
-    update.add_argument("--seed", type=int, default=0)
-    update.add_argument(
-        "--continuous-history", type=int, default=200,
-        help="history of the continuous-goal row (50 particles, 1000 candidates; 0: none)",
-    )
-    update.add_argument("--json", type=Path, help="write the rows as JSON")
-    update.set_defaults(run=run_bench_update)
-    simulate = which.add_parser(
-        "simulate",
-        help="wall time of whole offline sessions, and the factor faster than real time",
-        description="Sessions of --steps steps (seeds 0..N-1) on a dataset, one after the "
-        "other in this process; process start and dataset loading excluded. The factor "
-        f"faster than real time is steps x {SECONDS_PER_ACTION:g} s / wall time, median "
-        "over sessions.",
-    )
-    simulate.add_argument("--dataset", type=Path, required=True, help="a labelled dataset")
-    simulate.add_argument("--seeds", type=int, default=5, help="sessions (default 5)")
-    simulate.add_argument("--steps", type=int, default=500, help="steps (default 500)")
-    simulate.add_argument("--frame", choices=["feedback", "guidance"], default="feedback")
-    simulate.add_argument("--grid", type=int, default=5, help="grid side (default 5)")
-    simulate.add_argument("--json", type=Path, help="write the figures as JSON")
-    simulate.set_defaults(run=run_bench_simulate)

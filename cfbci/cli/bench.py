@@ -4,24 +4,38 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
-import time
-from collections.abc import Sequence
-from dataclasses import replace
+import tempfile
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import asdict
+from multiprocessing import get_context
 from pathlib import Path
 from typing import Any
 
 from rich.console import Console
 
+from acquisition.sources import DEFAULT_SYNTHETIC_ACCURACY
+from acquisition.synthetic import ACCURACY_RANGE
+from cfbci.bench.continuous import bench_continuous_step, print_continuous
+from cfbci.bench.flood import bench_flood, print_flood
+from cfbci.bench.returning import (
+    ARMS,
+    DEFAULT_DRIFT,
+    SYNTHETIC_ARMS,
+    ReturningData,
+    bench_returning,
+)
+from cfbci.bench.soak import bench_soak
+from cfbci.bench.soak_report import plot_soak, print_soak
+from cfbci.bench.steps import SECONDS_PER_ACTION, bench_simulate, bench_update, print_rows
+from cfbci.cli.simulate import add_scheduler_options
+from cfbci.offline.parallel import Scheduler
 
-def _add_bench(commands: argparse._SubParsersAction) -> None:
+
+def add_bench_command(commands: argparse._SubParsersAction) -> None:
+    """Register ``cfbci bench`` and its benchmarks."""
     p = commands.add_parser("bench", help="benchmarks")
     which = p.add_subparsers(dest="bench", required=True)
-    from cfbci.bench.steps import add_bench_parsers  # update, simulate
-
-    add_bench_parsers(which)
-    from cfbci.bench_returning import add_returning_parser  # returning
-
+    add_bench_parsers(which)  # update, simulate
     add_returning_parser(which)
     latency = which.add_parser(
         "latency",
@@ -67,7 +81,7 @@ def _add_bench(commands: argparse._SubParsersAction) -> None:
         "--timeout seconds. Counted: tracebacks, hangs, inputs modified (SHA-256 before and "
         "after), exit statuses docs/recordings.md does not document for the mutant, errors "
         "not said as 'error: ...', recovered copies that do not read back complete; and "
-        "the statuses of each command by mutation kind (cfbci/bench_fuzz.py). Exit 1 if any "
+        "the statuses of each command by mutation kind (cfbci/bench/fuzz.py). Exit 1 if any "
         "mutant failed a check.",
     )
     fuzz.add_argument("--mutants", type=int, default=300, help="mutants (default 300)")
@@ -89,10 +103,10 @@ def _add_bench(commands: argparse._SubParsersAction) -> None:
 
 
 def _run_bench_fuzz(args: argparse.Namespace, console: Console) -> int:
-    from cfbci.bench_fuzz import check_file, fuzz_recordings
+    from cfbci.bench.fuzz import check_file, fuzz_recordings
 
-    if args.check_file:
-        check_file(main, *args.check_file)
+    if args.check_file:  # the commands run in this process: the CLI's own entry point
+        check_file(args.cli_main, *args.check_file)
         return 0
     return fuzz_recordings(args.recording, args.mutants, args.seed, args.steps, args.jobs,
                            args.timeout, args.cli_every, args.json, console)
@@ -266,3 +280,102 @@ def _run_flood(args: Any, console: Console) -> int:
         for report in reports.values()
     )
     return 0 if ok else 1
+
+
+def add_returning_parser(which: argparse._SubParsersAction) -> None:
+    """Register ``cfbci bench returning``."""
+    p = which.add_parser(
+        "returning",
+        help="a returning user's day 2: from scratch, and from day 1's recording as a prior",
+        description=__doc__.split("\n\n")[0] if __doc__ else None,
+    )
+    source = p.add_mutually_exclusive_group(required=True)
+    source.add_argument("--dataset", type=Path, help="a labelled dataset file, halved")
+    source.add_argument("--synthetic", choices=("errp",),
+                        help="synthetic ErrP subjects (two draws each)")
+    p.add_argument("--synthetic-accuracy", type=float, default=DEFAULT_SYNTHETIC_ACCURACY,
+                   help=f"nominal balanced accuracy, in {list(ACCURACY_RANGE)} (default "
+                   f"{DEFAULT_SYNTHETIC_ACCURACY})")
+    p.add_argument("--drift", type=float, default=DEFAULT_DRIFT,
+                   help="the drift arm's day-to-day drift D: day 2 100 D ms later and 1 - D "
+                   f"times the amplitude (synthetic; default {DEFAULT_DRIFT})")
+    p.add_argument("--split", choices=("stratified", "order"), default="stratified",
+                   help="a dataset's halves: seeded per user, or in recording order")
+    p.add_argument("--arms", nargs="+", metavar="ARM",
+                   help=f"the arms to run (their references too): {', '.join(ARMS)}, and for "
+                   f"synthetic data {', '.join(SYNTHETIC_ARMS)} and population (the other "
+                   "users' day-1 recordings as one weak prior); default all but population")
+    p.add_argument("--prior-weight", type=float, default=1.0,
+                   help="the weight of a day-1 epoch relative to one of today's (default 1)")
+    p.add_argument("--seeds", type=int, default=20, help="users (default 20)")
+    p.add_argument("--first-seed", type=int, default=0, help="the first user's seed")
+    p.add_argument("--steps", type=int, default=500, help="steps per session (default 500)")
+    p.add_argument("--recordings", type=Path,
+                   help="where day 1's recordings go (default: a temporary folder, removed)")
+    add_scheduler_options(p)
+    p.add_argument("--json", type=Path, help="write the report as JSON")
+    p.set_defaults(run=run_bench_returning)
+
+
+def run_bench_returning(args: argparse.Namespace, console: Console) -> int:
+    """``cfbci bench returning``."""
+    if args.seeds < 1 or args.steps < 1:
+        raise ValueError("--seeds and --steps must be at least 1")
+    if args.dataset is not None and not args.dataset.is_file():
+        raise ValueError(f"--dataset {args.dataset}: no such file")
+    data = ReturningData(args.dataset, args.synthetic_accuracy, args.drift, args.split)
+    arms = data.chosen_arms(args.arms)
+    if not args.prior_weight > 0:
+        raise ValueError(f"--prior-weight must be > 0; got {args.prior_weight}")
+    data.day(args.first_seed, 1)  # fail early, in this process, on bad data
+    users = list(range(args.first_seed, args.first_seed + args.seeds))
+    scheduler = Scheduler.from_options(args.scheduler, args.jobs)
+    with tempfile.TemporaryDirectory(prefix="cfbci-returning-") as scratch:
+        directory = args.recordings or Path(scratch)
+        directory.mkdir(parents=True, exist_ok=True)
+        report = bench_returning(data, users, args.steps, directory, scheduler, console, arms,
+                                 args.prior_weight)
+    print_returning(report, console)
+    if args.json:
+        args.json.write_text(json.dumps(report, indent=2) + "\n")
+    return 0
+
+
+def print_returning(report: dict[str, Any], console: Console) -> None:
+    """One line per arm: the summary's figures with the paired differences against the
+    arm's reference, and the prior check's decisions."""
+    console.print(f"cfbci bench returning - {report['config']['data']}", soft_wrap=True)
+    day1 = report["day1"]
+    console.print(
+        f"day 1: first target {day1['median_first_target_step']:g} (median), correct "
+        f"{day1['mean_correct_targets']:.2f}, wrong rate {100 * day1['wrong_target_rate']:.1f} %",
+        soft_wrap=True,
+    )
+    for arm, summary in report["arms"].items():
+        figures = {
+            "first_target_step": f"first target {summary['median_first_target_step']:g}",
+            "correct_targets": f"correct {summary['mean_correct_targets']:.2f}",
+            "wrong_targets": f"wrong rate {100 * summary['wrong_target_rate']:.1f} %",
+        }
+        parts = []
+        for key, text in figures.items():
+            if "paired" in summary:
+                paired_figure = summary["paired"][key]
+                low, high = paired_figure["interval_95"]
+                text += f" (d {paired_figure['mean']:+.1f} [{low:+.1f}, {high:+.1f}])"
+            parts.append(text)
+        falls = summary["fallbacks"]
+        if falls["sessions"]:
+            parts.append(
+                f"prior trusted {falls['trusted']}/{falls['sessions']} (steps "
+                f"{falls['trusted_at']}), fell back {falls['fell_back']} (steps "
+                f"{falls['fell_back_at']}; 0: the power premise), testing {falls['testing']}"
+            )
+        console.print(f"{arm}: " + ", ".join(parts), soft_wrap=True, highlight=False)
+    console.print(
+        "d: mean per-seed difference against scratch (drift: against drift_scratch) and its "
+        "95 % t-interval; wrong targets in the d are counts. On a small dataset an epoch recurs "
+        "within a session and its copies can fall on both sides of the learner's "
+        "cross-validation: compare arms, not absolute figures.",
+        soft_wrap=True,
+    )

@@ -13,7 +13,7 @@ from typing import Any
 from rich.console import Console
 
 from calibration_free.frames import FRAMES
-from cfbci.cli import _add_data_options, _add_endpoints, data_spec, parse_settings
+from cfbci.cli.options import add_data_options, add_endpoints, data_spec, parse_settings
 from session.config import learner_settings
 
 
@@ -58,7 +58,7 @@ def _add_session_options(p: argparse.ArgumentParser) -> None:
                    help="name of the bridge's LSL move stream (default cfbci-moves)")
     p.add_argument("--timeout", type=float, default=30.0,
                    help="seconds to find a stream or hear from the other side (default 30)")
-    _add_endpoints(p, "Zenoh endpoint to listen on (repeatable)",
+    add_endpoints(p, "Zenoh endpoint to listen on (repeatable)",
                    "Zenoh endpoint of the service, e.g. tcp/127.0.0.1:7447 (repeatable)")
 
 
@@ -187,7 +187,7 @@ def _add_simulator(commands: argparse._SubParsersAction) -> None:
         "the simulated user's epoch into the EEG at that time; publish the truth on Zenoh. "
         "Runs until the move stream ends, SIGINT or SIGTERM.",
     )
-    _add_data_options(p)
+    add_data_options(p)
     _add_session_options(p)
     p.add_argument("--user-error-rate", type=float, default=0.0)
     p.add_argument("--eeg", default="cfbci-sim-eeg", help="EEG outlet name")

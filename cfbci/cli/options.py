@@ -14,7 +14,7 @@ from acquisition.synthetic import ACCURACY_RANGE
 from calibration_free.frames import FRAMES
 from calibration_free.task_likelihoods import LIKELIHOODS
 from calibration_free.worlds import WORLDS
-from cfbci.offline.plane_worlds import add_live_plane_options, live_source_fields
+from cfbci.offline.plane_worlds import live_source_fields
 from session.plane import PLANE_FRAMES as LIVE_PLANE_WORLDS
 
 
@@ -138,4 +138,15 @@ def source_settings(args: argparse.Namespace, session: str) -> Any:
         steps=args.steps, grid=grid_of(args), frame=args.frame, learner=learner,
         interval=args.interval, user_error_rate=args.user_error_rate, world=args.world,
         pick_service=getattr(args, "pick_service", False), **plane,
+    )
+
+
+def add_live_plane_options(parser: argparse.ArgumentParser) -> None:
+    """The continuous world's options of ``cfbci source`` and ``cfbci session`` (the puddle
+    world has none: its learner settings go with ``--set``, e.g. ``--set
+    exploration=random``)."""
+    parser.add_argument(
+        "--class-order", default=None, metavar="K,K,K,K",
+        help="continuous world: dataset class of each direction up,down,right,left "
+        "(default 0,1,2,3; the learner never knows it)",
     )

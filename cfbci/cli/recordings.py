@@ -5,15 +5,20 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
 from rich.console import Console
 
+from cfbci.cli.options import add_endpoints, add_zenoh_config, parse_settings
+from cfbci.cli.simulate import add_scheduler_options
+from cfbci.offline.parallel import Scheduler
+from cfbci.recordings.export import FORMATS, damage_lines, export_fif
+from replay.recording import read_recording
 
-def _add_recover(commands: argparse._SubParsersAction) -> None:
+
+def add_recover_command(commands: argparse._SubParsersAction) -> None:
     p = commands.add_parser(
         "recover",
         help="rewrite a (possibly truncated or damaged) recording as a clean, indexed MCAP file",
@@ -74,7 +79,7 @@ def _run_recover(args: argparse.Namespace, console: Console) -> int:
     return 3 if recording.damage or recording.dropped else 0
 
 
-def _add_replay(commands: argparse._SubParsersAction) -> None:
+def add_replay_command(commands: argparse._SubParsersAction) -> None:
     p = commands.add_parser(
         "replay",
         help="check a recording by re-running the learner, re-score it with other settings, "
@@ -239,7 +244,7 @@ def _replay_publish(args: argparse.Namespace, console: Console) -> int:
     return 0 if result.moves_equal else 1
 
 
-def _add_report(commands: argparse._SubParsersAction) -> None:
+def add_report_command(commands: argparse._SubParsersAction) -> None:
     p = commands.add_parser(
         "report",
         help="metrics, figures and an HTML report of session recordings",
@@ -258,7 +263,7 @@ def _add_report(commands: argparse._SubParsersAction) -> None:
 
 
 def _run_report(args: argparse.Namespace, console: Console) -> int:
-    from cfbci.report import print_summary, run_report
+    from cfbci.recordings.report import print_summary, run_report
 
     for name in ("metrics.json", "index.html"):
         for source in args.files:

@@ -4,18 +4,23 @@ source, a whole live session on this machine, and a Zenoh router."""
 from __future__ import annotations
 
 import argparse
-import json
-import sys
 import time
-from collections.abc import Sequence
-from dataclasses import replace
+from dataclasses import fields, replace
 from pathlib import Path
-from typing import Any
 
 from rich.console import Console
 
+from cfbci.cli.options import (
+    add_endpoints,
+    add_source_options,
+    add_zenoh_config,
+    source_settings,
+)
+from cfbci.service.limits import LIMIT_HELP, ServiceLimits
+from cfbci.service.router import run_router
 
-def _add_serve(commands: argparse._SubParsersAction) -> None:
+
+def add_serve_command(commands: argparse._SubParsersAction) -> None:
     p = commands.add_parser(
         "serve",
         help="the pipeline service: runs the learner for sources over Zenoh",
@@ -41,18 +46,17 @@ def _run_serve(args: argparse.Namespace, console: Console) -> int:
 
     if not args.listen and not args.connect and args.zenoh_config is None:
         raise ValueError("give at least one --listen or --connect endpoint (or --zenoh-config)")
-    from cfbci.service.limits import from_args
     from wire.services import check_service_id
 
     serve(
-        args.listen, args.connect, args.record_dir, limits=from_args(args),
+        args.listen, args.connect, args.record_dir, limits=limits_from_args(args),
         zenoh_config=args.zenoh_config,
         service_id=None if args.service_id is None else check_service_id(args.service_id),
     )
     return 0
 
 
-def _add_source(commands: argparse._SubParsersAction) -> None:
+def add_source_command(commands: argparse._SubParsersAction) -> None:
     p = commands.add_parser(
         "source",
         help="the simulated source: a simulated user answering a running service",
@@ -102,7 +106,7 @@ def _run_source(args: argparse.Namespace, console: Console) -> int:
     return 0
 
 
-def _add_session(commands: argparse._SubParsersAction) -> None:
+def add_session_command(commands: argparse._SubParsersAction) -> None:
     p = commands.add_parser(
         "session",
         help="a live session: service and simulated source over an embedded Zenoh network",
@@ -131,7 +135,6 @@ def _add_session(commands: argparse._SubParsersAction) -> None:
 
 
 def _run_session(args: argparse.Namespace, console: Console) -> int:
-    import time
 
     from acquisition.simulated_source import session_config
     from cfbci.live import (
@@ -143,11 +146,10 @@ def _run_session(args: argparse.Namespace, console: Console) -> int:
         write_json,
     )
     from cfbci.service.admission import check_config
-    from cfbci.service.limits import from_args
 
     record = args.record or default_recording()
     settings = source_settings(args, session_id_for(record))
-    limits = from_args(args)
+    limits = limits_from_args(args)
     if limits.max_session_mb == ServiceLimits().max_session_mb:  # the flag's default
         limits = replace(limits, max_session_mb=own_limits().max_session_mb)
     # Before anything starts: the data load, and the service would admit the config.
@@ -177,7 +179,7 @@ def add_limit_options(parser: argparse.ArgumentParser) -> None:
         default = getattr(defaults, spec.name)
         parser.add_argument(
             f"--{spec.name.replace('_', '-')}", type=type(default), default=default,
-            help=f"{_HELP[spec.name]} (default {default:g})",
+            help=f"{LIMIT_HELP[spec.name]} (default {default:g})",
         )
 
 

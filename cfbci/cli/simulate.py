@@ -5,17 +5,47 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
-import time
-from collections.abc import Sequence
-from dataclasses import replace
+from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
 from rich.console import Console
 
+from acquisition.sources import DEFAULT_SYNTHETIC_ACCURACY, DataSpec
+from calibration_free.baseline import DEFAULT_CALIBRATION_TRIALS
+from calibration_free.config import LearnerConfig
+from calibration_free.continuous_goals import PROBINGS, SAMPLINGS, ContinuousConfig
+from calibration_free.frames import FRAMES, Frame
+from calibration_free.identifiability import confusable_pairs
+from calibration_free.planning import PLANNERS
+from calibration_free.puddle_learner import EXPLORATIONS, PuddleConfig
+from calibration_free.worlds import WORLDS, make_world
+from cfbci.cli.options import (
+    add_data_options,
+    add_likelihood_option,
+    data_spec,
+    learner_settings_of,
+    parse_settings,
+)
+from cfbci.offline.compare import ALTERNATIVES, rank_test
+from cfbci.offline.curves import STATISTICS, STEP_AXES, plot_curves, run_series
+from cfbci.offline.parallel import Scheduler, run_parallel
+from cfbci.offline.plane_worlds import (
+    PLANE_WORLDS,
+    PlaneJob,
+    parse_class_order,
+    plane_summary,
+    print_plane_report,
+    run_plane_job,
+)
+from cfbci.offline.presets import PRESETS, Preset
+from cfbci.offline.simulation import BASELINES, SessionConfig
+from cfbci.offline.sweep import SYNTHETIC, parse_grid, print_summary, run_sweep, sweep_cells
+from cfbci.offline.world_check import describe
+from session.config import learner_settings
 
-def _add_simulate(commands: argparse._SubParsersAction, chosen: Preset | None) -> None:
+
+def add_simulate_command(commands: argparse._SubParsersAction, chosen: Preset | None) -> None:
     p = commands.add_parser(
         "simulate",
         help="offline closed-loop sessions with a simulated user (no network)",
@@ -198,7 +228,7 @@ def _run_simulate(args: argparse.Namespace, console: Console) -> int:
     if args.prior:
         from dataclasses import replace
 
-        from cfbci.bench_returning import simulation_prior
+        from cfbci.bench.returning import simulation_prior
 
         config = replace(config, prior=simulation_prior(args.prior, data, args.frame))
     seeds = list(range(args.first_seed, args.first_seed + args.seeds))
@@ -232,20 +262,6 @@ def add_plane_world_options(parser: argparse.ArgumentParser) -> None:
     )
 
 
-@dataclass(frozen=True)
-
-
-def add_live_plane_options(parser: argparse.ArgumentParser) -> None:
-    """The continuous world's options of ``cfbci source`` and ``cfbci session`` (the puddle
-    world has none: its learner settings go with ``--set``, e.g. ``--set
-    exploration=random``)."""
-    parser.add_argument(
-        "--class-order", default=None, metavar="K,K,K,K",
-        help="continuous world: dataset class of each direction up,down,right,left "
-        "(default 0,1,2,3; the learner never knows it)",
-    )
-
-
 def simulate_plane_world(
     args: argparse.Namespace, data: DataSpec, console: Console
 ) -> dict[str, Any]:
@@ -268,14 +284,17 @@ def simulate_plane_world(
     seeds = list(range(args.first_seed, args.first_seed + args.seeds))
     jobs = [
         PlaneJob(args.world, seed, args.steps, data, continuous, puddle,
-                 _class_order(args.class_order))
+                 parse_class_order(args.class_order))
         for seed in seeds
     ]
     scheduler = Scheduler.from_options(args.scheduler, args.jobs)
     sessions = run_parallel(
         run_plane_job, jobs, scheduler=scheduler, description="sessions", console=console
     )
-    return {"config": _plane_config(args, data), "sessions": sessions, "summary": _summary(sessions)}
+    return {
+        "config": _plane_config(args, data), "sessions": sessions,
+        "summary": plane_summary(sessions),
+    }
 
 
 def _plane_config(args: argparse.Namespace, data: DataSpec) -> dict[str, Any]:
@@ -341,7 +360,6 @@ def add_sweep_command(commands: argparse._SubParsersAction) -> None:
 
 
 def _run_sweep(args: argparse.Namespace, console: Console) -> int:
-    from cfbci.cli.options import parse_settings
 
     if args.seeds < 1 or args.steps < 1:
         raise ValueError("--seeds and --steps must be at least 1")

@@ -1,11 +1,11 @@
 """``cfbci view``: the command of the live view in the browser (the server is
-:mod:`cfbci.view_server`, imported when the command runs).
+:mod:`cfbci.view.server`, imported when the command runs).
 
 ``cfbci view --connect EP [--port 8080]`` serves the operator view at ``/`` and the
 subject view at ``/subject?session=ID``, to this machine only by default, and to a browser
 that has the access token only: it prints both addresses with the token
 (``?token=...``). The token is ``--token``, else the environment variable
-:data:`TOKEN_ENV`, else a random one made at start.
+:data:`cfbci.view.TOKEN_ENV`, else a random one made at start.
 """
 
 from __future__ import annotations
@@ -15,9 +15,7 @@ import logging
 import os
 import secrets
 
-#: The environment variable that gives the view its access token (else --token, else a
-#: random one).
-TOKEN_ENV = "CFBCI_VIEW_TOKEN"
+from cfbci.view import TOKEN_ENV
 
 
 def add_view_command(commands: argparse._SubParsersAction) -> argparse.ArgumentParser:
@@ -67,7 +65,7 @@ def _token(args: argparse.Namespace) -> tuple[str, str]:
 
 
 def _run_view(args: argparse.Namespace, _: object) -> int:
-    from cfbci.view_server import Access, check_token, run_view
+    from cfbci.view.server import Access, check_token, run_view
 
     zenoh_config = getattr(args, "zenoh_config", None)
     if not args.connect and not args.listen and zenoh_config is None:

@@ -10,15 +10,13 @@ B's (the thesis's "uncertainty + active beats uncertainty + random" on final dis
 
 from __future__ import annotations
 
-import argparse
 import json
 import math
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-from rich.console import Console
 from scipy.stats import mannwhitneyu
 
 ALTERNATIVES = ("less", "greater", "two-sided")
@@ -98,34 +96,3 @@ def rank_test(a: Path, b: Path, metric: str, alternative: str) -> RankTest:
     )
 
 
-def run_compare(args: argparse.Namespace, console: Console) -> int:
-    """``cfbci compare``: print the test (and write it as JSON if asked)."""
-    test = rank_test(args.a, args.b, args.metric, args.alternative)
-    side = {"less": "one-sided, A < B", "greater": "one-sided, A > B"}.get(
-        test.alternative, "two-sided"
-    )
-    console.print(
-        f"{test.metric}: A median {test.median_a:.4g} (n = {test.n_a}), B median "
-        f"{test.median_b:.4g} (n = {test.n_b}); Mann-Whitney U = {test.u_statistic:.1f}, "
-        f"{side}: p = {test.p_value:.3g}", soft_wrap=True,
-    )
-    if args.json:
-        args.json.write_text(json.dumps(asdict(test), indent=2) + "\n")
-    return 0
-
-
-def add_compare_command(commands: argparse._SubParsersAction) -> None:
-    """Register ``cfbci compare``."""
-    p = commands.add_parser(
-        "compare",
-        help="a Mann-Whitney rank test of a per-session number between two simulate runs",
-        description="Tests whether the sessions of run A tend to have smaller (--alternative "
-        "less), larger (greater) or different (two-sided) values of --metric than those of "
-        "run B; both are cfbci simulate --json files.",
-    )
-    p.add_argument("a", type=Path, help="simulate JSON of run A")
-    p.add_argument("b", type=Path, help="simulate JSON of run B")
-    p.add_argument("--metric", required=True, help="a per-session number, e.g. final_distance")
-    p.add_argument("--alternative", choices=ALTERNATIVES, default="less")
-    p.add_argument("--json", type=Path, help="write the test as JSON")
-    p.set_defaults(run=run_compare)

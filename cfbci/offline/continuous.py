@@ -65,7 +65,7 @@ def run_continuous_session(
     learner after each observation (it must not change it).
 
     The learner gets each signal as float32, the wire format (as
-    :func:`cfbci.simulation.run_session` does), and computes with one BLAS thread (see
+    :func:`cfbci.offline.simulation.run_session` does), and computes with one BLAS thread (see
     :mod:`session.plane`), so that a live session equals this one.
     """
     with threadpool_limits(**ONE_BLAS_THREAD):

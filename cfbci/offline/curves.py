@@ -10,15 +10,13 @@ the median with its interquartile band (``--statistic median``).
 
 from __future__ import annotations
 
-import argparse
 import math
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-from rich.console import Console
 
-from cfbci.compare import simulate_sessions
+from cfbci.offline.compare import simulate_sessions
 
 #: The step of each element of a series, by series: a session field, or every 10th step.
 STEP_AXES = {"taught_likelihood": "update_steps", "distance_every_10": None}
@@ -97,27 +95,3 @@ def plot_curves(
     return rows
 
 
-def run_curves(args: argparse.Namespace, console: Console) -> int:
-    """``cfbci curves``: read the runs, draw them, print the figure's path."""
-    runs = {path.stem: run_series(path, args.metric) for path in args.runs}
-    if len(runs) != len(args.runs):
-        raise ValueError("two runs have the same file name: their labels would clash")
-    plot_curves(runs, args.metric, args.statistic, args.out, log_y=args.log_y)
-    console.print(
-        f"wrote {args.out} ({len(runs)} runs, {args.metric}, {args.statistic})", soft_wrap=True
-    )
-    return 0
-
-
-def add_curves_command(commands: argparse._SubParsersAction) -> None:
-    """Register ``cfbci curves``."""
-    p = commands.add_parser(
-        "curves",
-        help="the mean (or median) curve of a per-session series of several simulate runs",
-    )
-    p.add_argument("runs", type=Path, nargs="+", help="simulate JSON files (label: file name)")
-    p.add_argument("--metric", required=True, choices=sorted(STEP_AXES))
-    p.add_argument("--statistic", choices=STATISTICS, default="mean")
-    p.add_argument("--log-y", action="store_true", help="a log scale for the values")
-    p.add_argument("--out", type=Path, required=True, help="the figure (.png, .pdf, .svg)")
-    p.set_defaults(run=run_curves)

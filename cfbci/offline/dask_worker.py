@@ -1,7 +1,7 @@
 """What every Dask worker that runs cfbci's jobs does first (a worker plugin).
 
-Its own module so that importing :mod:`cfbci.parallel` (and so the CLI) does not import
-Dask distributed, which takes seconds; :func:`cfbci.parallel.run_parallel` imports it only
+Its own module so that importing :mod:`cfbci.offline.parallel` (and so the CLI) does not import
+Dask distributed, which takes seconds; :func:`cfbci.offline.parallel.run_parallel` imports it only
 to run on a cluster.
 """
 

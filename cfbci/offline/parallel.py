@@ -17,12 +17,11 @@ Where the jobs run is a :class:`Scheduler`:
 A job's result depends only on the job, so every place gives the same results (the tests
 compare a local cluster with a single-process run). Every process that runs jobs first runs
 :func:`cfbci.memory.keep_freed_memory` (Dask workers through a worker plugin, so also those
-that join the cluster later: :class:`cfbci.dask_worker.KeepFreedMemory`).
+that join the cluster later: :class:`cfbci.offline.dask_worker.KeepFreedMemory`).
 """
 
 from __future__ import annotations
 
-import argparse
 import logging
 import os
 from collections.abc import Callable, Iterable, Sequence
@@ -98,20 +97,6 @@ class Scheduler:
         return f"cluster at {self.address}"
 
 
-def add_scheduler_options(parser: argparse.ArgumentParser) -> None:
-    """``--jobs`` and ``--scheduler``, as :meth:`Scheduler.from_options` reads them."""
-    parser.add_argument(
-        "--jobs", type=int, default=0,
-        help="worker processes of the local Dask cluster (default: one per core; 1: run in "
-        "this process)",
-    )
-    parser.add_argument(
-        "--scheduler", metavar="local|tcp://HOST:PORT",
-        help="'local': a Dask LocalCluster on loopback with --jobs workers (the default when "
-        "--jobs > 1); tcp://HOST:PORT: run on the existing Dask cluster of that scheduler",
-    )
-
-
 def run_parallel(
     function: Callable[[Any], T],
     jobs: Iterable[Any],
@@ -155,7 +140,7 @@ def _run_on_dask(
 ) -> list[T]:
     from distributed import Client, LocalCluster, as_completed  # here: a heavy import
 
-    from cfbci.dask_worker import KeepFreedMemory
+    from cfbci.offline.dask_worker import KeepFreedMemory
 
     cluster = None
     if scheduler.address in (None, "local"):

@@ -13,7 +13,6 @@
 
 from __future__ import annotations
 
-import argparse
 from collections.abc import Sequence
 from dataclasses import dataclass
 from functools import lru_cache
@@ -24,38 +23,17 @@ from rich.console import Console
 from rich.table import Table
 
 from acquisition.sources import DataSpec
-from calibration_free.continuous_goals import PROBINGS, SAMPLINGS, ContinuousConfig
+from calibration_free.continuous_goals import ContinuousConfig
 from calibration_free.puddle import PuddleWorld
-from calibration_free.puddle_learner import EXPLORATIONS, PuddleConfig
-from cfbci.continuous import run_continuous_session
-from cfbci.parallel import Scheduler, run_parallel
-from cfbci.puddle import run_puddle_session
+from calibration_free.puddle_learner import PuddleConfig
+from cfbci.offline.continuous import run_continuous_session
+from cfbci.offline.puddle import run_puddle_session
 from session.config import learner_settings
 from session.plane import PLANE_FRAMES, plane_settings
 
 PLANE_WORLDS: tuple[str, ...] = ("continuous", "puddle")
 #: Steps at which the thesis reports the puddle world's curves.
 THESIS_STEPS = (150, 240, 300, 450, 525)
-
-
-def add_plane_world_options(parser: argparse.ArgumentParser) -> None:
-    """The options of the plane worlds on ``cfbci simulate``."""
-    parser.add_argument(
-        "--hypotheses", type=int, default=50, help="continuous world: particles (default 50)"
-    )
-    parser.add_argument(
-        "--sampling", choices=SAMPLINGS, default="active",
-        help="continuous world: how the particles are resampled (default active)",
-    )
-    parser.add_argument(
-        "--class-order", default=None, metavar="K,K,K,K",
-        help="continuous world: dataset class of each direction up,down,right,left "
-        "(default 0,1,2,3; the learner never knows it)",
-    )
-    parser.add_argument(
-        "--exploration", choices=EXPLORATIONS, default="planning",
-        help="puddle world: exploration strategy (default planning)",
-    )
 
 
 @dataclass(frozen=True)
@@ -88,17 +66,6 @@ def run_plane_job(job: PlaneJob) -> dict[str, Any]:
     ).to_dict()
 
 
-def add_live_plane_options(parser: argparse.ArgumentParser) -> None:
-    """The continuous world's options of ``cfbci source`` and ``cfbci session`` (the puddle
-    world has none: its learner settings go with ``--set``, e.g. ``--set
-    exploration=random``)."""
-    parser.add_argument(
-        "--class-order", default=None, metavar="K,K,K,K",
-        help="continuous world: dataset class of each direction up,down,right,left "
-        "(default 0,1,2,3; the learner never knows it)",
-    )
-
-
 def live_source_fields(
     world: str, frame: str, learner: dict[str, Any], class_order: str | None
 ) -> dict[str, Any]:
@@ -118,10 +85,10 @@ def live_source_fields(
         learner_settings(learner, frame)
         return {}
     plane_settings({"world": world, "frame": frame, "learner": learner})
-    return {"class_order": _class_order(class_order)}
+    return {"class_order": parse_class_order(class_order)}
 
 
-def _class_order(text: str | None) -> tuple[int, ...] | None:
+def parse_class_order(text: str | None) -> tuple[int, ...] | None:
     if text is None:
         return None
     try:
@@ -135,51 +102,7 @@ def _class_order(text: str | None) -> tuple[int, ...] | None:
     return order
 
 
-def simulate_plane_world(
-    args: argparse.Namespace, data: DataSpec, console: Console
-) -> dict[str, Any]:
-    """Run ``args.seeds`` sessions of ``args.world``; the JSON report."""
-    if args.world == "puddle" and (args.dataset is not None or args.synthetic != "errp"):
-        raise ValueError(
-            "the puddle world's signals are its own six-class 20-D Gaussian data; leave "
-            "--dataset and --synthetic out"
-        )
-    probing = args.planner or "uncertainty"
-    continuous = ContinuousConfig(
-        n_hypotheses=args.hypotheses, sampling=args.sampling,
-        probing="uncertainty" if probing == "uncertainty" else "random",
-    )
-    if args.world == "continuous":
-        if probing not in PROBINGS:
-            raise ValueError(f"the continuous world's --planner is one of {PROBINGS}")
-        data.resolve("guidance")  # fail early on a bad dataset
-    puddle = PuddleConfig(exploration=args.exploration)
-    seeds = list(range(args.first_seed, args.first_seed + args.seeds))
-    jobs = [
-        PlaneJob(args.world, seed, args.steps, data, continuous, puddle,
-                 _class_order(args.class_order))
-        for seed in seeds
-    ]
-    scheduler = Scheduler.from_options(args.scheduler, args.jobs)
-    sessions = run_parallel(
-        run_plane_job, jobs, scheduler=scheduler, description="sessions", console=console
-    )
-    return {"config": _config(args, data), "sessions": sessions, "summary": _summary(sessions)}
-
-
-def _config(args: argparse.Namespace, data: DataSpec) -> dict[str, Any]:
-    config: dict[str, Any] = {"world": args.world, "steps": args.steps}
-    if args.world == "continuous":
-        config.update(
-            dataset=data.describe(), hypotheses=args.hypotheses, sampling=args.sampling,
-            planner=args.planner or "uncertainty", class_order=args.class_order,
-        )
-    else:
-        config.update(exploration=args.exploration)
-    return config
-
-
-def _summary(sessions: Sequence[dict[str, Any]]) -> dict[str, Any]:
+def plane_summary(sessions: Sequence[dict[str, Any]]) -> dict[str, Any]:
     if "final_distance" in sessions[0]:
         final = np.array([s["final_distance"] for s in sessions])
         q1, median, q3 = np.percentile(final, [25, 50, 75])

@@ -1,4 +1,5 @@
-"""``cfbci simulate``: many offline sessions, on Dask (:mod:`cfbci.parallel`), summarised."""
+"""``cfbci simulate``: many offline sessions, on Dask (:mod:`cfbci.offline.parallel`),
+summarised."""
 
 from __future__ import annotations
 
@@ -14,8 +15,8 @@ from rich.table import Table
 from acquisition.labelled import LabelledFeatures
 from acquisition.sources import DataFactory, DataSpec
 from calibration_free.streams import StepRecord
-from cfbci.parallel import Scheduler, run_parallel
-from cfbci.simulation import SessionConfig, SessionResult, run_session, summarise
+from cfbci.offline.parallel import Scheduler, run_parallel
+from cfbci.offline.simulation import SessionConfig, SessionResult, run_session, summarise
 from replay.calibration import bin_of
 
 
@@ -36,7 +37,8 @@ def _resolved(data: DataSpec, frame: str) -> LabelledFeatures | DataFactory:
 
 
 def run_job(job: SimulationJob) -> tuple[SessionResult, list[StepRecord]]:
-    """Run one session (a job of :func:`cfbci.parallel.run_parallel`); its trace if asked."""
+    """Run one session (a job of :func:`cfbci.offline.parallel.run_parallel`); its trace if
+    asked."""
     trace: list[StepRecord] = []
     result = run_session(
         job.seed,

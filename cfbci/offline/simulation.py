@@ -173,7 +173,7 @@ def run_session(
     on_move : callable, optional
         Called with the session and every step it produced (the first move, then each
         observation's), to record the session as the service does
-        (:mod:`cfbci.bench_returning`); it must not change the learner.
+        (:mod:`cfbci.bench.returning`); it must not change the learner.
     """
     data_rng, user_rng, learner_rng = session_streams(seed)
     dataset = data(data_rng) if callable(data) else data

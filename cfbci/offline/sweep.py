@@ -1,7 +1,7 @@
 """``cfbci sweep``: the cross product of learner settings, datasets and seeds, on Dask.
 
 A *cell* is one combination of the ``--grid`` settings with one dataset; it runs one session
-per seed. Every session of every cell is one job of :func:`cfbci.parallel.run_parallel` (the
+per seed. Every session of every cell is one job of :func:`cfbci.offline.parallel.run_parallel` (the
 same job as ``cfbci simulate``'s, so a cell's sessions equal those of ``cfbci simulate
 --dataset D --set K=V ...`` with the same seeds). Written to ``--out DIR``:
 
@@ -14,7 +14,6 @@ same job as ``cfbci simulate``'s, so a cell's sessions equal those of ``cfbci si
 
 from __future__ import annotations
 
-import argparse
 import csv
 import itertools
 import json
@@ -29,11 +28,10 @@ from rich import box
 from rich.console import Console
 from rich.table import Table
 
-from acquisition.sources import DEFAULT_SYNTHETIC_ACCURACY, DataSpec
-from calibration_free.frames import FRAMES
-from cfbci.parallel import Scheduler, add_scheduler_options, run_parallel
-from cfbci.simulate import SimulationJob, run_job, simulation_report
-from cfbci.simulation import SessionConfig, SessionResult
+from acquisition.sources import DataSpec
+from cfbci.offline.parallel import Scheduler, run_parallel
+from cfbci.offline.simulate import SimulationJob, run_job, simulation_report
+from cfbci.offline.simulation import SessionConfig, SessionResult
 from session.config import learner_settings
 
 #: ``--datasets`` entry that stands for the synthetic generator (at ``--synthetic-accuracy``).
@@ -78,7 +76,7 @@ class CellResult:
 
     def first_targets(self) -> np.ndarray:
         """Steps to the first target per session, float, shape (n_seeds,); a session with
-        none counts as steps + 1 (as :func:`cfbci.simulation.summarise`)."""
+        none counts as steps + 1 (as :func:`cfbci.offline.simulation.summarise`)."""
         return np.array([r.first_target_step or r.steps + 1 for r in self.results], float)
 
     def row(self) -> dict[str, Any]:
@@ -306,59 +304,3 @@ def print_summary(cells: list[CellResult], summary: dict[str, Any], console: Con
     )
 
 
-def add_sweep_command(commands: argparse._SubParsersAction) -> None:
-    """Register ``cfbci sweep``."""
-    p = commands.add_parser(
-        "sweep",
-        help="sessions over the cross product of learner settings, datasets and seeds",
-        description="Run `cfbci simulate`'s sessions for every combination of the --grid "
-        "settings with every dataset and seed, on Dask, and write one simulate-format JSON "
-        "per cell, summary.json, summary.csv and summary.png into --out.",
-    )
-    p.add_argument(
-        "--grid", required=True, metavar="'KEY=V1,V2 KEY=V1,V2'",
-        help="learner settings to cross (calibration_free.config.LearnerConfig fields)",
-    )
-    p.add_argument(
-        "--datasets", nargs="+", required=True, metavar="PATH",
-        help=f"dataset files (as simulate's --dataset), or {SYNTHETIC!r} for the generator",
-    )
-    p.add_argument("--seeds", type=int, default=20, help="sessions per cell (default 20)")
-    p.add_argument("--first-seed", type=int, default=0, help="seed of the first session")
-    p.add_argument("--steps", type=int, default=500, help="actions per session (default 500)")
-    p.add_argument("--side", type=int, default=5, help="grid side (default 5)")
-    p.add_argument("--frame", choices=FRAMES, default="feedback")
-    p.add_argument("--user-error-rate", type=float, default=0.0)
-    p.add_argument(
-        "--synthetic-accuracy", type=float, default=DEFAULT_SYNTHETIC_ACCURACY,
-        help=f"difficulty of the {SYNTHETIC!r} dataset (nominal balanced LDA accuracy)",
-    )
-    p.add_argument(
-        "--set", action="append", default=[], metavar="KEY=VALUE",
-        help="a learner setting fixed for every cell",
-    )
-    p.add_argument("--out", type=Path, required=True, metavar="DIR", help="output directory")
-    add_scheduler_options(p)
-    p.set_defaults(run=_run_sweep)
-
-
-def _run_sweep(args: argparse.Namespace, console: Console) -> int:
-    from cfbci.cli import parse_settings  # here: cfbci.cli imports this module
-
-    if args.seeds < 1 or args.steps < 1:
-        raise ValueError("--seeds and --steps must be at least 1")
-    grid = parse_grid(args.grid, lambda key, raw: parse_settings([f"{key}={raw}"])[key])
-    datasets = [
-        DataSpec(None if name == SYNTHETIC else Path(name), args.synthetic_accuracy)
-        for name in args.datasets
-    ]
-    cells = sweep_cells(
-        grid, datasets, fixed=parse_settings(args.set), steps=args.steps, side=args.side,
-        frame=args.frame, user_error_rate=args.user_error_rate,
-    )
-    seeds = list(range(args.first_seed, args.first_seed + args.seeds))
-    scheduler = Scheduler.from_options(args.scheduler, args.jobs)
-    done, summary = run_sweep(cells, seeds, args.out, scheduler=scheduler, console=console)
-    print_summary(done, summary, console)
-    console.print(f"sweep: {args.out / 'summary.json'}, {args.out / 'summary.png'}")
-    return 0

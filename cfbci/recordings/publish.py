@@ -59,7 +59,7 @@ from wire import protocol
 from wire.client import DEFAULT_TIMEOUT, RESEND_INTERVAL, Client
 from wire.zenoh_config import peer_config
 
-log = logging.getLogger("cfbci.publish")
+log = logging.getLogger("cfbci.recordings.publish")
 
 
 def default_session_id(recording: Recording) -> str:

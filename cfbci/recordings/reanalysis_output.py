@@ -1,6 +1,7 @@
-"""Console output of ``cfbci replay FILE.mcap --option ...`` (see :mod:`cfbci.reanalysis`):
-the settings compared, a summary table, a per-segment table and, if asked, every step's
-beliefs. The alternatives are labelled A, B, ... in the tables."""
+"""Console output of ``cfbci replay FILE.mcap --option ...`` (see
+:mod:`cfbci.recordings.reanalysis`): the settings compared, a summary table, a per-segment
+table and, if asked, every step's beliefs. The alternatives are labelled A, B, ... in the
+tables."""
 
 from __future__ import annotations
 
@@ -8,7 +9,7 @@ from rich import box
 from rich.console import Console
 from rich.table import Table
 
-from cfbci.reanalysis import ACTING, OWN, RECORDED, Confident, Reanalysis
+from cfbci.recordings.reanalysis import ACTING, OWN, RECORDED, Confident, Reanalysis
 
 
 def _show(confident: Confident | None) -> str:

@@ -1,6 +1,6 @@
 """Admission: whether the service can run a config, and the configs waiting to start.
 
-A config is checked against the service's :class:`cfbci.limits.ServiceLimits` (grid side,
+A config is checked against the service's :class:`cfbci.service.limits.ServiceLimits` (grid side,
 steps, channels, the learner settings, the memory the session would commit:
 :func:`session.memory.config_memory_bytes`, one estimate for every world) before anything
 is built; a config whose source has not subscribed to its events yet waits as a
@@ -20,7 +20,7 @@ from typing import Any
 
 import zenoh
 
-from cfbci.limits import ServiceLimits
+from cfbci.service.limits import ServiceLimits
 from session.config import resolved_config
 from session.memory import config_memory_bytes
 from session.plane import puddle_world, puddle_world_built

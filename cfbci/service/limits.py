@@ -8,7 +8,6 @@ its config arrives (without the feature term) and again at its first epoch (with
 
 from __future__ import annotations
 
-import argparse
 from dataclasses import dataclass, fields
 
 from calibration_free.config import LearnerConfig
@@ -86,7 +85,8 @@ class ServiceLimits:
             raise ValueError(f"limit max_grid must be at least 2; got {self.max_grid}")
 
 
-_HELP = {
+#: One line of help for each limit (the command line's flags).
+LIMIT_HELP = {
     "max_sessions": "sessions run at once",
     "idle_timeout": "seconds without an epoch before a session is ended",
     "subscriber_timeout": "seconds a new session waits for its source to answer its challenge",
@@ -100,22 +100,6 @@ _HELP = {
     "max_session_mb": "most memory a session may commit (estimate), MiB",
     "rate": "messages accepted per session per second",
 }
-
-
-def add_options(parser: argparse.ArgumentParser) -> None:
-    """Add one ``--max-sessions``-style flag per limit, defaulting to :class:`ServiceLimits`."""
-    defaults = ServiceLimits()
-    for spec in fields(ServiceLimits):
-        default = getattr(defaults, spec.name)
-        parser.add_argument(
-            f"--{spec.name.replace('_', '-')}", type=type(default), default=default,
-            help=f"{_HELP[spec.name]} (default {default:g})",
-        )
-
-
-def from_args(args: argparse.Namespace) -> ServiceLimits:
-    """The limits given by :func:`add_options`' flags."""
-    return ServiceLimits(**{spec.name: getattr(args, spec.name) for spec in fields(ServiceLimits)})
 
 
 def world_memory_bytes(

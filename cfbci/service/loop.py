@@ -23,7 +23,6 @@ from typing import Any
 
 import zenoh
 
-from cfbci.limits import ServiceLimits
 from cfbci.service.admission import (
     Pending,
     PuddleTables,
@@ -36,6 +35,7 @@ from cfbci.service.admission import (
     take_due,
 )
 from cfbci.service.events import ErrorBudget, Events
+from cfbci.service.limits import ServiceLimits
 from cfbci.service.recordings import Recordings
 from cfbci.service.resume import (
     EndedAtResume,

@@ -11,8 +11,8 @@ from pathlib import Path
 
 import zenoh
 
-from cfbci.limits import ServiceLimits
 from cfbci.memory import keep_freed_memory
+from cfbci.service.limits import ServiceLimits
 from cfbci.service.loop import PipelineService, SessionEndHook
 from wire.zenoh_config import peer_config
 
@@ -44,7 +44,7 @@ def serve(
     on_end : callable or None
         See :class:`PipelineService`.
     limits : ServiceLimits or None
-        Default :class:`cfbci.limits.ServiceLimits`.
+        Default :class:`cfbci.service.limits.ServiceLimits`.
     zenoh_config : Path or None
         Zenoh JSON5 configuration merged over the defaults (``--zenoh-config``).
     resume : bool

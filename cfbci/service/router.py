@@ -7,54 +7,16 @@ authentication, access control: see ``docs/deployment.md``); without one it only
 
 from __future__ import annotations
 
-import argparse
 import logging
 import signal
 import threading
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
-from rich.console import Console
-
-log = logging.getLogger("cfbci.router")
+log = logging.getLogger("cfbci.service.router")
 
 #: First line the router prints once its Zenoh session is open (the endpoints follow).
 READY = "router listening on"
-
-
-def add_parser(commands: argparse._SubParsersAction) -> None:
-    """Register ``cfbci router`` (its options and the function that runs it)."""
-    p = commands.add_parser(
-        "router",
-        help="a Zenoh router joining services and sources (and enforcing a policy)",
-        description="Run a router-mode Zenoh session until SIGINT or SIGTERM. Services and "
-        "sources in client mode connect to it; with --zenoh-config it can require TLS, "
-        "user/password authentication and access control (docs/deployment.md).",
-    )
-    p.add_argument(
-        "--listen", action="append", default=[], metavar="EP",
-        help="endpoint to accept connections on, e.g. tls/0.0.0.0:7447 (repeatable; "
-        "replaces the file's listen/endpoints)",
-    )
-    p.add_argument(
-        "--connect", action="append", default=[], metavar="EP",
-        help="another router to connect to (repeatable)",
-    )
-    p.add_argument(
-        "--zenoh-config", type=Path, metavar="FILE",
-        help="Zenoh JSON5 configuration merged over the defaults (router mode, multicast "
-        "scouting off)",
-    )
-    p.set_defaults(run=_run)
-
-
-def _run(args: argparse.Namespace, console: Console) -> int:
-    try:
-        run_router(args.listen, args.connect, args.zenoh_config)
-    except RuntimeError as error:
-        Console(stderr=True).print(f"[bold red]error:[/] {error}", soft_wrap=True)
-        return 1
-    return 0
 
 
 def run_router(

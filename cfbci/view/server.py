@@ -3,9 +3,9 @@
 One process is both a Zenoh peer and an HTTP server (aiohttp). It subscribes to every
 session's ``config``, ``move``, ``state``, ``event``, ``truth`` and ``epoch``
 (``cfbci/**/<kind>``, docs/protocol.md), keeps what the pages show of each session
-(:mod:`cfbci.view_model`) and sends it to the pages over a WebSocket: a snapshot when a
+(:mod:`cfbci.view.model`) and sends it to the pages over a WebSocket: a snapshot when a
 page starts following a session, then one patch per message. Pages and scripts are
-package files (``cfbci/view_static``): nothing is fetched from elsewhere.
+package files (``cfbci/view/static``): nothing is fetched from elsewhere.
 
 Routes:
 
@@ -43,7 +43,7 @@ truths and epochs come from the sources: the view listens on a loopback endpoint
 own (a free port unless ``--listen`` is given), so that sources, told of it by the
 service's Zenoh gossip, connect to it. A source that reaches the view only after sending
 its config (or a view started later) leaves the view without the config: the grid is then
-inferred from the states (:func:`cfbci.view_model.layout_of`), the threshold is the
+inferred from the states (:func:`cfbci.view.model.layout_of`), the threshold is the
 default and the number of steps unknown; a source that connects to the view's endpoint
 itself is sure to be seen whole. Like a recorder, the view subscribes to configs: a
 subscriber to a config key is no proof that the service is up.
@@ -67,7 +67,7 @@ from typing import Any
 import zenoh
 from aiohttp import WSMsgType, web
 
-from cfbci.view_model import SessionBook
+from cfbci.view.model import SessionBook
 from wire import protocol
 from wire.protocol import NO_SESSION, ProtocolError
 from wire.transport import Pump, Received
@@ -76,7 +76,7 @@ from wire.zenoh_config import free_tcp_endpoint, peer_config
 log = logging.getLogger("cfbci.view")
 
 #: The page files, shipped as package data.
-STATIC = Path(__file__).with_name("view_static")
+STATIC = Path(__file__).with_name("static")
 #: Message kinds the view subscribes to, on every session.
 KINDS = ("config", "move", "state", "event", "truth", "epoch")
 #: Messages waiting for one page; a page that falls this far behind is disconnected (it
@@ -461,7 +461,7 @@ def run_view(
     port : int
         HTTP port; 0 picks a free one.
     hide_truth : bool
-        Take in no truth message (:class:`cfbci.view_model.SessionBook`).
+        Take in no truth message (:class:`cfbci.view.model.SessionBook`).
     on_ready : callable
         ``on_ready(address)`` once the server accepts connections: its
         :func:`base_address`, e.g. ``http://127.0.0.1:8080`` (without the token).

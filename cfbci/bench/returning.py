@@ -28,10 +28,12 @@ would give day 2 the same start and first target), one per arm:
 * ``complemented``: that prior with its labels reversed (labels adopted wrongly);
 * synthetic data only: ``other_subject``, the day-1 recording of the next user (the last
   user's: the first's), and ``drift``: day 2 drifted, with the day-1 prior;
-  ``drift_scratch``, from scratch on that drifted day 2, is the drift arm's reference.
+  ``drift_scratch``, from scratch on that drifted day 2, is the drift arm's reference;
+  on request (``--arms``), ``population``: the other users' day-1 recordings as one weak
+  prior (:func:`population_prior`).
 
 **Figures.** Per arm, the ``summary`` of ``cfbci simulate --json``
-(:func:`cfbci.simulation.summarise`), and: ``paired``, the per-seed differences against the
+(:func:`cfbci.offline.simulation.summarise`), and: ``paired``, the per-seed differences against the
 arm's reference (``scratch``; ``drift_scratch`` for ``drift``) of the first target's step (a
 session without a target counts ``steps + 1``), the correct and the wrong targets, each
 with its mean and 95 % t-interval and its median; ``fallbacks``, the prior check's decisions
@@ -45,10 +47,7 @@ they are not absolute performance.
 
 from __future__ import annotations
 
-import argparse
 import functools
-import json
-import tempfile
 import time
 from collections import Counter
 from dataclasses import asdict, dataclass, replace
@@ -57,18 +56,17 @@ from typing import Any
 
 import numpy as np
 from rich.console import Console
-from rich.table import Table
 from scipy import stats
 
 from acquisition.labelled import LabelledEpochs, LabelledFeatures
 from acquisition.loaders import N_CLASSES, features_from_epochs, load_labelled
 from acquisition.sources import DEFAULT_SYNTHETIC_ACCURACY, SYNTHETIC_EPOCHS_PER_CLASS, DataSpec
-from acquisition.synthetic import ACCURACY_RANGE, ResponseDrift, generate_errp_epochs
+from acquisition.synthetic import ResponseDrift, generate_errp_epochs
 from calibration_free.config import LearnerConfig
 from calibration_free.prior import FeatureSpace, Prior, ReturningLearner
-from cfbci.parallel import Scheduler, add_scheduler_options, run_parallel
+from cfbci.offline.parallel import Scheduler, run_parallel
+from cfbci.offline.simulation import SessionConfig, SessionResult, run_session, summarise
 from cfbci.service.recordings import record_beliefs
-from cfbci.simulation import SessionConfig, SessionResult, run_session, summarise
 from replay.prior import epochs_space, read_prior
 from replay.recording import SessionRecorder
 from session.core import Step
@@ -118,7 +116,24 @@ class ReturningData:
 
     @property
     def arms(self) -> tuple[str, ...]:
+        """The arms run by default (``population`` on request only)."""
         return ARMS if self.path is not None else ARMS + SYNTHETIC_ARMS
+
+    def chosen_arms(self, names: list[str] | None) -> tuple[str, ...]:
+        """The arms ``names`` (default :attr:`arms`) with their references, in order.
+
+        Raises
+        ------
+        ValueError
+            On an arm unknown or not for these data.
+        """
+        known = self.arms + (() if self.path is not None else ("population",))
+        unknown = sorted(set(names or ()) - set(known))
+        if unknown:
+            raise ValueError(f"--arms {unknown}: not arms of these data; they are {list(known)}")
+        chosen = set(names or self.arms)
+        chosen |= {REFERENCE.get(arm, "scratch") for arm in chosen}
+        return tuple(arm for arm in known if arm in chosen)
 
     def describe(self) -> str:
         if self.path is not None:
@@ -291,25 +306,28 @@ def recorded_config(
 
 @dataclass(frozen=True)
 class DayJob:
-    """One session of the bench (a job of :func:`cfbci.parallel.run_parallel`).
+    """One session of the bench (a job of :func:`cfbci.offline.parallel.run_parallel`).
 
     Attributes
     ----------
     data : ReturningData
     user : int
     arm : str
-        "day1" (recorded to ``recording``), or a day-2 arm.
+        "day1", or a day-2 arm.
     steps : int
-    recording : str
-        Day 1's recording of the user (written by "day1"); the prior's (read by the arms
-        with a prior).
+    recordings : tuple of str
+        "day1": where the user's day 1 is recorded; an arm with a prior: the recordings it
+        is read from; else none.
+    prior_weight : float
+        The prior's weight (:attr:`calibration_free.prior.Prior.weight`).
     """
 
     data: ReturningData
     user: int
     arm: str
     steps: int
-    recording: str
+    recordings: tuple[str, ...] = ()
+    prior_weight: float = 1.0
 
 
 def run_day(job: DayJob) -> tuple[SessionResult, dict[str, Any] | None]:
@@ -319,13 +337,15 @@ def run_day(job: DayJob) -> tuple[SessionResult, dict[str, Any] | None]:
     if job.arm == "day1":
         signals = job.data.day(job.user, 1)
         fields = recorded_config(job.user, config, signals, job.data.describe())
-        with SessionRecorder(job.recording, f"day1-{job.user}", fields) as recorder:
+        with SessionRecorder(job.recordings[0], f"day1-{job.user}", fields) as recorder:
             tape = DayOneTape(recorder, fields, signals)
             result = run_session(job.user, config, as_features(signals), on_move=tape)
         return result, None
     signals = job.data.day(job.user, 2, drifted=job.arm in ("drift", "drift_scratch"))
-    if job.arm not in ("scratch", "drift_scratch"):
-        prior = read_prior([job.recording])
+    if job.recordings:
+        prior = (population_prior(job.recordings, job.user, job.prior_weight)
+                 if job.arm == "population" else read_prior(job.recordings,
+                                                            weight=job.prior_weight))
         prior.check_space(data_space(signals, config.learner.frame))
         config = replace(config, prior=prior.complemented() if job.arm == "complemented" else prior)
     learners: list[Any] = []
@@ -334,6 +354,21 @@ def run_day(job: DayJob) -> tuple[SessionResult, dict[str, Any] | None]:
         on_move=lambda session, _: learners.append(session.learner) if not learners else None,
     )
     return result, decision_of(learners[0])
+
+
+def population_prior(paths: tuple[str, ...], user: int, weight: float = 1.0) -> Prior:
+    """Other users' recordings as one weak prior: no recency among them, and each one's
+    labelled signals thinned to a ``1 / len(paths)`` share (drawn with the user's seed), so
+    that together they weigh about one session (times ``weight``)."""
+    prior = read_prior(paths, recency=1.0, weight=weight)
+    rng = np.random.default_rng(user)
+    sessions = []
+    for session in prior.sessions:
+        kept = np.sort(rng.choice(len(session.signals), max(1, len(session.signals) // len(paths)),
+                                  replace=False))
+        sessions.append(replace(session, signals=session.signals[kept],
+                                labels=session.labels[kept]))
+    return replace(prior, sessions=tuple(sessions))
 
 
 def decision_of(learner: Any) -> dict[str, Any] | None:
@@ -382,30 +417,40 @@ def fallbacks(decisions: list[dict[str, Any]]) -> dict[str, Any]:
 
 def bench_returning(
     data: ReturningData, users: list[int], steps: int, directory: Path,
-    scheduler: Scheduler, console: Console,
+    scheduler: Scheduler, console: Console, arms: tuple[str, ...] | None = None,
+    prior_weight: float = 1.0,
 ) -> dict[str, Any]:
-    """Run the day-1 sessions (recorded to ``directory``), then every arm's day-2 sessions;
-    the JSON report (module docstring)."""
+    """Run the day-1 sessions (recorded to ``directory``), then the day-2 sessions of
+    ``arms`` (default :meth:`ReturningData.chosen_arms`'s); the JSON report (module
+    docstring)."""
+    arms = arms or data.chosen_arms(None)
     recordings = {user: str(directory / f"day1-{user}.mcap") for user in users}
-    jobs = [DayJob(data, user, "day1", steps, recordings[user]) for user in users]
+    jobs = [DayJob(data, user, "day1", steps, (recordings[user],)) for user in users]
     day1 = run_parallel(run_day, jobs, scheduler=scheduler, description="day 1",
                         console=console)
     others = dict(zip(users, users[1:] + users[:1], strict=True))
+    priors = {
+        "prior": lambda user: (recordings[user],),
+        "complemented": lambda user: (recordings[user],),
+        "drift": lambda user: (recordings[user],),
+        "other_subject": lambda user: (recordings[others[user]],),
+        "population": lambda user: tuple(recordings[u] for u in users if u != user),
+    }
     jobs = [
-        DayJob(data, user, arm, steps, recordings[others[user] if arm == "other_subject" else user])
-        for arm in data.arms for user in users
+        DayJob(data, user, arm, steps, priors[arm](user) if arm in priors else (), prior_weight)
+        for arm in arms for user in users
     ]
     done = run_parallel(run_day, jobs, scheduler=scheduler, description="day 2",
                         console=console)
-    per_arm = {arm: done[i * len(users):(i + 1) * len(users)] for i, arm in enumerate(data.arms)}
-    arms = {}
+    per_arm = {arm: done[i * len(users):(i + 1) * len(users)] for i, arm in enumerate(arms)}
+    summaries = {}
     for arm, outcomes in per_arm.items():
         results = [result for result, _ in outcomes]
         decisions = [decision for _, decision in outcomes if decision is not None]
-        arms[arm] = summarise(results) | {"fallbacks": fallbacks(decisions)}
+        summaries[arm] = summarise(results) | {"fallbacks": fallbacks(decisions)}
         if arm not in ("scratch", "drift_scratch"):
             reference = [result for result, _ in per_arm[REFERENCE.get(arm, "scratch")]]
-            arms[arm]["paired"] = paired(results, reference)
+            summaries[arm]["paired"] = paired(results, reference)
     return {
         "config": {
             "data": data.describe(), "dataset": None if data.path is None else str(data.path),
@@ -413,10 +458,11 @@ def bench_returning(
             "drift": None if data.path is not None else asdict(data.day_drift()),
             "split": data.split if data.path is not None else None,
             "users": users, "steps": steps, "day2_seed_offset": DAY2_SEED_OFFSET,
+            "prior_weight": prior_weight,
             "recordings": str(directory),
         },
         "day1": summarise([result for result, _ in day1]),
-        "arms": arms,
+        "arms": summaries,
         "sessions": {
             arm: [asdict(result) | {"decision": decision} for result, decision in outcomes]
             for arm, outcomes in per_arm.items()
@@ -424,90 +470,3 @@ def bench_returning(
     }
 
 
-def print_returning(report: dict[str, Any], console: Console) -> None:
-    """A table of the arms: the summary's figures, the paired differences, the fallbacks."""
-    table = Table(title=f"cfbci bench returning - {report['config']['data']}")
-    for column in ("arm", "first target (median)", "correct (mean)", "wrong rate",
-                   "d first target [95 %]", "d correct [95 %]", "d wrong [95 %]", "fell back",
-                   "trusted"):
-        table.add_column(column, justify="right")
-    day1 = report["day1"]
-    table.add_row("day 1", f"{day1['median_first_target_step']:g}",
-                  f"{day1['mean_correct_targets']:.2f}", f"{100 * day1['wrong_target_rate']:.1f} %",
-                  "", "", "", "", "")
-    for arm, summary in report["arms"].items():
-        cells = []
-        for key in PAIRED:
-            if "paired" in summary:
-                figure = summary["paired"][key]
-                low, high = figure["interval_95"]
-                cells.append(f"{figure['mean']:+.1f} [{low:+.1f}, {high:+.1f}]")
-            else:
-                cells.append("")
-        falls = summary["fallbacks"]
-        fell = (f"{falls['fell_back']}/{falls['sessions']} (median step "
-                f"{np.median(falls['fell_back_at']):g})" if falls["fell_back"] else
-                f"0/{falls['sessions']}" if falls["sessions"] else "")
-        trusted = (f"{falls['trusted']} (median step {np.median(falls['trusted_at']):g})"
-                   if falls["trusted"] else ("0" if falls["sessions"] else ""))
-        table.add_row(
-            arm, f"{summary['median_first_target_step']:g}",
-            f"{summary['mean_correct_targets']:.2f}", f"{100 * summary['wrong_target_rate']:.1f} %",
-            *cells, fell, trusted,
-        )
-    console.print(table)
-    console.print(
-        "d: per-seed differences against scratch (drift: against drift_scratch), mean and 95 % "
-        "t-interval. On a small dataset an epoch recurs within a session and its copies can "
-        "fall on both sides of the learner's cross-validation: compare arms, not absolutes.",
-        soft_wrap=True,
-    )
-
-
-def add_returning_parser(which: argparse._SubParsersAction) -> None:
-    """Register ``cfbci bench returning``."""
-    p = which.add_parser(
-        "returning",
-        help="a returning user's day 2: from scratch, and from day 1's recording as a prior",
-        description=__doc__.split("\n\n")[0] if __doc__ else None,
-    )
-    source = p.add_mutually_exclusive_group(required=True)
-    source.add_argument("--dataset", type=Path, help="a labelled dataset file, halved")
-    source.add_argument("--synthetic", choices=("errp",),
-                        help="synthetic ErrP subjects (two draws each)")
-    p.add_argument("--synthetic-accuracy", type=float, default=DEFAULT_SYNTHETIC_ACCURACY,
-                   help=f"nominal balanced accuracy, in {list(ACCURACY_RANGE)} (default "
-                   f"{DEFAULT_SYNTHETIC_ACCURACY})")
-    p.add_argument("--drift", type=float, default=DEFAULT_DRIFT,
-                   help="the drift arm's day-to-day drift D: day 2 100 D ms later and 1 - D "
-                   f"times the amplitude (synthetic; default {DEFAULT_DRIFT})")
-    p.add_argument("--split", choices=("stratified", "order"), default="stratified",
-                   help="a dataset's halves: seeded per user, or in recording order")
-    p.add_argument("--seeds", type=int, default=20, help="users (default 20)")
-    p.add_argument("--first-seed", type=int, default=0, help="the first user's seed")
-    p.add_argument("--steps", type=int, default=500, help="steps per session (default 500)")
-    p.add_argument("--recordings", type=Path,
-                   help="where day 1's recordings go (default: a temporary folder, removed)")
-    add_scheduler_options(p)
-    p.add_argument("--json", type=Path, help="write the report as JSON")
-    p.set_defaults(run=run_bench_returning)
-
-
-def run_bench_returning(args: argparse.Namespace, console: Console) -> int:
-    """``cfbci bench returning``."""
-    if args.seeds < 1 or args.steps < 1:
-        raise ValueError("--seeds and --steps must be at least 1")
-    if args.dataset is not None and not args.dataset.is_file():
-        raise ValueError(f"--dataset {args.dataset}: no such file")
-    data = ReturningData(args.dataset, args.synthetic_accuracy, args.drift, args.split)
-    data.day(args.first_seed, 1)  # fail early, in this process, on bad data
-    users = list(range(args.first_seed, args.first_seed + args.seeds))
-    scheduler = Scheduler.from_options(args.scheduler, args.jobs)
-    with tempfile.TemporaryDirectory(prefix="cfbci-returning-") as scratch:
-        directory = args.recordings or Path(scratch)
-        directory.mkdir(parents=True, exist_ok=True)
-        report = bench_returning(data, users, args.steps, directory, scheduler, console)
-    print_returning(report, console)
-    if args.json:
-        args.json.write_text(json.dumps(report, indent=2) + "\n")
-    return 0

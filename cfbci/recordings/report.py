@@ -1,7 +1,7 @@
 """``cfbci report FILE.mcap [...] --out DIR``: metrics, figures and an HTML report of sessions.
 
 Every recording is one job (:func:`report_session`, run on Dask by
-:func:`cfbci.parallel.run_parallel`; on an existing cluster its workers must see the
+:func:`cfbci.offline.parallel.run_parallel`; on an existing cluster its workers must see the
 recordings and the output directory at the same paths): read it (a truncated file gives
 what it holds), measure it (:mod:`replay.metrics`, which re-runs the learner), and draw its
 figures (:mod:`replay.figures`, ``DIR/<stem>_<kind>.png``; the feature vectors of a pinned
@@ -17,7 +17,7 @@ from __future__ import annotations
 import hashlib
 import json
 import re
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -27,7 +27,7 @@ from rich.markup import escape
 from rich.table import Table
 
 from acquisition.fetch import DATASETS
-from cfbci.parallel import Scheduler, run_parallel
+from cfbci.offline.parallel import Scheduler, run_parallel
 from replay.calibration import (
     CalibrationBin,
     CalibrationPanel,
@@ -36,6 +36,7 @@ from replay.calibration import (
     pool_counts_by_rule,
     rule_summary,
 )
+from replay.extent import usable_part
 from replay.figures import FeatureLayout, calibration_figure, save_figures, session_figures
 from replay.html_report import SessionReport, write_html
 from replay.metrics import aggregate, session_metrics
@@ -97,10 +98,13 @@ def report_session(job: ReportJob) -> SessionReport:
     """
     path = Path(job.path)
     try:
-        recording = read_recording(path)
+        extent = usable_part(read_recording(path, salvage=True))  # what its steps hold
+        recording = extent.recording
         if not recording.config:
             detail = f" ({recording.warning})" if recording.warning else ""
             raise ValueError(f"{path}: the recording holds no session configuration{detail}")
+        if extent.stop is not None:  # reported, like a cut file, up to the damage
+            recording = replace(recording, truncated=True)
         if recording.config.get("world") == "puddle":  # likelihood and trajectory
             metrics = puddle_metrics(recording, str(path))
             figures = puddle_figures(recording, metrics, Path(job.out_dir), job.stem)
@@ -116,6 +120,10 @@ def report_session(job: ReportJob) -> SessionReport:
         if str(path) not in message:
             message = f"{path}: {type(error).__name__}: {message}"
         return SessionReport(str(path), job.stem, error=message)
+    if recording.damage or recording.dropped:
+        metrics.damage = {"regions": [d.to_json() for d in recording.damage],
+                          "dropped_messages": recording.dropped, **extent.to_json(),
+                          "notes": extent.notes()}
     return SessionReport(str(path), job.stem, metrics, figures)
 
 
@@ -205,8 +213,12 @@ def print_summary(reports: list[SessionReport], console: Console) -> None:
         console.print(escape(line), soft_wrap=True)
     for report in reports:
         if report.metrics is not None and report.metrics.truncated:
-            console.print(f"[yellow]warning:[/] truncated recording: {report.metrics.warning}",
-                          soft_wrap=True)
+            console.print(f"[yellow]warning:[/] truncated recording: "
+                          f"{escape(report.metrics.warning or '')}", soft_wrap=True)
+        if report.metrics is not None and report.metrics.damage:
+            for note in [report.metrics.warning or "", *report.metrics.damage["notes"]]:
+                console.print(f"[yellow]warning:[/] damaged recording {escape(report.file)}: "
+                              f"{escape(note)}", soft_wrap=True)
         if report.metrics is not None and report.metrics.replay_identical is False:
             console.print(f"[yellow]warning:[/] {report.file}: the re-run differs from the "
                           f"recording: {report.metrics.replay_note}", soft_wrap=True)
