@@ -6,7 +6,6 @@ Spawned, not forked: a forked child's Zenoh session silently drops messages.
 
 from __future__ import annotations
 
-import multiprocessing
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -14,12 +13,12 @@ from pathlib import Path
 import zenoh
 
 from cfbci.service import serve
+from cfbci.service.process import spawned
 from replay.recording import Recording, SessionRecorder
 from wire import protocol
 from wire.transport import Outbox
 
 TIMEOUT = 60.0  # failure guard, seconds
-SPAWN = multiprocessing.get_context("spawn")
 
 
 @contextmanager
@@ -28,17 +27,8 @@ def service_process(
 ) -> Iterator[None]:
     """The service in a spawned process, recording to ``record_dir``; stopped with SIGTERM,
     which must exit cleanly (recordings closed, so complete once this exits)."""
-    process = SPAWN.Process(target=serve, args=([endpoint], list(connect), record_dir))
-    process.start()
-    try:
+    with spawned(serve, [endpoint], list(connect), record_dir):
         yield
-    finally:
-        process.terminate()
-        process.join(TIMEOUT)
-        if process.is_alive():
-            process.kill()
-            process.join()
-    assert process.exitcode == 0
 
 
 def rewrite(recording: Recording, path: Path) -> None:

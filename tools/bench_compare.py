@@ -9,7 +9,8 @@ Usage::
 with this interpreter (``PYTHONPATH``), so both sides share the installed dependencies.
 Each round runs the command once with each side, in alternating order, so that load on
 the machine falls on both alike. Every numeric figure of the command's ``--json`` output
-whose key ends in ``median_ms`` (or is ``seconds``, ``wall_s``) is reported: the median
+whose key ends in ``median_ms`` (or is ``seconds``, ``wall_s``, or the ``median`` of an
+``..._ms`` object) is reported: the median
 over the rounds on each side, and the ratio after / before.
 """
 
@@ -34,8 +35,9 @@ def figures(data: Any, prefix: str = "") -> dict[str, float]:
     if isinstance(data, dict):
         for key, value in data.items():
             path = f"{prefix}.{key}" if prefix else key
+            timed = key.endswith(TIMED) or (key == "median" and prefix.endswith("_ms"))
             if isinstance(value, int | float) and not isinstance(value, bool) and (
-                key.endswith(TIMED) and "naive" not in key
+                timed and "naive" not in path and "per_session" not in path
             ):
                 found[path] = float(value)
             else:

@@ -40,7 +40,6 @@ default learner, as fast as the service answers (no reaction time).
 from __future__ import annotations
 
 import json
-import multiprocessing
 import resource
 import tempfile
 import time
@@ -62,6 +61,7 @@ from calibration_free.learner import CalibrationFreeLearner
 from calibration_free.streams import StepRecord
 from calibration_free.world import GridWorld
 from cfbci.service import serve
+from cfbci.service.process import SPAWN, spawned
 from replay.recording import SessionRecorder, decode_array, read_recording
 from session.config import learner_settings
 from session.tasks import TaskSession
@@ -109,26 +109,13 @@ class _Service:
 
 @contextmanager
 def _running_service(record_dir: Path) -> Iterator[_Service]:
-    """A fresh service in a spawned process, stopped with SIGTERM (which must exit 0)."""
-    context = multiprocessing.get_context("spawn")
+    """A fresh service in a spawned process (:func:`cfbci.service.process.spawned`)."""
     endpoint = free_tcp_endpoint()
-    receiver, sender = context.Pipe(duplex=False)
-    process = context.Process(
-        target=_service, args=([endpoint], record_dir, sender), name="cfbci-soak-service"
-    )
-    process.start()
-    assert process.pid is not None
-    try:
+    receiver, sender = SPAWN.Pipe(duplex=False)
+    with spawned(_service, [endpoint], record_dir, sender, name="cfbci-soak-service") as process:
+        assert process.pid is not None
         with zenoh.open(peer_config((), [endpoint])) as session:
             yield _Service(process.pid, session, receiver)
-    finally:
-        process.terminate()
-        process.join(TIMEOUT)
-        if process.is_alive():
-            process.kill()
-            process.join()
-    if process.exitcode != 0:
-        raise RuntimeError(f"the soak's service exited with {process.exitcode}")
 
 
 def _settings(session: str, steps: int, seed: int) -> SourceSettings:
