@@ -42,6 +42,7 @@ from calibration_free.sampled_confidence import (
 )
 from decoding.statistics import ClassStatistics
 from decoding.student_t import fit_student_t
+from decoding.validation import check_at_least, check_option
 
 SAMPLINGS = ("random", "active")
 PROBINGS = ("random", "uncertainty")
@@ -87,12 +88,9 @@ class ContinuousConfig:
     n_folds: int = 10
 
     def __post_init__(self) -> None:
-        if self.sampling not in SAMPLINGS:
-            raise ValueError(f"sampling must be one of {SAMPLINGS}; got {self.sampling!r}")
-        if self.probing not in PROBINGS:
-            raise ValueError(f"probing must be one of {PROBINGS}; got {self.probing!r}")
-        if self.n_hypotheses < 2:
-            raise ValueError(f"n_hypotheses must be >= 2; got {self.n_hypotheses}")
+        check_option("sampling", self.sampling, SAMPLINGS)
+        check_option("probing", self.probing, PROBINGS)
+        check_at_least("n_hypotheses", self.n_hypotheses, 2)
 
 
 def resample(

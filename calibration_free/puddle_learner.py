@@ -35,7 +35,7 @@ from calibration_free.puddle import PuddleWorld, mixed_frame
 from calibration_free.world import value_iteration
 from decoding.lda import fit_pooled_lda
 from decoding.statistics import PooledStatistics
-from decoding.validation import check_range
+from decoding.validation import check_at_least, check_option, check_range
 
 EXPLORATIONS = ("random", "epsilon-greedy", "myopic", "planning")
 
@@ -75,18 +75,16 @@ class PuddleConfig:
     map_discount: float = 0.95
 
     def __post_init__(self) -> None:
-        if self.exploration not in EXPLORATIONS:
-            raise ValueError(f"exploration must be one of {EXPLORATIONS}; got {self.exploration!r}")
+        check_option("exploration", self.exploration, EXPLORATIONS)
         for name in ("mixing", "alpha"):  # 0 or 1 leaves labels no weight: -inf likelihoods
             check_range(name, getattr(self, name), 0.0, 1.0, inclusive=False)
         for name in ("epsilon", "shrinkage"):
             check_range(name, getattr(self, name), 0.0, 1.0)
         for name in ("update_every", "n_map_states", "n_map_signals"):
-            if getattr(self, name) < 1:
-                raise ValueError(f"{name} must be >= 1; got {getattr(self, name)!r}")
-        if not self.kernel_variance > 0:
-            raise ValueError(f"kernel_variance must be > 0; got {self.kernel_variance!r}")
-        if not 0 <= self.map_discount < 1:
+            check_at_least(name, getattr(self, name), 1)
+        check_at_least("kernel_variance", self.kernel_variance, 0, strict=True)
+        check_range("map_discount", self.map_discount, 0.0, 1.0)
+        if self.map_discount == 1:
             raise ValueError(f"map_discount must be in [0, 1); got {self.map_discount!r}")
 
 

@@ -34,6 +34,14 @@ def check_range(
     return value
 
 
+def check_at_least(name: str, value: float, low: float, *, strict: bool = False) -> float:
+    """Return ``value`` if it is at least ``low`` (above it if ``strict``), else raise a
+    readable ``ValueError``."""
+    if not (value > low if strict else value >= low):
+        raise ValueError(f"{name} must be {'>' if strict else '>='} {low}; got {value!r}")
+    return value
+
+
 def check_array(
     name: str,
     value: Any,
