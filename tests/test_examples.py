@@ -41,7 +41,7 @@ SHARED_DATA = REPOSITORY.parent / "shared" / "datasets"
 
 
 def _runnable(page: Path) -> list:
-    return [b for b in page_blocks(page) if b.kind and not b.skip]
+    return [b for b in page_blocks(page) if b.runs_here]
 
 
 @pytest.fixture(scope="session")
@@ -86,11 +86,16 @@ def test_page_examples_run(page: Path, tmp_path: Path, reader_environment) -> No
 
 @pytest.mark.parametrize("page", PAGES, ids=_page_id)
 def test_markers_are_well_formed(page: Path) -> None:
-    """Every marker is a known directive right above a runnable block, and every test
-    variant names a command its block runs (a renamed command breaks it here)."""
+    """Every marker is a known directive right above a runnable block, every test variant
+    names a command its block runs (a renamed command breaks it here), and a block marked
+    as run on another page is there, markers included, and run there."""
     for block in page_blocks(page):
         if block.kind:
             variant_code(block)
+        if block.same_as:
+            other = page_blocks(REPOSITORY / block.same_as)
+            assert any(b.runs_here and b.signature() == block.signature() for b in other), (
+                f"{block.where}: not run on {block.same_as} (changed there, or here?)")
 
 
 def _page(tmp_path: Path, text: str) -> Path:

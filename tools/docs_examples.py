@@ -7,6 +7,10 @@ runs it:
 
 ``skip: REASON``
     not run (it needs an amplifier, a person, the network...); listed with its reason.
+``same-as: PAGE``
+    the block is also on ``PAGE`` (a path from the repository's root), whose test runs it:
+    the test checks that the other page holds it, with the same markers, and does not run it
+    twice.
 ``test: COMMAND ARGS``
     its test-sized variant: ``ARGS`` appended to every ``cfbci COMMAND`` of the block, so
     that they override the block's own options (argparse keeps an option's last value),
@@ -59,7 +63,8 @@ DATASET_USE = re.compile(r"cfbci datasets (?:path|fetch) ([a-z0-9_-]+)")
 
 _FENCE = re.compile(r"^(?P<indent>[ \t]*)(?P<fence>`{3,}|~{3,})\s*(?P<info>[^`\n]*)$")
 _MARKER = re.compile(r"^\s*<!--\s*example:\s*(?P<body>.*?)\s*-->\s*$")
-_DIRECTIVES = ("skip:", "test:", "replace:", "background", "ready:", "expect:", "timeout:")
+_DIRECTIVES = ("skip:", "same-as:", "test:", "replace:", "background", "ready:", "expect:",
+               "timeout:")
 
 
 class ExampleError(AssertionError):
@@ -75,6 +80,7 @@ class Block:
     language: str  #: the fence's language (lower case, "" for none)
     code: str  #: the block's text, its indentation removed
     skip: str | None = None  #: why it is not run, or None
+    same_as: str | None = None  #: the page (repository path) that runs this very block
     variants: list[tuple[str, str]] = field(default_factory=list)  #: (command, args) appended
     replacements: list[tuple[str, str]] = field(default_factory=list)  #: (old, new)
     background: bool = False
@@ -91,6 +97,16 @@ class Block:
     def where(self) -> str:
         """``page:line``, for messages."""
         return f"{self.path}:{self.line}"
+
+    @property
+    def runs_here(self) -> bool:
+        """Whether this page's test runs the block (runnable, not skipped, not run elsewhere)."""
+        return self.kind is not None and self.skip is None and self.same_as is None
+
+    def signature(self) -> tuple:
+        """What must be equal for a block to be "the same" as another page's."""
+        return (self.language, self.code, self.variants, self.replacements, self.background,
+                self.ready, self.expect, self.timeout)
 
     @property
     def datasets(self) -> set[str]:
@@ -156,6 +172,10 @@ def _apply_marker(block: Block, body: str, where: str) -> None:
         if not value:
             raise ExampleError(f"{where}: 'skip:' needs a reason")
         block.skip = value
+    elif directive == "same-as:":
+        if not value:
+            raise ExampleError(f"{where}: 'same-as:' needs the page that runs the block")
+        block.same_as = value
     elif directive == "test:":
         words = value.split()
         command = " ".join(w for w in _prefix_words(words))
