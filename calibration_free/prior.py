@@ -232,33 +232,33 @@ class PriorCheck:
     the prediction of the decoders fitted before it (untempered, the matching filter's
     increment). Summed over the signals of a task segment (since the last target), each
     learner's ``A_t`` is the log pseudo-likelihood of those signals under task t with its
-    decoders; the blank learner's power prior ``P_t`` weighs the tasks for both. A
-    segment's log ratio of the two models' pseudo-likelihoods, marginal over the tasks, is
+    decoders, and ``A_t(informed) - A_t(blank)`` says, per hypothesis, whether the decoder
+    trained with the prior predicts today's signals better than the one trained on today's
+    alone. The check's statistic ``D`` is that difference weighted by the informed learner's
+    posterior over the tasks (the softmax of its scores), summed over today's segments (a
+    target ends one; both learners adopt the same labels there): nats in favour of the prior.
 
-        ``logsumexp_t(A_t(informed) + P_t) - logsumexp_t(A_t(blank) + P_t)``
-
-    and the check's statistic ``D`` sums it over today's segments (a target ends one; both
-    learners adopt the same labels there). While the check is undecided, the informed
-    learner acts while ``D >= declare``; below, the blank learner acts when it is confident
-    (its target, as from scratch) or ``D < 0``, else the informed one, whose targets are
-    then withheld (a declaring move is replaced by the blank learner's proposal). The prior
-    is
+    While the check is undecided, the informed learner acts while ``D >= declare``; below,
+    the blank learner acts when it is confident (its target, as from scratch) or ``D < 0``,
+    else the informed one, whose target is then declared only if the blank learner's best
+    task is the same (corroborated by today's signals alone), else withheld (the blank
+    learner's proposal is made instead). The prior is
 
     * abandoned once ``D <= -refute``: the blank learner acts from then on;
-    * trusted for good at the first target the informed learner declares, or once ``D >=
-      trust``: the blank learner is dropped;
-    * after ``horizon`` signals still undecided, trusted if ``D >= declare``, else
-      abandoned.
+    * trusted for good once ``D >= trust``: the blank learner is dropped;
+    * after ``horizon`` signals still undecided, trusted if ``D >= 0``, else abandoned.
 
     In the feedback frame with the power prior, the prior's own labels are checked against
     the ErrP power premise first (:func:`power_premise`): a prior whose error-labelled
-    signals carry clearly less power than its correct ones (``-refute`` or less) is
-    abandoned before the first signal.
+    signals carry less power than its correct ones is abandoned before the first signal. A
+    prior adopted wrongly, its labels complemented, fits today's signals as well as the
+    right one under the mirror task where the task set is symmetric (opposite corners): the
+    signals' power is what tells them apart, as it is for the learner from scratch.
 
     Attributes
     ----------
     refute, declare, trust : float
-        Log ratios (nats).
+        Nats.
     horizon : int
         Signals after which the check decides.
     """
@@ -334,7 +334,7 @@ class ReturningLearner:
         self._declared: int | None = None
         if self.informed.uses_power_prior:
             self.decision.premise = power_premise(*observations)
-            if self.decision.premise <= -self.check.refute:
+            if self.decision.premise < 0:
                 self._decide("fallen back")
 
     @property
@@ -356,17 +356,18 @@ class ReturningLearner:
         return statistics[-1] if statistics else 0.0
 
     def propose(self, state: int) -> Proposal:
-        """The acting learner's proposal; while the check is undecided and ``D <
-        declare``, a declaring proposal of the informed learner is withdrawn and the blank
-        learner's made instead."""
+        """The acting learner's proposal; while the check is undecided, a declaring
+        proposal of the informed learner that ``D`` does not allow nor the blank learner
+        corroborates is withdrawn and the blank learner's made instead
+        (:class:`PriorCheck`)."""
         acting = self.acting
         proposal = acting.propose(state)
         if proposal.declares_target and acting is self.informed and self.blank is not None:
-            if self.statistic < self.check.declare:
+            corroborated = self.statistic >= 0 and (
+                self.blank.beliefs().best_task == acting.beliefs().best_task)
+            if self.statistic < self.check.declare and not corroborated:
                 acting.withdraw_declaration()
                 acting, proposal = self.blank, self.blank.propose(state)
-            else:
-                self._decide("trusted")
         self._declared = acting.beliefs().best_task if proposal.declares_target else None
         return proposal
 
@@ -391,10 +392,10 @@ class ReturningLearner:
             uniform = -np.log(informed.frame.n_classes)  # no decoder yet: 1/K each
             for row, match in zip(self._segment, matches, strict=True):
                 row += uniform if match is None else match
-            beliefs = blank.beliefs()
-            power = beliefs.scores - beliefs.log_likelihood
-            with_prior, without = logsumexp(self._segment + power, axis=1)
-            self.decision.statistic.append(self._settled + float(with_prior - without))
+            scores = informed.beliefs().scores
+            posterior = np.exp(scores - logsumexp(scores))
+            difference = float(posterior @ (self._segment[0] - self._segment[1]))
+            self.decision.statistic.append(self._settled + difference)
         if ends_segment:  # a target: both learners adopt its labels, a segment starts
             self._settled = self.statistic
             self._segment[:] = 0.0
@@ -404,7 +405,7 @@ class ReturningLearner:
         elif statistic >= check.trust:
             self._decide("trusted")
         elif informed.n_signals >= check.horizon:
-            self._decide("trusted" if statistic >= check.declare else "fallen back")
+            self._decide("trusted" if statistic >= 0 else "fallen back")
 
     def _decide(self, outcome: str) -> None:
         """Keep the informed learner alone ("trusted") or the blank one ("fallen back")."""
