@@ -13,6 +13,7 @@ from pathlib import Path
 import zenoh
 
 from cfbci.service import serve
+from cfbci.service.process import SPAWN as SPAWN  # the tests spawn their processes so too
 from cfbci.service.process import spawned
 from replay.recording import Recording, SessionRecorder
 from wire import protocol
