@@ -257,7 +257,8 @@ class SessionMetrics:
         damaged one is damaged.
     damage : dict or None
         A damaged recording's damaged regions and what of it the report uses
-        (:func:`replay.extent.usable_part`; set by :mod:`cfbci.recordings.report`); None if undamaged.
+        (:func:`replay.extent.usable_part`; set by :mod:`cfbci.recordings.report`); None if
+        undamaged.
     distance : list of float or None
         Continuous world: the best particle's distance to the goal after each epoch
         (None elsewhere; see :mod:`replay.plane_report`).
