@@ -29,6 +29,7 @@ sys.path.insert(0, str(REPOSITORY / "tools"))
 from docs_examples import (  # noqa: E402
     ExampleError,
     PageRun,
+    check_same_as,
     group_alive,
     page_blocks,
     variant_code,
@@ -93,9 +94,7 @@ def test_markers_are_well_formed(page: Path) -> None:
         if block.kind:
             variant_code(block)
         if block.same_as:
-            other = page_blocks(REPOSITORY / block.same_as)
-            assert any(b.runs_here and b.signature() == block.signature() for b in other), (
-                f"{block.where}: not run on {block.same_as} (changed there, or here?)")
+            check_same_as(block, REPOSITORY)
 
 
 def _page(tmp_path: Path, text: str) -> Path:
@@ -229,3 +228,16 @@ def test_results_commands_parse(where: str, command: str) -> None:
     parsed = build_parser().parse_args(args)
     if getattr(parsed, "preset", None):
         build_parser(PRESETS[parsed.preset]).parse_args(args)
+
+
+def test_a_block_run_elsewhere_must_be_there(tmp_path: Path) -> None:
+    """A ``same-as`` block whose twin changed (or lost a marker) is an error."""
+    block = "<!-- example: test: simulate --seeds 1 -->\n```sh\ncfbci simulate\n```\n"
+    twin = _page(tmp_path, block)
+    (tmp_path / "readme.md").write_text(f"<!-- example: same-as: {twin} -->\n{block}")
+    (same,) = page_blocks(tmp_path / "readme.md")
+    assert not same.runs_here
+    check_same_as(same, tmp_path)
+    twin.write_text("```sh\ncfbci simulate\n```\n")  # the marker dropped there
+    with pytest.raises(ExampleError, match="not run on"):
+        check_same_as(same, tmp_path)

@@ -209,6 +209,15 @@ def _prefix_words(words: list[str]) -> Iterator[str]:
         yield word
 
 
+def check_same_as(block: Block, repository: Path) -> None:
+    """Raise :class:`ExampleError` unless the page a ``same-as`` block names runs that very
+    block (the same code and markers)."""
+    other = page_blocks(repository / block.same_as)
+    if not any(b.runs_here and b.signature() == block.signature() for b in other):
+        raise ExampleError(f"{block.where}: not run on {block.same_as}: the block or its "
+                           "markers differ there")
+
+
 def variant_code(block: Block) -> str:
     """The code the test runs: the block's, with its replacements and test options."""
     code = block.code
