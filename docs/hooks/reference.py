@@ -149,14 +149,16 @@ def _continues_kind(kind: str, description: list[str], line: str) -> bool:
 def accepted_values(cls: type) -> dict[str, str]:
     """What each field accepts, read from the checks of ``cls.__post_init__``:
     ``check_option(name, ..., CHOICES)``, ``check_range(name, ..., low, high[,
-    inclusive=False])`` (also in a loop over names), ``if x not in CHOICES: raise`` and
-    ``if <comparison of x>: raise``."""
+    inclusive=False])``, ``check_at_least(name, ..., low[, strict=True])`` (also in a loop over
+    names), ``if x not in CHOICES: raise``, ``if <comparison of x>: raise``, and ``if x ==
+    high: raise`` after a range."""
     init = getattr(cls, "__post_init__", None)
     if init is None:
         return {}
     source = textwrap.dedent(inspect.getsource(init))
     module = sys.modules[cls.__module__]
     found: dict[str, str] = {}
+    excluded_ends: dict[str, float] = {}
 
     def value(node: ast.AST) -> Any:
         return eval(compile(ast.Expression(node), "<check>", "eval"), vars(module))
@@ -187,6 +189,11 @@ def accepted_values(cls: type) -> dict[str, str]:
             if node.func.id == "check_option" and len(node.args) >= 3:
                 for name in names:
                     found.setdefault(name, _choices(value(node.args[2])))
+            elif node.func.id == "check_at_least" and len(node.args) >= 3:
+                strict = any(k.arg == "strict" and isinstance(k.value, ast.Constant)
+                             and k.value.value is True for k in node.keywords)
+                for name in names:
+                    found.setdefault(name, f"x {'>' if strict else '>='} {value(node.args[2]):g}")
             elif node.func.id == "check_range" and len(node.args) >= 4:
                 inclusive = all(
                     not (k.arg == "inclusive" and isinstance(k.value, ast.Constant)
@@ -198,11 +205,20 @@ def accepted_values(cls: type) -> dict[str, str]:
                 for name in names:
                     found.setdefault(name, text)
         if isinstance(node, ast.If) and any(isinstance(s, ast.Raise) for s in node.body):
-            _condition(node.test, loop, found, value, field_name)
+            test = node.test
+            if (isinstance(test, ast.Compare) and len(test.ops) == 1
+                    and isinstance(test.ops[0], ast.Eq)):
+                for name in field_name(test.left, loop):
+                    excluded_ends[name] = value(test.comparators[0])
+            else:
+                _condition(test, loop, found, value, field_name)
         for child in ast.iter_child_nodes(node):
             visit(child, loop)
 
     visit(ast.parse(source), {})
+    for name, excluded in excluded_ends.items():  # ``if x == high: raise`` after a range
+        if name in found and found[name].endswith(f", {excluded:g}]"):
+            found[name] = found[name][:-1] + ")"
     return found
 
 
