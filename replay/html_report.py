@@ -219,6 +219,21 @@ def _image(figure: SavedFigure) -> str:
     )
 
 
+
+def shortened_banner(metrics: SessionMetrics) -> str:
+    """The warning of a recording cut short (its writer did not close it) or damaged (a
+    region unreadable: the report covers the steps before it, or all of them when the
+    damage broke none), as HTML."""
+    warning = html.escape(metrics.warning or "")
+    if metrics.damage is None:
+        return (f"<b>Truncated recording</b> (its writer did not close it): {warning}. "
+                "The report covers what it holds.")
+    notes = "; ".join(html.escape(note) for note in metrics.damage.get("notes", []))
+    covers = ("the steps before the damage" if metrics.damage.get("stop") is not None
+              else "every step (the damage broke none)")
+    return (f"<b>Damaged recording</b>: {warning}" + (f"; {notes}" if notes else "")
+            + f". The report covers {covers}.")
+
 def session_section(report: SessionReport, first_figure: int) -> str:
     """The HTML section of one session; figures numbered from ``first_figure``."""
     anchor = html.escape(report.stem)
@@ -231,11 +246,8 @@ def session_section(report: SessionReport, first_figure: int) -> str:
     metrics = report.metrics
     parts = [f'<section id="{anchor}"><h2>Session {html.escape(metrics.session)} '
              f'<small>({html.escape(report.file)})</small></h2>']
-    if metrics.truncated:
-        parts.append(
-            '<div class="warning"><b>Truncated recording</b> (its writer did not close it): '
-            f"{html.escape(metrics.warning or '')}. The report covers what it holds.</div>"
-        )
+    if metrics.truncated or metrics.damage is not None:
+        parts.append(f'<div class="warning">{shortened_banner(metrics)}</div>')
     if metrics.replay_identical is False or (
         metrics.replay_identical is None and metrics.replay_note
     ):
@@ -308,7 +320,9 @@ def render_html(
     its panels)."""
     done = [r for r in reports if r.metrics is not None]
     failed = [r for r in reports if r.metrics is None]
-    truncated = [r for r in done if r.metrics is not None and r.metrics.truncated]
+    shortened = [r for r in done if r.metrics is not None
+                 and (r.metrics.truncated or r.metrics.damage is not None)]
+    damaged = sum(r.metrics is not None and r.metrics.damage is not None for r in shortened)
     parts = [
         "<!DOCTYPE html>",
         '<html lang="en"><head><meta charset="utf-8">',
@@ -316,17 +330,17 @@ def render_html(
         f"<style>{_STYLE}</style></head><body>",
         "<h1>Calibration-free BCI: session report</h1>",
         f"<p>{len(done)} session(s) reported"
-        + (f", {len(truncated)} truncated" if truncated else "")
+        + (f", {len(shortened) - damaged} cut short" if len(shortened) > damaged else "")
+        + (f", {damaged} damaged" if damaged else "")
         + (f", {len(failed)} file(s) not processed" if failed else "")
         + ".</p>",
     ]
     for report in failed:
         parts.append(f'<div class="error"><b>Not processed:</b> {html.escape(report.error or "")}'
                      "</div>")
-    for report in truncated:
+    for report in shortened:
         assert report.metrics is not None
-        parts.append(f'<div class="warning"><b>Truncated:</b> '
-                     f"{html.escape(report.metrics.warning or '')}</div>")
+        parts.append(f'<div class="warning">{shortened_banner(report.metrics)}</div>')
     parts.append("<h2>Aggregate over sessions</h2>")
     parts.append(aggregate_table(aggregate))
     if calibration is not None:

@@ -229,6 +229,29 @@ def test_a_damaged_length_field_is_skipped_by_scanning_to_the_next_chunk(
     assert any("the usable steps end at byte" in note for note in written["notes"])
 
 
+def test_the_report_calls_a_file_whose_damage_ends_its_steps_damaged_not_cut(
+    recorded: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A lost epoch ends the usable steps: the HTML report says the file is damaged there
+    (was: 'Truncated recording (its writer did not close it)', though the writer had)."""
+    found = chunks(recorded)
+    start = next(c for c in found[len(found) // 3:] if c[2] == "/epoch")[0]
+    data = bytearray(recorded.read_bytes())
+    data[start + 4] ^= 0x01
+    path = tmp_path / "damaged.mcap"
+    path.write_bytes(bytes(data))
+    out_dir = tmp_path / "report"
+    status, _, _ = run(["report", str(path), "--out", str(out_dir), "--jobs", "1"],
+                       capsys)
+    assert status == 3  # every file reported, some damaged
+    page = (out_dir / "index.html").read_text()
+    assert "did not close" not in page and "Truncated" not in page
+    assert "Damaged recording" in page and f"the usable steps end at byte {start}" in page
+    assert "1 damaged" in page
+    [session] = json.loads((out_dir / "metrics.json").read_text())["sessions"]
+    assert session["damage"]["stop"] == start
+
+
 def test_an_output_never_overwrites_the_input(
     recorded: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
