@@ -11,7 +11,8 @@ epoch is only ever cut from one segment: a window that reaches across a disconti
 or whose onset falls into one, is refused; a window whose last sample has not arrived
 yet is waited for.
 
-Two descriptions shared by the live bridge and the XDF reader: :func:`microvolts_per_unit`
+`nearest_sample` is the onset rule the bridge and the LSL simulator share. Two
+descriptions shared by the live bridge and the XDF reader: :func:`microvolts_per_unit`
 (a channel unit as LSL streams and XDF files declare it) and
 :func:`player_annotation_shift` (the marker offset of mne-lsl's ``PlayerLSL``).
 """
@@ -87,6 +88,27 @@ def player_annotation_shift(
         and [kind.lower() for kind in types] == ["annotations"]
     )
     return int(is_player)
+
+
+def nearest_sample(times: np.ndarray, onset: float) -> int:
+    """The onset sample: the index of the timestamp nearest ``onset``, the later one of two
+    equally near.
+
+    The bridge cuts every epoch around this sample, and ``cfbci lsl-simulator`` writes
+    every epoch it is told to write at a marker's time around it: both call this function
+    on the same float64 timestamps, so that they choose the same sample.
+
+    Parameters
+    ----------
+    times : ndarray, shape (n_samples,)
+        Increasing timestamps, s (at least one).
+    onset : float
+        The onset's time, s, in the same clock.
+    """
+    nearest = int(np.clip(np.searchsorted(times, onset), 1, max(len(times) - 1, 1)))
+    if len(times) > 1 and onset - times[nearest - 1] < times[nearest] - onset:
+        nearest -= 1
+    return min(nearest, len(times) - 1)
 
 
 @dataclass(frozen=True)
@@ -250,11 +272,7 @@ class SampleBuffer:
             return found if found is None else Refusal(found)
         start, stop = found
         positions = np.arange(start, stop) % self.capacity
-        times = self._times[positions]
-        nearest = int(np.clip(np.searchsorted(times, onset), 1, max(len(times) - 1, 1)))
-        if len(times) > 1 and onset - times[nearest - 1] < times[nearest] - onset:
-            nearest -= 1
-        onset_index = start + min(nearest, len(times) - 1)
+        onset_index = start + nearest_sample(self._times[positions], onset)
         begin, finish = onset_index + first, onset_index + last
         if begin < start:
             where = (

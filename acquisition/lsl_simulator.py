@@ -11,9 +11,23 @@
   on its **marker outlet**, and writes the simulated user's epoch for that move into the
   continuous signal at that time: the epoch's samples *replace* the background from
   ``onset + tmin`` to ``onset + tmax``, so the bridge's epoch can be compared sample for
-  sample with what was written (:func:`check_recording`);
+  sample with what was written (``acquisition.lsl_written.check_recording``);
 * the **truth** of every step (the user's target and the epoch's label) on Zenoh, as the
   replay source publishes it, so that the service's recording has ``/truth``.
+
+**Listening** (``onsets``: the name of a stimulus program's marker stream, such as
+``cfbci view --stimulus``'s): the simulator makes no onsets. It takes the moves from the
+service (Zenoh), where the user answers them, and the onsets from the stimulus program's
+``onset <step>`` markers: each epoch is written around the sample the bridge will cut it
+around, the sample nearest the marker's timestamp
+(``acquisition.lsl_epochs.nearest_sample`` on the stream's own float64 sample stamps;
+a marker stream of another machine is first mapped to this one's clock with its
+``time_correction()``, one of this machine is taken as it is, as the bridge does). A
+marker arrives after its timestamp, and the epoch starts ``|tmin|`` before it, so the EEG
+runs behind real time: a sample stamped ``t`` is pushed at ``t + |tmin| +
+marker_latency``. A marker that arrives more than ``marker_latency`` after its timestamp
+finds the epoch's first samples already sent: it is reported (``Simulation.late``) and
+nothing is written. The simulator ends at the service's ``session_ended``.
 
 The user is :class:`acquisition.user.SimulatedUser` with the random streams of
 :func:`calibration_free.streams.session_streams`, and synthetic epochs come from the data
@@ -31,11 +45,11 @@ it again (the stream vanishes and comes back with a new uid).
 from __future__ import annotations
 
 import logging
+import queue
 import threading
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -46,15 +60,22 @@ from pylsl.util import LostError
 
 from acquisition.labelled import LabelledEpochs
 from acquisition.loaders import load_epochs
-from acquisition.lsl_bridge import DEFAULT_MOVES
-from acquisition.lsl_streams import eeg_outlet, marker_outlet, parse_move_marker, resolve_inlet
+from acquisition.lsl_bridge import DEFAULT_MOVES, on_this_host
+from acquisition.lsl_epochs import nearest_sample
+from acquisition.lsl_streams import (
+    eeg_outlet,
+    marker_outlet,
+    parse_move_marker,
+    parse_onset_marker,
+    resolve_inlet,
+)
+from acquisition.lsl_written import check_recording as check_recording  # for older imports
 from acquisition.sources import DataSpec, synthetic_epochs
 from acquisition.user import SimulatedUser
 from calibration_free.streams import session_streams
 from calibration_free.world import ACTIONS, GridWorld
-from replay.recording import decode_array, read_recording
 from wire import protocol
-from wire.transport import Outbox, wait_for_subscribers
+from wire.transport import Outbox, Pump, Received, wait_for_subscribers
 from wire.zenoh_config import peer_config
 
 log = logging.getLogger("cfbci.lsl_simulator")
@@ -112,6 +133,11 @@ class SimulatorSettings:
         Seconds the EEG outlet stays closed.
     timeout : float
         Seconds to wait for the bridge's move stream.
+    onsets : str or None
+        Listen to this marker stream's onsets instead of making them (see the module).
+    marker_latency : float
+        Listening: how late after its timestamp an onset marker may arrive, s; the EEG
+        runs ``|tmin| + marker_latency`` behind real time.
     """
 
     session: str
@@ -129,6 +155,8 @@ class SimulatorSettings:
     restart_after: int | None = None
     outage: float = 1.0
     timeout: float = 30.0
+    onsets: str | None = None
+    marker_latency: float = 0.3
 
 
 @dataclass
@@ -222,11 +250,14 @@ class Simulation:
         Timestamp of sample 0, s (sample n is stamped ``t0 + n / sfreq``).
     targets : list of (int, bool)
         Every declared target: its step and whether it was the user's target.
+    late : list of (int, float)
+        Listening: the onset markers that came too late to be written: step, s late.
     """
 
     written: list[Written]
     t0: float
     targets: list[tuple[int, bool]]
+    late: list[tuple[int, float]] = field(default_factory=list)
 
 
 def run_simulator(
@@ -268,20 +299,22 @@ class _Simulator:
         self.next = 0  # index of the next sample to stream
         self.outage_until: int | None = None  # sample at which the EEG outlet reopens
         self.restart_after = settings.restart_after
+        self.lag = 0.0  # s the EEG runs behind real time
+        self.late: list[tuple[int, float]] = []
+        self.session = session
 
     def _open_eeg(self) -> pylsl.StreamOutlet:
         return eeg_outlet(self.settings.eeg, self.signals.ch_names, self.sfreq,
                           f"cfbci-sim-{self.settings.session}-eeg")
 
     def run(self, keep_running: Callable[[], bool]) -> Simulation:
+        if self.settings.onsets is not None:
+            return _Listener(self).listen(keep_running)
         settings = self.settings
         self.eeg: pylsl.StreamOutlet | None = self._open_eeg()
         self.markers = marker_outlet(settings.markers, f"cfbci-sim-{settings.session}-markers")
         moves = resolve_inlet(settings.moves, settings.timeout, keep_running=keep_running)
-        if not wait_for_subscribers(self.outbox.publisher(self.truth_key), settings.timeout):
-            log.warning("nobody subscribed to %s: the truth will not be recorded",
-                        self.truth_key)
-        self.t0 = pylsl.local_clock()
+        self._start()
         try:
             while keep_running():
                 try:
@@ -292,13 +325,24 @@ class _Simulator:
                 for value in values:
                     self._on_move(parse_move_marker(value[0]))
                 self._stream()
-                wake = self.t0 + (self.next + CHUNK - 1) / self.sfreq  # the next chunk is due
-                time.sleep(max(0.0, wake - pylsl.local_clock()))
+                self._wait_for_chunk()
         finally:
             self.outbox.close()
         return Simulation(self.written, self.t0, self.targets)
 
-    def _on_move(self, move: dict[str, Any]) -> None:
+    def _start(self) -> None:
+        """Wait for the truth's subscriber; sample 0 is now."""
+        if not wait_for_subscribers(self.outbox.publisher(self.truth_key), self.settings.timeout):
+            log.warning("nobody subscribed to %s: the truth will not be recorded",
+                        self.truth_key)
+        self.t0 = pylsl.local_clock()
+
+    def _wait_for_chunk(self) -> None:
+        wake = self.t0 + self.lag + (self.next + CHUNK - 1) / self.sfreq  # the next chunk
+        time.sleep(max(0.0, wake - pylsl.local_clock()))
+
+    def _answer(self, move: dict[str, Any]) -> None:
+        """The user's answer to a move, once per step (its truth sent)."""
         step = move["step"]
         if step not in self.answers:
             index, label = self.user.answer(move["from_state"], ACTIONS.index(move["action"]))
@@ -309,6 +353,10 @@ class _Simulator:
             if move["target_reached"]:
                 self.targets.append((step, move["from_state"] == target))
                 self.user.new_target()
+
+    def _on_move(self, move: dict[str, Any]) -> None:
+        self._answer(move)
+        step = move["step"]
         onset = self.next + self.delay
         epoch = self.signals.epochs[self.answers[step]]
         first_time = move["repeat"] == 0
@@ -324,7 +372,7 @@ class _Simulator:
 
     def _stream(self) -> None:
         """Stream the samples that are due; send the onset markers among them."""
-        due = int((pylsl.local_clock() - self.t0) * self.sfreq) + 1
+        due = int((pylsl.local_clock() - self.lag - self.t0) * self.sfreq) + 1
         if due <= self.next:
             return
         indices = np.arange(self.next, due)
@@ -361,66 +409,81 @@ class _Simulator:
             self.eeg.push_chunk(block, list(self.t0 + indices / self.sfreq))
 
 
+class _Listener:
+    """A simulator's listening mode (see the module): moves from Zenoh, onsets from the
+    stimulus program's markers, the EEG ``|tmin| + marker_latency`` behind real time."""
+
+    def __init__(self, simulator: _Simulator) -> None:
+        self.sim = simulator
+        self.inbox: queue.SimpleQueue[Received] = queue.SimpleQueue()
+        settings = simulator.settings
+        self.pumps = [Pump(simulator.session, protocol.key(settings.session, kind), kind,
+                           self.inbox) for kind in ("move", "event")]
+        self.onsets: list[tuple[int, float]] = []  # (step, marker time) whose move is unknown
+        self.moves: dict[int, dict[str, Any]] = {}
+        simulator.lag = -simulator.signals.tmin + settings.marker_latency
+
+    def listen(self, keep_running: Callable[[], bool]) -> Simulation:
+        sim, settings = self.sim, self.sim.settings
+        sim.eeg = sim._open_eeg()
+        assert settings.onsets is not None
+        markers = resolve_inlet(settings.onsets, settings.timeout, keep_running=keep_running)
+        offset = 0.0 if on_this_host(markers) else markers.time_correction(timeout=5.0)
+        sim._start()
+        ended = False
+        try:
+            while keep_running() and not ended:
+                ended = self._take_messages()
+                values, stamps = markers.pull_chunk(timeout=0.0, as_numpy=False)
+                for value, stamp in zip(values, stamps, strict=True):
+                    is_onset, step = parse_onset_marker(value[0], "onset")
+                    if is_onset and step is not None:
+                        self.onsets.append((step, stamp + offset))
+                self._write()
+                sim._stream()
+                sim._wait_for_chunk()
+        finally:
+            for pump in self.pumps:
+                pump.close()
+            sim.outbox.close()
+        return Simulation(sim.written, sim.t0, sim.targets, sim.late)
+
+    def _take_messages(self) -> bool:
+        """Answer the moves that came; whether the session ended."""
+        while not self.inbox.empty():
+            received = self.inbox.get()
+            message = protocol.decode(received.data, key_expr=received.key_expr)
+            if message.kind == "move":
+                self.moves[message.fields["step"]] = message.fields
+                self.sim._answer(message.fields)
+            elif message.fields["event"] == "session_ended":
+                return True
+        return False
+
+    def _write(self) -> None:
+        """Write the epochs of the onsets whose moves are known, or report them late."""
+        sim, waiting = self.sim, []
+        for step, when in self.onsets:
+            if step not in self.moves:
+                waiting.append((step, when))
+                continue
+            first = int((when - sim.t0) * sim.sfreq) - 1
+            stamps = sim.t0 + np.arange(first, first + 3) / sim.sfreq  # as pushed
+            onset = first + nearest_sample(stamps, when)
+            if onset + sim.first < sim.next:
+                late = pylsl.local_clock() - when
+                log.warning("onset of step %d came %.3f s after its time: its epoch's first "
+                            "samples are sent already; nothing written", step, late)
+                sim.late.append((step, late))
+                continue
+            repeat = sum(w.step == step for w in sim.written)
+            written = Written(step, repeat, onset, onset + sim.first,
+                              sim.signals.epochs[sim.answers[step]], onset)
+            sim.written.append(written)
+            sim.pending.append(written)
+        self.onsets = waiting
+
+
 def _drop(outlet: object) -> None:
     """Hold the last reference to ``outlet`` until this thread ends (where it is destroyed)."""
     del outlet
-
-
-def save_written(path: Path, simulation: Simulation) -> None:
-    """The epochs written, to an ``.npz``: ``steps``, ``repeats``, ``onsets`` and ``starts``
-    (sample indices), ``epochs`` float32 (n, n_channels, n_times) µV, ``dropped`` int
-    (k, 3) rows ``(write index, first sample, count)``, ``t0`` the timestamp of sample 0 (s,
-    so sample n is stamped ``t0 + n / sfreq``)."""
-    written = simulation.written
-    dropped = [(i, first, count) for i, w in enumerate(written) for first, count in w.dropped]
-    np.savez(
-        path,
-        steps=np.array([w.step for w in written], dtype=np.int64),
-        repeats=np.array([w.repeat for w in written], dtype=np.int64),
-        onsets=np.array([w.onset for w in written], dtype=np.int64),
-        starts=np.array([w.start for w in written], dtype=np.int64),
-        epochs=np.stack([w.epoch for w in written]) if written else np.zeros((0, 0, 0)),
-        dropped=np.array(dropped, dtype=np.int64).reshape(-1, 3),
-        t0=np.float64(simulation.t0),
-    )
-
-
-@dataclass(frozen=True)
-class Comparison:
-    """A recording's epochs against the epochs the simulator wrote.
-
-    Attributes
-    ----------
-    recorded : int
-        Epochs in the recording.
-    equal : int
-        Of those, the ones equal sample for sample (float32) to the last epoch written
-        for their step.
-    mismatches : list of str
-        What differs, per step.
-    """
-
-    recorded: int
-    equal: int
-    mismatches: list[str]
-
-
-def check_recording(written_path: Path, recording_path: Path) -> Comparison:
-    """Compare every ``/epoch`` of a recording with what the simulator wrote for its step."""
-    with np.load(written_path, allow_pickle=False) as arrays:
-        last = {int(step): arrays["epochs"][i] for i, step in enumerate(arrays["steps"])}
-    recording = read_recording(recording_path)
-    mismatches, equal = [], 0
-    epochs = recording.accepted_epochs()
-    for message in epochs:
-        step, data = message["step"], decode_array(message)
-        if step not in last:
-            mismatches.append(f"step {step}: recorded, never written")
-        elif data.shape != last[step].shape:
-            mismatches.append(f"step {step}: shape {data.shape}, written {last[step].shape}")
-        elif not np.array_equal(data, last[step]):
-            differ = int((data != last[step]).sum())
-            mismatches.append(f"step {step}: {differ} of {data.size} samples differ")
-        else:
-            equal += 1
-    return Comparison(len(epochs), equal, mismatches)

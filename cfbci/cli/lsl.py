@@ -207,15 +207,27 @@ def _add_simulator(commands: argparse._SubParsersAction) -> None:
                    help="seconds the EEG outlet stays closed (default 1)")
     p.add_argument("--written", type=Path, metavar="FILE.npz",
                    help="save every epoch written into the stream (for lsl-check)")
+    p.add_argument("--onsets", metavar="NAME",
+                   help="listen: make no onsets, take them from this marker stream (a "
+                   "stimulus program's, e.g. cfbci view --stimulus) and the moves from the "
+                   "service; the EEG then runs |tmin| + --marker-latency behind real time")
+    p.add_argument("--marker-latency", type=float, default=0.3, metavar="SECONDS",
+                   help="with --onsets: how late an onset marker may arrive (default 0.3)")
     p.set_defaults(run=_run_simulator)
 
 
 def _run_simulator(args: argparse.Namespace, console: Console) -> int:
     _load_liblsl()
-    from acquisition.lsl_simulator import SimulatorSettings, run_simulator, save_written
+    from acquisition.lsl_simulator import SimulatorSettings, run_simulator
+    from acquisition.lsl_written import save_written
 
     if args.onset_delay <= 0 or args.outage <= 0 or args.timeout <= 0:
         raise ValueError("--onset-delay, --outage and --timeout must be positive")
+    if not args.marker_latency > 0:
+        raise ValueError(f"--marker-latency must be positive; got {args.marker_latency}")
+    if args.onsets is not None and (args.drop or args.late_onset or args.restart_after):
+        raise ValueError("--drop, --late-onset and --restart-after test the simulator's own "
+                         "onsets: they do not go with --onsets")
     if args.synthetic != "errp":  # the other generators make feature vectors
         raise ValueError("the LSL simulator streams EEG: it needs the synthetic ErrP generator "
                          f"or a dataset of raw epochs, not --synthetic {args.synthetic}")
@@ -225,7 +237,7 @@ def _run_simulator(args: argparse.Namespace, console: Console) -> int:
         eeg=args.eeg, markers=args.markers, moves=args.moves, onset_delay=args.onset_delay,
         drops=tuple(args.drop), late_markers=tuple(args.late_onset),
         restart_after=args.restart_after, outage=args.outage,
-        timeout=args.timeout,
+        timeout=args.timeout, onsets=args.onsets, marker_latency=args.marker_latency,
     )
     stop = _stop_on_signals()
     try:
@@ -241,6 +253,9 @@ def _run_simulator(args: argparse.Namespace, console: Console) -> int:
     console.print(f"session {args.session!r}: {len(written)} epochs written for "
                   f"{len(steps)} steps ({len(written) - len(steps)} repeats); first target at "
                   f"step {first}, {correct} correct, {len(simulation.targets) - correct} wrong")
+    if simulation.late:
+        console.print(f"{len(simulation.late)} onset markers came too late to be written "
+                      f"(steps {[step for step, _ in simulation.late]}): raise --marker-latency")
     if args.written:
         save_written(args.written, simulation)
     return 0
@@ -257,7 +272,7 @@ def _add_check(commands: argparse._SubParsersAction) -> None:
 
 
 def _run_check(args: argparse.Namespace, console: Console) -> int:
-    from acquisition.lsl_simulator import check_recording
+    from acquisition.lsl_written import check_recording
 
     result = check_recording(args.written, args.recording)
     for mismatch in result.mismatches:

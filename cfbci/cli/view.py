@@ -5,7 +5,8 @@
 subject view at ``/subject?session=ID``, to this machine only by default, and to a browser
 that has the access token only: it prints both addresses with the token
 (``?token=...``). The token is ``--token``, else the environment variable
-:data:`cfbci.view.TOKEN_ENV`, else a random one made at start.
+:data:`cfbci.view.TOKEN_ENV`, else a random one made at start. With ``--stimulus`` the
+subject page is the stimulus program of ``cfbci lsl-bridge`` (`cfbci.view.stimulus`).
 """
 
 from __future__ import annotations
@@ -14,8 +15,13 @@ import argparse
 import logging
 import os
 import secrets
+from pathlib import Path
+from typing import TYPE_CHECKING
 
 from cfbci.view import TOKEN_ENV
+
+if TYPE_CHECKING:
+    from cfbci.view.stimulus import StimulusSettings
 
 
 def add_view_command(commands: argparse._SubParsersAction) -> argparse.ArgumentParser:
@@ -51,8 +57,36 @@ def add_view_command(commands: argparse._SubParsersAction) -> argparse.ArgumentP
     p.add_argument("--hide-truth", action="store_true",
                    help="take in no truth messages: the pages never show the user's target, "
                    "nor whether a declared target was the user's")
+    _add_stimulus_options(p)
     p.set_defaults(run=_run_view)
     return p
+
+
+def _add_stimulus_options(p: argparse.ArgumentParser) -> None:
+    group = p.add_argument_group(
+        "stimulus", "the subject page as the stimulus program of cfbci lsl-bridge: it shows "
+        "the moves of the bridge's LSL move stream and sends each onset, timed by the frame "
+        "that showed it, as an LSL marker (docs/tutorials/lab-session.md)",
+    )
+    group.add_argument("--stimulus", action="store_true",
+                       help="make the subject page the stimulus program")
+    group.add_argument("--moves", default="cfbci-moves", metavar="NAME",
+                       help="the bridge's LSL move stream (default cfbci-moves)")
+    group.add_argument("--onsets", default="cfbci-onsets", metavar="NAME",
+                       help="name of the LSL onset marker outlet, the bridge's --markers "
+                       "(default cfbci-onsets)")
+    group.add_argument("--interval", type=float, default=3.0, metavar="SECONDS",
+                       help="least time from one onset to the next (default 3)")
+    group.add_argument("--grid", type=int, default=5, help="grid side (default 5)")
+    group.add_argument("--no-fixation", action="store_true",
+                       help="no fixation cross at the centre of the grid")
+    group.add_argument("--target", type=int, metavar="CELL",
+                       help="show the subject this cell as the target (default: none)")
+    group.add_argument("--frame-tolerance", type=float, default=1.5, metavar="PERIODS",
+                       help="a frame interval beside an onset longer than this many refresh "
+                       "periods makes the onset invalid: the move is shown again (default 1.5)")
+    group.add_argument("--onset-log", type=Path, metavar="FILE.jsonl",
+                       help="append every onset (valid or not) to this JSON Lines file")
 
 
 def _token(args: argparse.Namespace) -> tuple[str, str]:
@@ -86,5 +120,19 @@ def _run_view(args: argparse.Namespace, _: object) -> int:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
     logging.getLogger("aiohttp.access").setLevel(logging.WARNING)  # not every file served
     run_view(args.listen, args.connect, zenoh_config, access=access, host=args.host,
-             port=args.port, hide_truth=args.hide_truth, on_ready=print_addresses)
+             port=args.port, hide_truth=args.hide_truth, on_ready=print_addresses,
+             stimulus=_stimulus(args))
     return 0
+
+
+def _stimulus(args: argparse.Namespace) -> StimulusSettings | None:
+    """The stimulus settings of ``--stimulus`` (checked), or None without it."""
+    if not args.stimulus:
+        return None
+    from cfbci.view.stimulus import StimulusSettings
+
+    return StimulusSettings(
+        moves=args.moves, onsets=args.onsets, interval=args.interval, grid=args.grid,
+        fixation=not args.no_fixation, target=args.target,
+        frame_tolerance=args.frame_tolerance, onset_log=args.onset_log,
+    )

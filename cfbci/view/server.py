@@ -13,6 +13,7 @@ Routes:
   balanced accuracy, latency; a session picker); ``/?session=ID`` follows ``ID``.
 * ``/subject``: the subject view (the grid and the agent only, full screen, for the
   stimulus screen); ``/subject?session=ID``.
+* ``/stimulus``: with a stimulus, its page's WebSocket (:mod:`cfbci.view.stimulus`).
 * ``/ws``: the WebSocket. The server sends ``{"type": "sessions", "sessions": [...]}``
   whenever the list of sessions changes, and for the followed session
   ``{"type": "snapshot", ...}`` then ``{"type": "update", "session", "set", "append"}``
@@ -62,7 +63,7 @@ import urllib.parse
 from collections.abc import Awaitable, Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import zenoh
 from aiohttp import WSMsgType, web
@@ -72,6 +73,9 @@ from wire import protocol
 from wire.protocol import NO_SESSION, ProtocolError
 from wire.transport import Pump, Received
 from wire.zenoh_config import free_tcp_endpoint, peer_config
+
+if TYPE_CHECKING:
+    from cfbci.view.stimulus import Stimulus, StimulusSettings
 
 log = logging.getLogger("cfbci.view")
 
@@ -297,6 +301,7 @@ class ViewServer:
     def __init__(self, hide_truth: bool = False) -> None:
         self.book = SessionBook(hide_truth)
         self.pages: set[_Page] = set()
+        self.stimulus: Stimulus | None = None
 
     def receive(self, received: Received) -> None:
         """Take in one sample from Zenoh and tell the pages what changed."""
@@ -370,6 +375,10 @@ class ViewServer:
         app.router.add_get("/", page("operator.html"))
         app.router.add_get("/subject", page("subject.html"))
         app.router.add_get("/ws", self.websocket)
+        if self.stimulus is not None:
+            app.router.add_get("/stimulus", self.stimulus.socket)
+            app.on_startup.append(self.stimulus.start)
+            app.on_shutdown.append(self.stimulus.close)
         app.router.add_static("/static", STATIC)
         return app
 
@@ -441,6 +450,7 @@ def run_view(
     port: int = 8080,
     hide_truth: bool = False,
     on_ready: Callable[[str], None],
+    stimulus: StimulusSettings | None = None,
 ) -> None:
     """Serve the view until SIGINT or SIGTERM.
 
@@ -465,6 +475,8 @@ def run_view(
     on_ready : callable
         ``on_ready(address)`` once the server accepts connections: its
         :func:`base_address`, e.g. ``http://127.0.0.1:8080`` (without the token).
+    stimulus : StimulusSettings or None
+        Make the subject page the stimulus program (`cfbci.view.stimulus`).
 
     Raises
     ------
@@ -477,8 +489,12 @@ def run_view(
     sock = _bind(host, port)
     bound = sock.getsockname()[1]
     guard = Guard(access, host, bound)
+    server = ViewServer(hide_truth)
+    if stimulus is not None:
+        from cfbci.view.stimulus import Stimulus  # pylsl only for a stimulus
+        server.stimulus = Stimulus(stimulus, _Page)
     try:
-        asyncio.run(_serve(config, sock, guard, ViewServer(hide_truth),
+        asyncio.run(_serve(config, sock, guard, server,
                            lambda: on_ready(base_address(host, bound))))
     finally:
         sock.close()
