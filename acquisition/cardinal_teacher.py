@@ -3,8 +3,8 @@
 The goal is uniform in ``[0, 1]^2``. At every probe point the teacher draws a direction from
 the cardinal frame of its goal with its own noise (0 by default: the thesis code's), and
 answers with a signal of the dataset class standing for that direction, drawn without
-replacement (:class:`acquisition.signal_pools.SignalPools`). Dataset class
-``class_order[k]`` stands for direction ``k`` of :data:`calibration_free.cardinal.DIRECTIONS`
+replacement (`acquisition.signal_pools.SignalPools`). Dataset class
+``class_order[k]`` stands for direction ``k`` of `calibration_free.cardinal.DIRECTIONS`
 (default: class k), a mapping the learner never knows.
 
 Random draws, in order, from the teacher's generator: the goal (two uniforms), then per

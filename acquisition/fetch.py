@@ -6,12 +6,12 @@ user's machine downloads them from their source; cfbci never redistributes them.
 Where the files come from
     ``BASE/OWNER/REPOSITORY/COMMIT/PATH``: ``BASE`` is
     ``https://raw.githubusercontent.com`` (GitHub's raw files), or the value of the
-    environment variable :data:`URL_VARIABLE` (``CFBCI_DATASETS_URL``) for a mirror laid out
+    environment variable `URL_VARIABLE` (``CFBCI_DATASETS_URL``) for a mirror laid out
     the same way, e.g. ``https://mirror.example/cfbci`` serves
     ``https://mirror.example/cfbci/jgrizou/bci_thesis/0d78.../s4.mat``.
 Where they are kept
-    The user's cache folder (:func:`pooch.os_cache`, ``~/.cache/cfbci`` on Linux), or the
-    folder named by the environment variable :data:`FOLDER_VARIABLE` (``CFBCI_DATA_DIR``).
+    The user's cache folder (`pooch.os_cache`, ``~/.cache/cfbci`` on Linux), or the
+    folder named by the environment variable `FOLDER_VARIABLE` (``CFBCI_DATA_DIR``).
 
 A download whose sha256 differs from the pinned one is refused and nothing is kept.
 """
@@ -115,7 +115,7 @@ def base_url() -> str:
 
 
 def remote_dataset(name: str) -> RemoteDataset:
-    """The pinned data set called ``name`` (a key of :data:`DATASETS`)."""
+    """The pinned data set called ``name`` (a key of `DATASETS`)."""
     try:
         return DATASETS[name]
     except KeyError:
@@ -130,12 +130,12 @@ def fetch(name: str, folder: Path | None = None, base: str | None = None) -> Pat
     Parameters
     ----------
     name
-        A key of :data:`DATASETS`.
+        A key of `DATASETS`.
     folder
-        Where to keep the file (default :func:`data_folder`).
+        Where to keep the file (default `data_folder`).
     base
         Base address, the file at ``BASE/OWNER/REPOSITORY/COMMIT/PATH`` (default
-        :func:`base_url`).
+        `base_url`).
 
     Returns
     -------
@@ -165,7 +165,7 @@ def fetch(name: str, folder: Path | None = None, base: str | None = None) -> Pat
 
 
 def fetched_path(name: str, folder: Path | None = None) -> Path:
-    """The absolute path of data set ``name`` in ``folder`` (default :func:`data_folder`).
+    """The absolute path of data set ``name`` in ``folder`` (default `data_folder`).
 
     Raises
     ------

@@ -1,15 +1,15 @@
 """A session as a continuous raw ``.fif``, played on LSL by mne-lsl's ``PlayerLSL``.
 
-An amplifier stream the project did not write: :func:`session_raw` lays the epochs a
-simulated user answers with (:func:`user_epochs`, for a seed and the moves the service
-will make) out in time as an :class:`mne.io.RawArray` in volts, between stretches of
-continuous background (:class:`acquisition.lsl_simulator.Background`), each epoch's onset
-an annotation ``onset <step>``. :func:`play_and_record` (``python -m
+An amplifier stream the project did not write: `session_raw` lays the epochs a
+simulated user answers with (`user_epochs`, for a seed and the moves the service
+will make) out in time as an `mne.io.RawArray` in volts, between stretches of
+continuous background (`acquisition.lsl_simulator.Background`), each epoch's onset
+an annotation ``onset <step>``. `play_and_record` (``python -m
 acquisition.fif_stream``) is then the lab: mne-lsl's ``PlayerLSL`` plays the file as an
 amplifier (stream ``<name>``, float64 volts, units as mne-lsl writes them) and its
 annotations as the stimulus program's markers (stream ``<name>-annotations``, strings),
 and a recorder in the manner of LabRecorder takes the EEG, the annotations and the
-bridge's moves off LSL into an XDF file (:func:`acquisition.lab_formats.write_xdf`).
+bridge's moves off LSL into an XDF file (`acquisition.lab_formats.write_xdf`).
 
 The file is played as recorded, whatever the moves: each onset must come after the move
 of its step, so the first onset comes ``lead_in`` s after the start, and onsets follow
@@ -49,7 +49,7 @@ def user_epochs(
 ) -> tuple[LabelledEpochs, list[int]]:
     """The synthetic epochs of a session seed and the ones its user answers the moves with.
 
-    The data and user streams are the session's (:func:`session_streams`), as in
+    The data and user streams are the session's (`session_streams`), as in
     ``cfbci lsl-simulator``: with the moves the service makes for that seed, these are the
     epochs of ``cfbci session --seed``.
 
@@ -105,7 +105,7 @@ def session_raw(
     -------
     mne.io.RawArray
         EEG channels in volts (float64: a float32 µV value survives ``/ 1e6`` then
-        ``* 1e6``), ``n_times`` the last window's end plus :data:`TAIL`, one annotation of
+        ``* 1e6``), ``n_times`` the last window's end plus `TAIL`, one annotation of
         duration 0 per onset.
 
     Raises
@@ -137,10 +137,10 @@ def session_raw(
 
 
 def _background(n_channels: int, sfreq: float, seed: int, n: int) -> np.ndarray:
-    """``n`` samples of :class:`acquisition.lsl_simulator.Background`, shape (n_channels,
+    """``n`` samples of `acquisition.lsl_simulator.Background`, shape (n_channels,
     n), float64 µV.
 
-    Imported here: :mod:`acquisition.lsl_simulator` loads pylsl's liblsl, which the
+    Imported here: `acquisition.lsl_simulator` loads pylsl's liblsl, which the
     player's process (mne-lsl's own liblsl) does not load.
     """
     from acquisition.lsl_simulator import Background

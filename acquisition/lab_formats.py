@@ -1,37 +1,37 @@
 """Epochs in the lab's own file formats: MNE epochs files (``-epo.fif``) and XDF recordings.
 
-:mod:`acquisition.loaders` reads both through these functions and checks the result as it
+`acquisition.loaders` reads both through these functions and checks the result as it
 checks an epochs ``.npz``. Both need optional packages: ``mne`` (``pip install
 'cfbci[mne]'``) and ``pyxdf`` (``pip install 'cfbci[xdf]'``); without them the error says
 which to install.
 
-**Class names.** A label is named as in :data:`CLASS_NAMES`: feedback ``correct`` (0),
+**Class names.** A label is named as in `CLASS_NAMES`: feedback ``correct`` (0),
 ``error`` (1); guidance ``up``, ``down``, ``left``, ``right`` (0..3, the grid's moves). An
 MNE event name or an XDF marker value carries a class when one of its ``/``-separated tags
 (MNE's tag convention, case-insensitive) is a class name: ``error``, ``feedback/error``
 and ``Error/visual`` all mean error. Guidance in another world names its classes by that
-world's guidance actions, tagged with the world (:func:`class_names`): ``line/right``,
+world's guidance actions, tagged with the world (`class_names`): ``line/right``,
 ``line/left``, ``line/no-move``; ``pick-and-place/right``, ``pick-and-place/left``,
 ``pick-and-place/grasp``, ``pick-and-place/release`` (0..K-1, in action order). The world
 tag is needed: ``right`` is class 3 on the grid but 0 in pick-and-place; a name tagged
 with a world reads with that world's names (MNE's ``epochs["grasp"]`` still selects by the
 action alone).
 
-**MNE epochs** (:func:`read_fif_epochs`): the EEG channels not marked bad, volts turned
+**MNE epochs** (`read_fif_epochs`): the EEG channels not marked bad, volts turned
 into microvolts, with the file's ``sfreq``, ``tmin`` and channel names. Labels come from the
 event names (each must name one class), or, when every event name is a number (MNE's
 names for an ``event_id`` it was not given), from the event codes in the ``.mat``
 convention: feedback 1 = correct, 2 = error; guidance 1..4.
 
-**XDF recordings** (:func:`read_xdf_epochs`): exactly one stream of type ``EEG`` (numeric,
+**XDF recordings** (`read_xdf_epochs`): exactly one stream of type ``EEG`` (numeric,
 regular rate, channel labels in its metadata, ``desc/channels/channel/label``; units from
 ``.../unit``: microvolts when absent, as XDF's EEG convention says, or millivolts or volts,
 by name or as a power of ten of volts as mne-lsl writes them, converted) and one of type
 ``Markers`` (strings). Each marker whose value names a class (see above) is an action
 onset: the epoch is cut around it exactly as ``cfbci lsl-bridge`` cuts a live stream
-(:meth:`acquisition.lsl_epochs.SampleBuffer.cut`, MNE's way): from the sample nearest
+(`acquisition.lsl_epochs.SampleBuffer.cut`, MNE's way): from the sample nearest
 the marker's time, ``round(tmin * sfreq)`` to ``round(tmax * sfreq)`` samples
-around it (both included; ``tmin``, ``tmax`` :data:`XDF_EPOCH_WINDOW`), so its ``tmin`` is
+around it (both included; ``tmin``, ``tmax`` `XDF_EPOCH_WINDOW`), so its ``tmin`` is
 ``round(tmin * sfreq) / sfreq``; samples as float32 (the wire format), then scaled to
 microvolts. Other markers (trial starts, comments, the bridge's ``onset <step>``, which
 carry no label) are ignored. A marker whose window is not entirely inside the EEG stream,
@@ -39,12 +39,12 @@ or spans a discontinuity in it, gives no epoch; how many were left out, and why 
 was, is said in a warning. Timestamps are pyxdf's: clocks synchronised and the EEG's jitter
 removed.
 
-**A session recorded in XDF** (:func:`read_xdf_session`): a LabRecorder file of an
+**A session recorded in XDF** (`read_xdf_session`): a LabRecorder file of an
 ``cfbci lsl-bridge`` session, read back with the streams named: every onset marker
 ``onset <step>`` of the marker stream (the bridge's rule, with its correction of mne-lsl's
 ``PlayerLSL`` annotations, one sample early) and its epoch, cut as the bridge cuts it (the
 samples scaled to microvolts in float64, then float32: the bridge's own arithmetic), to
-compare with the session's recording. :func:`write_xdf` writes an XDF file (the
+compare with the session's recording. `write_xdf` writes an XDF file (the
 specification's FileHeader, StreamHeader, Samples, ClockOffset and StreamFooter chunks)
 from streams recorded off LSL, as LabRecorder does.
 """
@@ -74,7 +74,7 @@ from calibration_free.worlds import WORLDS, make_world
 
 #: Class names per frame, in label order (a grid world's: guidance classes are its moves).
 CLASS_NAMES: dict[str, tuple[str, ...]] = {"feedback": ("correct", "error"), "guidance": MOVES}
-#: Worlds whose guidance classes are named with their world's tag (:func:`class_names`).
+#: Worlds whose guidance classes are named with their world's tag (`class_names`).
 TAGGED_WORLDS: tuple[str, ...] = tuple(kind for kind in WORLDS if kind != "grid")
 
 #: Epoch window around an XDF marker (tmin, tmax), seconds: that of the synthetic epochs.
@@ -87,7 +87,7 @@ Arrays = dict[str, Any]
 
 def class_names(frame: str, world: World | None = None) -> tuple[str, ...]:
     """The names of a frame's classes in ``world``, in label order (see the module
-    docstring): :data:`CLASS_NAMES`, except guidance outside the grid, whose classes are the
+    docstring): `CLASS_NAMES`, except guidance outside the grid, whose classes are the
     world's guidance actions tagged with the world (``pick-and-place/grasp``).
 
     Parameters
@@ -208,7 +208,7 @@ def write_fif_epochs(
     ``epochs`` microvolts become volts; events are ``[i, 0, label + 1]`` for epoch ``i``
     (the epochs' order; no continuous recording lies behind them) with ``event_id``
     ``{class name: label + 1}`` for the classes present, named as in ``world``
-    (:func:`class_names`; None: a grid).
+    (`class_names`; None: a grid).
 
     Raises
     ------
@@ -253,7 +253,7 @@ def read_xdf_epochs(
     Returns
     -------
     dict
-        As :func:`read_fif_epochs`: ``epochs`` (n_epochs, n_channels, n_times) microvolts
+        As `read_fif_epochs`: ``epochs`` (n_epochs, n_channels, n_times) microvolts
         with ``n_times = round(tmax * sfreq) - round(tmin * sfreq) + 1``, ``sfreq`` (the
         EEG stream's nominal rate), ``tmin``, ``ch_names``, ``labels``.
 
@@ -418,7 +418,7 @@ def read_xdf_session(
         (n,), the timestamp of each onset's nearest EEG sample, s (NaN where no epoch);
         ``epochs`` float32 (n_cut, n_channels, n_times) microvolts of the onsets whose
         window is whole, in order, and ``cut`` int (n_cut,) their positions in ``steps``;
-        ``sfreq``, ``tmin``, ``ch_names`` as :func:`read_xdf_epochs`; ``marker_shift``
+        ``sfreq``, ``tmin``, ``ch_names`` as `read_xdf_epochs`; ``marker_shift``
         int, the shift applied.
 
     Raises
@@ -480,7 +480,7 @@ _XDF_FORMATS = {"float32": "<f4", "double64": "<f8", "int8": "<i1", "int16": "<i
 
 @dataclass
 class XdfStream:
-    """One stream as recorded off LSL, for :func:`write_xdf`.
+    """One stream as recorded off LSL, for `write_xdf`.
 
     Attributes
     ----------
@@ -488,7 +488,7 @@ class XdfStream:
         The stream's info as LSL gives it (an XML ``<info>`` document: name, type,
         channel_count, nominal_srate, channel_format, desc, ...).
     channel_format : str
-        ``"string"`` or a numeric format of :data:`_XDF_FORMATS` (the header's).
+        ``"string"`` or a numeric format of `_XDF_FORMATS` (the header's).
     times : ndarray, shape (n_samples,)
         Timestamps as received (the stream's clock), s.
     values : ndarray, shape (n_samples, n_channels), or list of list of str

@@ -2,7 +2,7 @@
 
 Labels are integers 0..n_classes-1. For the feedback frame 0 = correct and 1 = error; for
 the guidance frame class k is one of the four move directions (see
-:mod:`acquisition.user` for the fixed, documented mapping the simulated user applies).
+`acquisition.user` for the fixed, documented mapping the simulated user applies).
 """
 
 from __future__ import annotations

@@ -1,39 +1,39 @@
-"""Read labelled BCI data from disk; :func:`load_labelled` is the single entry point.
+"""Read labelled BCI data from disk; `load_labelled` is the single entry point.
 
 Six formats are read, chosen by the file extension and then checked against the content:
 
-``.mat`` (MATLAB v4-v7, read with :func:`scipy.io.loadmat`; the thesis data sets)
+``.mat`` (MATLAB v4-v7, read with `scipy.io.loadmat`; the thesis data sets)
     Variable ``X``, shape (n_signals, n_features), real numbers (microvolts for ErrP
     features), and variable ``Y``, shape (n_signals, 1), (1, n_signals) or (n_signals,),
     1-based labels: feedback 1 = correct, 2 = error; guidance 1..4, one per move direction.
-``.npz`` features (written by :func:`save_features_npz`)
+``.npz`` features (written by `save_features_npz`)
     ``features`` float, shape (n_signals, n_features); ``labels`` int, shape (n_signals,),
     0-based: feedback 0 = correct, 1 = error; guidance 0..3.
-``.npz`` epochs (written by :func:`save_epochs_npz`)
+``.npz`` epochs (written by `save_epochs_npz`)
     ``epochs`` float, shape (n_epochs, n_channels, n_times), microvolts; ``sfreq`` scalar,
     Hz; ``tmin`` scalar, seconds (time of the first sample relative to action onset);
     ``ch_names`` str, shape (n_channels,); ``labels`` int, shape (n_epochs,), 0-based.
-    :class:`decoding.features.ErrPFeatures` turns the epochs into feature vectors.
-``.mcap`` session recordings (written by :class:`replay.recording.SessionRecorder`)
+    `decoding.features.ErrPFeatures` turns the epochs into feature vectors.
+``.mcap`` session recordings (written by `replay.recording.SessionRecorder`)
     The epochs the session's service accepted (``/epoch``), each labelled with the
     ``label`` of its step's ``/truth``: raw epochs (float32 microvolts, with the recorded
     ``sfreq``, ``tmin`` and ``ch_names``) when the session sent raw epochs, feature
-    vectors otherwise; see :func:`load_recording_dataset`.
+    vectors otherwise; see `load_recording_dataset`.
 ``-epo.fif`` MNE epochs (``.fif``, ``.fif.gz``; optional package ``mne``)
     The EEG channels not marked bad, volts turned into microvolts, with the file's
     ``sfreq``, ``tmin`` and channel names; labels from the event names (``correct``,
     ``error``; guidance ``up``, ``down``, ``left``, ``right``; or MNE tags of them such as
     ``feedback/error``), or from the event codes in the ``.mat`` convention when every event
-    name is a number; see :mod:`acquisition.lab_formats`.
+    name is a number; see `acquisition.lab_formats`.
 ``.xdf`` XDF recordings (``.xdfz``, ``.xdf.gz``; optional package ``pyxdf``)
     One ``EEG`` stream and one ``Markers`` stream; every marker whose value is a class name
     (as for MNE event names) is an action onset, and its epoch is cut MNE-style from
-    -0.2 s to 1.0 s around it (:data:`acquisition.lab_formats.XDF_EPOCH_WINDOW`); see
-    :mod:`acquisition.lab_formats`.
+    -0.2 s to 1.0 s around it (`acquisition.lab_formats.XDF_EPOCH_WINDOW`); see
+    `acquisition.lab_formats`.
 
 Labels always come back 0-based. The *feedback* frame needs exactly 2 classes (correct,
 error); the *guidance* frame exactly 4 (the four move directions). Every class needs at least
-:data:`MIN_SIGNALS_PER_CLASS` signals. A file holding anything else -- missing or unknown
+`MIN_SIGNALS_PER_CLASS` signals. A file holding anything else -- missing or unknown
 keys, wrong shapes, NaN, non-integer or unknown labels -- is rejected with a ``ValueError``
 that names the file and the problem; unknown keys are rejected rather than ignored, so a typo
 (``label`` for ``labels``) or a stray array (``X_test``) never goes unnoticed. NumPy files are
@@ -68,7 +68,7 @@ MIN_SIGNALS_PER_CLASS = 2
 _MAT_VARIABLES = ("X", "Y")
 _FEATURE_KEYS = ("features", "labels")
 _EPOCH_KEYS = ("epochs", "sfreq", "tmin", "ch_names", "labels")
-#: File-name endings of the formats read by :mod:`acquisition.lab_formats`.
+#: File-name endings of the formats read by `acquisition.lab_formats`.
 _LAB_FORMATS = {".fif": "fif", ".fif.gz": "fif", ".xdf": "xdf", ".xdfz": "xdf", ".xdf.gz": "xdf"}
 #: The endings MNE expects of an epochs file's name.
 _FIF_EPOCHS_ENDINGS = ("-epo.fif", "_epo.fif", "-epo.fif.gz", "_epo.fif.gz")
@@ -81,9 +81,9 @@ def load_labelled(path: PathLike, *, frame: str = "feedback") -> LabelledFeature
     ----------
     path : str or path-like
         A ``.mat`` file (``X``, ``Y``), a features ``.npz``, an epochs ``.npz``, a session
-        recording ``.mcap`` (see the module docstring and :func:`load_recording_dataset`),
+        recording ``.mcap`` (see the module docstring and `load_recording_dataset`),
         MNE epochs (``-epo.fif``) or an XDF recording (``.xdf``).
-        Epochs are turned into features with :class:`decoding.features.ErrPFeatures` and
+        Epochs are turned into features with `decoding.features.ErrPFeatures` and
         its default channels.
     frame : {"feedback", "guidance"}
         "feedback": exactly 2 classes, 0 = correct, 1 = error (1 and 2 in a ``.mat``).
@@ -138,10 +138,10 @@ def load_epochs(path: PathLike, *, frame: str = "feedback") -> LabelledEpochs:
     Parameters
     ----------
     path : str or path-like
-        An epochs ``.npz`` as written by :func:`save_epochs_npz`, a session recording of
+        An epochs ``.npz`` as written by `save_epochs_npz`, a session recording of
         raw epochs (``.mcap``), MNE epochs (``-epo.fif``) or an XDF recording (``.xdf``).
     frame : {"feedback", "guidance"}
-        Which labels are valid, as in :func:`load_labelled`.
+        Which labels are valid, as in `load_labelled`.
 
     Returns
     -------
@@ -195,7 +195,7 @@ def load_recording_dataset(
     Parameters
     ----------
     path : str or path-like
-        An ``.mcap`` recording (:class:`replay.recording.SessionRecorder`), complete or cut.
+        An ``.mcap`` recording (`replay.recording.SessionRecorder`), complete or cut.
     frame : {"feedback", "guidance"} or None
         Must be the recorded session's frame; None: the recorded session's frame.
 
@@ -264,7 +264,7 @@ def load_recording_dataset(
 
 
 def features_from_epochs(epochs: LabelledEpochs) -> LabelledFeatures:
-    """Turn labelled epochs into ErrP feature vectors with :class:`ErrPFeatures`.
+    """Turn labelled epochs into ErrP feature vectors with `ErrPFeatures`.
 
     Parameters
     ----------
@@ -320,7 +320,7 @@ def save_features_npz(path: PathLike, features: np.ndarray, labels: np.ndarray) 
 
 
 def save_epochs_npz(path: PathLike, epochs: LabelledEpochs) -> None:
-    """Write labelled epochs as an epochs ``.npz`` that :func:`load_epochs` reads back.
+    """Write labelled epochs as an epochs ``.npz`` that `load_epochs` reads back.
 
     Parameters
     ----------
@@ -348,7 +348,7 @@ def save_epochs_npz(path: PathLike, epochs: LabelledEpochs) -> None:
 
 
 def save_epochs_fif(path: PathLike, epochs: LabelledEpochs, world: World | None = None) -> None:
-    """Write labelled epochs as an MNE epochs file that :func:`load_epochs` reads back.
+    """Write labelled epochs as an MNE epochs file that `load_epochs` reads back.
 
     Parameters
     ----------
@@ -360,7 +360,7 @@ def save_epochs_fif(path: PathLike, epochs: LabelledEpochs, world: World | None 
         ``ch_names`` (EEG channels) and 0-based labels, which become events
         ``[i, 0, label + 1]`` named after their classes (``correct``, ``error``; guidance
         ``up``, ``down``, ``left``, ``right``, or ``world``'s guidance actions); see
-        :func:`acquisition.lab_formats.write_fif_epochs`.
+        `acquisition.lab_formats.write_fif_epochs`.
     world : World, optional
         The world whose guidance classes name the events (None: a grid).
 
@@ -385,7 +385,7 @@ def save_epochs_fif(path: PathLike, epochs: LabelledEpochs, world: World | None 
 
 
 def _lab_format(path: Path) -> str | None:
-    """"fif" or "xdf" for the file names of :mod:`acquisition.lab_formats`, else None."""
+    """"fif" or "xdf" for the file names of `acquisition.lab_formats`, else None."""
     name = path.name.lower()
     return next((kind for end, kind in _LAB_FORMATS.items() if name.endswith(end)), None)
 

@@ -1,10 +1,10 @@
 """Epochs cut from continuous, timestamped EEG: the bridge's sample buffer.
 
-:class:`SampleBuffer` keeps the last seconds of a regularly sampled stream with each
+`SampleBuffer` keeps the last seconds of a regularly sampled stream with each
 sample's timestamp and arrival time, and splits it into *segments* at every
 discontinuity: consecutive timestamps more than ``1 + tolerance`` sample periods apart
 (samples dropped, a stream restarted) or less than ``1 - tolerance`` apart (duplicated or
-backwards timestamps). :meth:`SampleBuffer.cut` takes the samples around an onset in
+backwards timestamps). `SampleBuffer.cut` takes the samples around an onset in
 MNE's way: the onset is the sample nearest the onset time, the epoch runs from
 ``round(tmin * sfreq)`` to ``round(tmax * sfreq)`` samples after it, both included. An
 epoch is only ever cut from one segment: a window that reaches across a discontinuity,
@@ -12,9 +12,9 @@ or whose onset falls into one, is refused; a window whose last sample has not ar
 yet is waited for.
 
 `nearest_sample` is the onset rule the bridge and the LSL simulator share. Two
-descriptions shared by the live bridge and the XDF reader: :func:`microvolts_per_unit`
+descriptions shared by the live bridge and the XDF reader: `microvolts_per_unit`
 (a channel unit as LSL streams and XDF files declare it) and
-:func:`player_annotation_shift` (the marker offset of mne-lsl's ``PlayerLSL``).
+`player_annotation_shift` (the marker offset of mne-lsl's ``PlayerLSL``).
 """
 
 from __future__ import annotations

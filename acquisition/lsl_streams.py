@@ -6,16 +6,16 @@ Three streams connect a stimulus program (or ``cfbci lsl-simulator``) and the br
   labels (``desc/channels/channel/label``) and nominal rate are the epochs' ``ch_names``
   and ``sfreq``; its units (``desc/channels/channel/unit``) microvolts, millivolts or
   volts, by name or as mne-lsl writes them, a power of ten of volts (``"0"``, ``"-6"``;
-  :func:`acquisition.lsl_epochs.microvolts_per_unit`), scaled to microvolts (none
+  `acquisition.lsl_epochs.microvolts_per_unit`), scaled to microvolts (none
   declared: microvolts);
 * the **marker** stream of the stimulus program: one string channel, irregular; the
   marker ``"onset <step>"`` (or just ``"onset"``; the word is configurable) stamps the
   moment the subject saw the action of that step (mne-lsl's ``PlayerLSL`` annotations,
-  string-encoded, are such a stream, one sample early: :func:`marker_stream_shift`);
+  string-encoded, are such a stream, one sample early: `marker_stream_shift`);
 * the **move** stream of the bridge: one string channel, irregular; every move of the
-  service as a JSON object (:func:`move_marker`), which the stimulus program shows.
+  service as a JSON object (`move_marker`), which the stimulus program shows.
 
-Discovery is liblsl's: multicast on the LAN by default. :func:`loopback_config` gives an
+Discovery is liblsl's: multicast on the LAN by default. `loopback_config` gives an
 ``lsl_api.cfg`` that keeps it on 127.0.0.1 (machine scope, the loopback host as the only
 known peer, IPv6 off, resolve waves of at most 0.5 s) under a session id of its own, for
 tests and demos; a process reads it from the file named by the ``LSLAPICFG`` environment
@@ -81,7 +81,7 @@ def resolve_inlet(
     """An open inlet of the stream called ``name`` (the first one found).
 
     The inlet does not recover a lost stream by itself (``recover=False``): reading a lost
-    stream raises :class:`LostError`, and the caller resolves it again, which also finds a
+    stream raises `LostError`, and the caller resolves it again, which also finds a
     restarted source with a new uid.
 
     Parameters
@@ -168,7 +168,7 @@ def eeg_stream_meta(info: pylsl.StreamInfo) -> StreamMeta:
 
 def marker_stream_shift(info: pylsl.StreamInfo) -> int:
     """Samples of the EEG to add to a marker stream's timestamps, checked: 1 for mne-lsl's
-    ``PlayerLSL`` annotations (:func:`acquisition.lsl_epochs.player_annotation_shift`), 0
+    ``PlayerLSL`` annotations (`acquisition.lsl_epochs.player_annotation_shift`), 0
     otherwise.
 
     Raises
@@ -194,12 +194,12 @@ def move_marker(move: dict[str, Any], repeat: int) -> str:
 
 
 def parse_move_marker(text: str) -> dict[str, Any]:
-    """The fields of a move marker (:func:`move_marker`).
+    """The fields of a move marker (`move_marker`).
 
     Raises
     ------
     ValueError
-        If ``text`` is not a JSON object with exactly :data:`MOVE_MARKER_KEYS`.
+        If ``text`` is not a JSON object with exactly `MOVE_MARKER_KEYS`.
     """
     try:
         move = json.loads(text)

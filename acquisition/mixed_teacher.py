@@ -5,15 +5,15 @@ action is optimal for its task at the state), otherwise guidance (an optimal dir
 uniformly among ties); with probability ``mistake_rate`` the answer is wrong (the other
 feedback label, or a uniform non-optimal direction). It answers with a signal of the
 dataset class standing for that label: class ``k`` is label ``k`` of
-:data:`calibration_free.puddle.MIXED_LABELS` (correct, incorrect, north, south, east,
+`calibration_free.puddle.MIXED_LABELS` (correct, incorrect, north, south, east,
 west), unknown to the learner. Random draws, in order, from the teacher's generator: the
 task, then per action the feedback-or-guidance coin, the mistake coin, the direction
 (guidance only), and pool shuffles when a pool is (re)filled.
 
-The signals themselves (:func:`gaussian_signals`, on the session's data stream) are six
+The signals themselves (`gaussian_signals`, on the session's data stream) are six
 classes of the Gaussian generator, 20-D, nominal accuracy 0.95, as many per class as the
-ErrP synthetic pools: the offline sessions (:mod:`cfbci.offline.puddle`) and the live source
-(:mod:`acquisition.simulated_source`) draw them here.
+ErrP synthetic pools: the offline sessions (`cfbci.offline.puddle`) and the live source
+(`acquisition.simulated_source`) draw them here.
 """
 
 from __future__ import annotations
@@ -32,7 +32,7 @@ SIGNAL_DIMS, SIGNAL_ACCURACY = 20, 0.95
 
 def gaussian_signals(rng: np.random.Generator) -> LabelledFeatures:
     """A puddle session's six-class signals (class ``k`` stands for label ``k`` of
-    :data:`calibration_free.puddle.MIXED_LABELS`)."""
+    `calibration_free.puddle.MIXED_LABELS`)."""
     return generate_gaussian_features(
         SYNTHETIC_EPOCHS_PER_CLASS, len(MIXED_LABELS), SIGNAL_DIMS, SIGNAL_ACCURACY, rng
     )

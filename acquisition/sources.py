@@ -41,19 +41,19 @@ class DataSpec:
     Attributes
     ----------
     path : Path or None
-        A dataset file (see :func:`acquisition.loaders.load_labelled`; a ``.mcap`` session
+        A dataset file (see `acquisition.loaders.load_labelled`; a ``.mcap`` session
         recording answers with its epochs and their truth labels); None: synthetic.
     synthetic_accuracy : float
         Nominal balanced accuracy of the synthetic generator (ignored with a path).
     synthetic : {"errp", "gaussian"}
-        The generator: ErrP EEG epochs (:mod:`acquisition.synthetic`, feedback frame), or
+        The generator: ErrP EEG epochs (`acquisition.synthetic`, feedback frame), or
         Gaussian signals with as many classes as the frame needs
-        (:mod:`acquisition.gaussian`).
+        (`acquisition.gaussian`).
     dims : int
         Dimensions of a Gaussian signal.
     mixing_decay : float
         The Gaussian signals' fixed linear mixing, gamma of
-        :func:`acquisition.gaussian.mixing_matrix` (0: none).
+        `acquisition.gaussian.mixing_matrix` (0: none).
     """
 
     path: Path | None = None
@@ -100,7 +100,7 @@ class DataSpec:
     def load_signals(self, frame: str) -> LabelledEpochs | LabelledFeatures:
         """The signals a live source sends from the dataset file: the raw epochs of a
         session recording that holds them (with its ``sfreq``, ``tmin`` and ``ch_names``),
-        else the file's feature vectors (as :meth:`resolve`)."""
+        else the file's feature vectors (as `resolve`)."""
         if self.path is None:
             raise ValueError("load_signals needs a dataset file; synthetic data are generated")
         if self.path.suffix.lower() == ".mcap":
@@ -117,5 +117,5 @@ def synthetic_epochs(accuracy: float, rng: np.random.Generator) -> LabelledEpoch
 
 
 def synthetic_features(accuracy: float, rng: np.random.Generator) -> LabelledFeatures:
-    """ErrP features of :func:`synthetic_epochs`."""
+    """ErrP features of `synthetic_epochs`."""
     return features_from_epochs(synthetic_epochs(accuracy, rng))

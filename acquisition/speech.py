@@ -9,9 +9,9 @@ reference words that the teacher never says (the thesis's list), each reference 
 once by the default voice. Everything after the synthesiser is deterministic, and the
 synthesiser is deterministic for fixed parameters, so a seed gives the same features.
 
-Parameters (fixed, documented; :class:`SpeechParameters` holds them):
+Parameters (fixed, documented; `SpeechParameters` holds them):
 
-* voices: espeak-ng's English voices in :data:`VOICES` (British, American, Scottish,
+* voices: espeak-ng's English voices in `VOICES` (British, American, Scottish,
   Caribbean, Received Pronunciation, West Midlands, Lancaster, New York City), each with a
   random variant (male ``m1``..``m7`` or female ``f1``..``f5``),
 * speed: uniform 120..200 words per minute; pitch: uniform 20..80 (espeak-ng's 0..99 scale),
@@ -22,9 +22,9 @@ Parameters (fixed, documented; :class:`SpeechParameters` holds them):
 * DTW: Euclidean frame distance, the accumulated cost of the optimal path divided by the
   sum of the two sequences' lengths (so that long words are not far from everything).
 
-*Distractors* are extra words (:data:`DISTRACTOR_WORDS`) spoken by the same random voices;
+*Distractors* are extra words (`DISTRACTOR_WORDS`) spoken by the same random voices;
 they are not written to the dataset (a dataset holds one class per meaning) but are scored
-beside it: :func:`accuracy_report` gives the 10-fold balanced LDA accuracy of the meaning
+beside it: `accuracy_report` gives the 10-fold balanced LDA accuracy of the meaning
 words alone (what a learner decodes) and with the distractors as extra classes (how well the
 features set the meaning words apart from other speech).
 """
@@ -138,7 +138,7 @@ def synthesise(word: str, voice: str, speed_wpm: float, pitch: float) -> np.ndar
     Returns
     -------
     ndarray of float64, shape (n_samples,)
-        The waveform at :data:`SAMPLE_RATE` Hz, in [-1, 1].
+        The waveform at `SAMPLE_RATE` Hz, in [-1, 1].
     """
     import soundfile
 
@@ -154,7 +154,7 @@ def synthesise(word: str, voice: str, speed_wpm: float, pitch: float) -> np.ndar
 
 
 def mfcc_frames(samples: np.ndarray, parameters: SpeechParameters) -> np.ndarray:
-    """MFCC frames of a waveform at :data:`SAMPLE_RATE`.
+    """MFCC frames of a waveform at `SAMPLE_RATE`.
 
     Returns
     -------

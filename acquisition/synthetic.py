@@ -21,11 +21,11 @@ Error epochs carry more power: the mean squared norm of their ErrPFeatures vecto
 calibration tool's output).
 
 No class information lies in a constant offset: both classes share the background, and the
-outcome responses are brief waves. :func:`generate_errp_epochs` chooses ``gain`` from the
+outcome responses are brief waves. `generate_errp_epochs` chooses ``gain`` from the
 wanted difficulty, expressed as the balanced accuracy of a shrinkage LDA on
-:class:`~decoding.features.ErrPFeatures` (see ``_CALIBRATION_ACCURACY``).
+`ErrPFeatures` (see ``_CALIBRATION_ACCURACY``).
 
-Day-to-day drift (:class:`ResponseDrift`, off by default): a user's responses on another
+Day-to-day drift (`ResponseDrift`, off by default): a user's responses on another
 day are scaled in amplitude and shifted in latency. A drift multiplies the outcome responses
 (error and correct waves, and the error's theta burst) by ``amplitude`` and delays them by
 ``latency`` seconds, on top of the per-trial jitter; the background and the response to
@@ -169,7 +169,7 @@ _CALIBRATION_ACCURACY = (
     0.5041, 0.5572, 0.6319, 0.6958, 0.7529, 0.7997, 0.8392, 0.8692, 0.8944, 0.9130, 0.9301,
     0.9421, 0.9515, 0.9595, 0.9658, 0.9706, 0.9748, 0.9783, 0.9806, 0.9829, 0.9851,
 )  # fmt: skip
-#: Range of nominal accuracies accepted by :func:`generate_errp_epochs`.
+#: Range of nominal accuracies accepted by `generate_errp_epochs`.
 ACCURACY_RANGE = (0.55, 0.97)
 
 
@@ -191,7 +191,7 @@ def generate_errp_epochs(
     table (piecewise-linear, monotonic interpolation): it is the mean balanced accuracy a
     shrinkage LDA (``LinearDiscriminantAnalysis(solver="lsqr", shrinkage=0.5,
     priors=[0.5, 0.5])``) reaches with 10-fold stratified cross-validation on the default
-    :class:`~decoding.features.ErrPFeatures` of 800 correct and 200 error epochs at 256 Hz.
+    `ErrPFeatures` of 800 correct and 200 error epochs at 256 Hz.
     Smaller sets give lower cross-validated accuracies (less training data), larger ones
     higher; the response amplitudes assume the default channels' positions but other
     10-10 channels are accepted.
@@ -203,7 +203,7 @@ def generate_errp_epochs(
     accuracy : float, default 0.78
         Nominal balanced accuracy, in ``ACCURACY_RANGE`` = [0.55, 0.97].
     seed : int, SeedSequence or Generator, default 0
-        Seed of :func:`numpy.random.default_rng`; the same seed gives the same epochs.
+        Seed of `numpy.random.default_rng`; the same seed gives the same epochs.
     sfreq : float, default 256.0
         Sampling frequency in Hz.
     tmin, tmax : float, default -0.2 and 1.0
@@ -261,13 +261,13 @@ def generate_errp_epochs_at_gain(
 ) -> LabelledEpochs:
     """Synthetic ErrP epochs whose outcome responses are scaled by ``gain``.
 
-    The building block of :func:`generate_errp_epochs`, which picks ``gain`` from a wanted
+    The building block of `generate_errp_epochs`, which picks ``gain`` from a wanted
     accuracy. With a given seed every random draw is independent of ``gain``: the same
     seed at two gains gives the same background, jitters and labels.
 
     ``gain`` (>= 0) scales the outcome responses (0 makes the classes differ only by the
     induced theta power); ``drift`` scales them again and delays them; the other parameters
-    and the result are those of :func:`generate_errp_epochs`.
+    and the result are those of `generate_errp_epochs`.
     """
     n_correct = _check_count("n_correct", n_correct)
     n_error = _check_count("n_error", n_error)

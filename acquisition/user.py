@@ -49,7 +49,7 @@ class SimulatedUser:
     Attributes
     ----------
     start_state : int
-        The state the agent starts in (:meth:`World.start_state`: uniform on the grid).
+        The state the agent starts in (`World.start_state`: uniform on the grid).
     target : int
         The current hidden target (a task index; on the grid, a cell).
     """

@@ -71,7 +71,7 @@ def overlap_of_classes(statistics: ClassStatistics, shrinkage: float) -> np.ndar
 
     ``statistics`` has batch shape (n_tasks,) and two classes; returns (n_tasks,), 1 (no
     information) for a labelling with a class of fewer than two signals' weight (see
-    :func:`defined_classes`).
+    `defined_classes`).
     """
     means, covariances = statistics.class_moments()
     covariances = shrink_towards_identity(covariances, shrinkage)

@@ -33,7 +33,7 @@ def cardinal_guidance(points: np.ndarray, goals: np.ndarray, alpha: float) -> np
     -------
     ndarray, shape (n_points, n_goals, 4)
         ``p(direction | point, goal)``, each row summing to 1, directions in
-        :data:`DIRECTIONS` order.
+        `DIRECTIONS` order.
     """
     east = goals[None, :, 0] - points[:, None, 0]  # the goal's offset, (n_points, n_goals)
     north = goals[None, :, 1] - points[:, None, 1]

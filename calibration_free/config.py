@@ -63,7 +63,7 @@ DEFAULT_FIRST_TARGET_SIGNALS: dict[str, int] = {"feedback": 90, "guidance": 0}
 #: decoder is fitted on few signals, many of them mislabelled, and heavy shrinkage (towards
 #: the nearest-mean classifier) is what they can afford. Where it can be chosen (the LDA,
 #: the matching likelihood, declared targets) feedback chooses it ("cv", among
-#: :data:`~calibration_free.shrinkage_choice.FIRST_TARGET_GRID`, this value the heaviest:
+#: `FIRST_TARGET_GRID`, this value the heaviest:
 #: README, "A first-target shrinkage chosen from the data"). Guidance has none of its own
 #: (``shrinkage`` throughout): its tuning showed no gain.
 DEFAULT_FIRST_TARGET_SHRINKAGE: dict[str, float] = {"feedback": FIRST_TARGET_GRID[-1]}
@@ -75,7 +75,7 @@ AMBIGUOUS_MATCHES: tuple[str, ...] = ("resolved", "even")
 
 #: Settings added after recordings began to hold every learner setting, each with the value
 #: that reproduces the learner from before it existed: a recording that lacks one ran
-#: without it (:func:`session.config.recorded_config` fills them in when a recording is read;
+#: without it (`session.config.recorded_config` fills them in when a recording is read;
 #: a missing ``first_target_shrinkage`` becomes the recording's own ``shrinkage``). The
 #: shrinkage choice's floor and margin: the rule of its first day (2026-12-03 18:56 to
 #: 2026-12-04 17:18, grid from 0.05, one standard error); a recording of the two hours
@@ -105,7 +105,7 @@ class LearnerConfig:
     eps : float, default 0.1
         The user error rate the learner assumes when matching labels.
     likelihood : {"matching", "simple", "batch", "bhattacharyya"}, default "matching"
-        How tasks are scored (:mod:`calibration_free.task_likelihoods`): the matching
+        How tasks are scored (`calibration_free.task_likelihoods`): the matching
         filter with cross-validated confusion correction; the same filter on the raw
         decoder posterior (no confusion, no cross-validation fits); every step's
         recomputation of the segment's matches with the latest decoders (Eq.
@@ -117,41 +117,41 @@ class LearnerConfig:
         L_u)`` or the normalised likelihood ``L_t / sum_u L_u`` of the scores.
     decoder : {"lda", "student_t", "gaussian", "categorical"}, default "lda"
         Shrinkage LDA with the pooled within-class covariance, deciding with equal
-        priors (:mod:`decoding.lda`); the thesis's Student-t predictive (per-class
-        scatters: a slower per-task path, see :mod:`calibration_free.task_decoders`); a
+        priors (`decoding.lda`); the thesis's Student-t predictive (per-class
+        scatters: a slower per-task path, see `calibration_free.task_decoders`); a
         plain Gaussian per class (QDA: weighted mean and covariance shrunk by
-        ``shrinkage``, equal priors, :mod:`decoding.gaussian`); or, for symbolic signals
+        ``shrinkage``, equal priors, `decoding.gaussian`); or, for symbolic signals
         (a one-hot vector of the button pressed), per-class button frequencies
-        (:mod:`decoding.categorical`).
+        (`decoding.categorical`).
     shrinkage : float, "oas", "cv" or None, default "cv" where it can be chosen, else 0.5
         Covariance shrinkage towards the scaled identity, in [0, 1]; or, with the "lda"
         decoder, "oas": each task and training set's Oracle Approximating Shrinkage
-        intensity, from its pooled covariance (:func:`decoding.lda.oas_shrinkage`); or,
+        intensity, from its pooled covariance (`decoding.lda.oas_shrinkage`); or,
         with the "lda" decoder, the "matching" likelihood and ``declare_targets``, "cv":
         chosen at every target (the calibrated baseline: at the end of its calibration)
         from the cross-validated matching evidence on the adopted labels, the heaviest of
-        :data:`~calibration_free.shrinkage_choice.SHRINKAGE_GRID` (0.01 to 0.5) not clearly
-        less discriminating than the best (:mod:`calibration_free.shrinkage_choice`; tuned
+        `SHRINKAGE_GRID` (0.01 to 0.5) not clearly
+        less discriminating than the best (`calibration_free.shrinkage_choice`; tuned
         on synthetic data: the README's "Issue 13's levers"). None: "cv" where it can be
-        chosen, else 0.5 (:attr:`resolved_shrinkage`). From the first target on; before
+        chosen, else 0.5 (`resolved_shrinkage`). From the first target on; before
         it, ``first_target_shrinkage``.
     first_target_shrinkage : float, "oas", "cv" or None, default the frame's
         The decoders' shrinkage until the first target is reached, as ``shrinkage``; or,
         with the "lda" decoder, the "matching" likelihood and ``declare_targets``, "cv": every
-        :data:`~calibration_free.shrinkage_choice.FIRST_CHOICE_PERIOD` (5) signals from the
-        :data:`~calibration_free.shrinkage_choice.FIRST_CHOICE_START`-th (40) on, chosen
+        `FIRST_CHOICE_PERIOD` (5) signals from the
+        `FIRST_CHOICE_START`-th (40) on, chosen
         by the same rule on the leading task's labels (no label is trusted yet) among
-        :data:`~calibration_free.shrinkage_choice.FIRST_TARGET_GRID` (0.3, 0.5, 0.7, 0.9),
+        `FIRST_TARGET_GRID` (0.3, 0.5, 0.7, 0.9),
         the heaviest within one standard error of the best; 0.9 until the first choice.
         None: the frame's default: in feedback "cv" where it can be chosen, else
-        :data:`DEFAULT_FIRST_TARGET_SHRINKAGE` (0.9); in guidance and sessions without
+        `DEFAULT_FIRST_TARGET_SHRINKAGE` (0.9); in guidance and sessions without
         ``declare_targets`` (which never reach a first target), ``shrinkage``. Set it
         equal to ``shrinkage`` for one shrinkage throughout (the thesis's). The decoders
         only: the Bhattacharyya overlap, a distance between the classes rather than a
         decoder, and the calibrated baseline, which has no such phase, use ``shrinkage``.
     shrinkage_floor : float, default 0.01
         With ``shrinkage="cv"``: the lightest intensity the choice may take, in [0.01, 0.5];
-        the grid is :data:`~calibration_free.shrinkage_choice.SHRINKAGE_GRID`'s values from
+        the grid is `SHRINKAGE_GRID`'s values from
         it up (0.05 gives 0.05, 0.1, 0.2, 0.3, 0.5, the rule's first grid).
     shrinkage_margin : float, default 0.5
         With ``shrinkage="cv"``: how far below the most discriminating intensity's evidence
@@ -160,31 +160,31 @@ class LearnerConfig:
     student_t_counts : {"class", "total"}, default "class"
         With ``decoder="student_t"``: the count in each class's predictive, the class's own
         weight or the training set's total (the thesis code's, which lets a rarely labelled
-        class take part from its second signal; :func:`decoding.student_t.fit_student_t`).
+        class take part from its second signal; `decoding.student_t.fit_student_t`).
     n_folds : int, default 10
         Folds of the cross-validated confusion matrices.
     confusion_smoothing : float, default 1.0
         Pseudo-count added to every confusion-matrix cell.
     balanced_confusion : bool, default True
         Weigh every true class equally in the confusion matrices (see
-        :func:`calibration_free.likelihood.confusion_matrices`); False is method.md's
+        `calibration_free.likelihood.confusion_matrices`); False is method.md's
         plain column normalisation.
     power_prior : bool, default True
         Add the ErrP power prior to the scores (feedback frame only).
     power_prior_kind : {"evidence_then_ratio", "evidence", "ratio"}, default "evidence_then_ratio"
-        Its form (:mod:`calibration_free.power_prior`): "evidence", the signed likelihood
+        Its form (`calibration_free.power_prior`): "evidence", the signed likelihood
         ratio of the signals' log powers under each task's labels (grows with the data);
         "ratio", method.md's log ratio of the classes' mean powers (bounded); the default,
         the evidence until the first target and the ratio from then on.
     calibrated_evidence : bool or None, default True in feedback where it applies
         At every target reached once the history holds ``calibration_signals`` signals,
         fit the temperature ``tau`` that makes the matches calibrated class probabilities
-        of the adopted labels (:mod:`calibration_free.evidence_temperature`); until the
+        of the adopted labels (`calibration_free.evidence_temperature`); until the
         next target every signal then adds ``tau log m`` and a task is declared when its
         normalised likelihood exceeds ``calibrated_beta`` (before that, and after a target
         with fewer signals, the tempered filter and ``confidence``/``beta``). Needs the
         feedback frame, the "matching" likelihood and ``declare_targets``; None: True
-        where it applies, else False (:attr:`uses_calibrated_evidence`; tuned on synthetic
+        where it applies, else False (`uses_calibrated_evidence`; tuned on synthetic
         data: the README's "Calibrated evidence after the first target").
     calibrated_beta : float, default 0.995
         The normalised-likelihood threshold while the evidence is calibrated, in (0.5, 1).
@@ -197,26 +197,26 @@ class LearnerConfig:
         ``confidence``/``beta``), or "gaussian": after every signal, the log marginal
         likelihood of the whole history under each task's labels, a Gaussian model of
         the classes with its parameters integrated out
-        (:mod:`calibration_free.gaussian_evidence`), a task declared when its normalised
+        (`calibration_free.gaussian_evidence`), a task declared when its normalised
         likelihood exceeds ``evidence_beta``. Needs the feedback frame, the "matching"
         likelihood and ``declare_targets``.
     evidence_beta : float, default 0.998
         The normalised-likelihood threshold of the Gaussian evidence, in (0.5, 1).
-    beta : float, default the frame's (:data:`DEFAULT_BETA`: 0.93 for feedback, 0.92 for
+    beta : float, default the frame's (`DEFAULT_BETA`: 0.93 for feedback, 0.92 for
         guidance)
         Confidence threshold on the ``confidence`` rule, in (0.5, 1); the one in force is
-        :attr:`frame_beta`.
-    first_target_signals : int, default the frame's (:data:`DEFAULT_FIRST_TARGET_SIGNALS`:
+        `frame_beta`.
+    first_target_signals : int, default the frame's (`DEFAULT_FIRST_TARGET_SIGNALS`:
         90 for feedback, 0 for guidance)
         Until the first target, the confidence a target needs relaxes from 1 to the
         rule's threshold over this many signals: ``1 - (1 - threshold) min(1, n /
         first_target_signals)`` after ``n`` signals (whatever the rule: ``beta``, or the
         one the likelihood imposes). 0: the threshold from the first signal (the
         thesis's). From the first target on, the threshold. The one in force is
-        :attr:`frame_first_target_signals`.
+        `frame_first_target_signals`.
     planner : str, default "information"
         One of "uncertainty", "information", "greedy", "random", "signal", "epsilon-greedy".
-        How actions are chosen while not confident (:mod:`calibration_free.planning`):
+        How actions are chosen while not confident (`calibration_free.planning`):
         meaning-space uncertainty (the weighted variance of expected matches), the expected
         information of the answer about the task (mutual information on the same sampled
         signals), or signal-space uncertainty (class means), each with value iteration;
@@ -227,7 +227,7 @@ class LearnerConfig:
         How the uncertainty planner weighs the tasks: their posterior (softmax of the
         scores), which focuses on the leading hypotheses, or their normalised pairwise
         confidence W of method.md §6, which is flatter.
-    novelty_bonus : float, default the frame's (:data:`DEFAULT_NOVELTY_BONUS`: 1 for
+    novelty_bonus : float, default the frame's (`DEFAULT_NOVELTY_BONUS`: 1 for
         feedback, 3 for guidance)
         Exploration bonus ``c * 2 (1 - W_best) / sqrt(1 + visits(s))`` added to the
         reward of the "uncertainty", "information" and "signal" planners (scaled to a
@@ -252,14 +252,14 @@ class LearnerConfig:
         Where a task's label allows several classes but not all (guidance: two optimal
         directions), split it among them again at every signal by the task's latest
         out-of-fold class probabilities (one EM step on the user's choice,
-        :meth:`~calibration_free.task_decoders.TaskHistory.resplit_own_labels`), for the
+        `resplit_own_labels`), for the
         signals since the last target; False keeps the split made when each signal
         arrived. No effect in the feedback frame, nor with a likelihood that does not
         cross-validate ("simple", "batch": the split needs out-of-fold probabilities).
     ambiguous_match : {"resolved", "even"}, default "resolved"
         What a task expects of a signal whose label allows several classes but not all
         (guidance: two optimal directions). "resolved": the split the decoder resolved
-        for that signal (:func:`~calibration_free.learner.expect_the_chosen_label`),
+        for that signal (`expect_the_chosen_label`),
         which spares the true task the mixture's cost of log 2 but lets a task whose
         labels are mostly ambiguous (a corner's) fit a signal of either direction.
         "even": the user picks either with equal probability, so the expected label is
@@ -415,8 +415,8 @@ class LearnerConfig:
     def resolved_shrinkage(self) -> float | str:
         """The shrinkage in force from the first target on: the given one, else "cv" where
         it can be chosen (decoder "lda", likelihood "matching", declared targets), else
-        :data:`~decoding.lda.DEFAULT_SHRINKAGE` (unresolved in the field, as
-        :attr:`frame_novelty_bonus`)."""
+        `DEFAULT_SHRINKAGE` (unresolved in the field, as
+        `frame_novelty_bonus`)."""
         if self.shrinkage is not None:
             return self.shrinkage
         choosable = self._can_choose_shrinkage and self.declare_targets
@@ -459,7 +459,7 @@ class LearnerConfig:
     @property
     def uses_calibrated_evidence(self) -> bool:
         """Whether the evidence is calibrated at targets: the given setting, else where it
-        applies (unresolved in the field, as :attr:`frame_novelty_bonus`)."""
+        applies (unresolved in the field, as `frame_novelty_bonus`)."""
         if self.calibrated_evidence is None:
             return self._matches_feedback_targets
         return self.calibrated_evidence
@@ -475,7 +475,7 @@ class LearnerConfig:
     @property
     def frame_beta(self) -> float:
         """The confidence threshold in force: the given one, or the frame's default
-        (unresolved in the field, as :attr:`frame_novelty_bonus`)."""
+        (unresolved in the field, as `frame_novelty_bonus`)."""
         if self.beta is None:
             return DEFAULT_BETA[self.frame]
         return self.beta
@@ -484,7 +484,7 @@ class LearnerConfig:
     def frame_first_target_signals(self) -> int:
         """The signals over which a first target's confidence relaxes to the threshold in
         force: the given ones, or the frame's default (unresolved in the field, as
-        :attr:`frame_novelty_bonus`)."""
+        `frame_novelty_bonus`)."""
         if self.first_target_signals is None:
             return DEFAULT_FIRST_TARGET_SIGNALS[self.frame]
         return self.first_target_signals

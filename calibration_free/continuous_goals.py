@@ -14,7 +14,7 @@ order:
    (``uncertainty``) or a uniform point (``random``);
 3. relabel the whole history for every particle with the cardinal frame (noise ``alpha``);
 4. score every particle with the sampled-classifier confidence
-   (:mod:`calibration_free.sampled_confidence`);
+   (`calibration_free.sampled_confidence`);
 5. (``uncertainty``) compute the uncertainty of candidate points: the weighted variance over
    particles of the expected match ``J_t(x', e_s) = sum_k p(l_k | x', t) q_t(l_k | e_s)``,
    summed over up to 20 signals of the history, with ``q_t`` the confusion-corrected

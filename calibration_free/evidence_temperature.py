@@ -29,7 +29,7 @@ def fit_temperature(log_matches: np.ndarray, label_weights: np.ndarray) -> float
     Parameters
     ----------
     log_matches : ndarray, shape (n_signals, K)
-        :func:`~calibration_free.likelihood.label_log_matches` of the signals.
+        `label_log_matches` of the signals.
     label_weights : ndarray, shape (n_signals, K)
         The labels (one-hot, or soft weights) the probabilities must explain.
 
@@ -37,7 +37,7 @@ def fit_temperature(log_matches: np.ndarray, label_weights: np.ndarray) -> float
     -------
     float
         ``argmax_tau sum_i sum_c w_ic log softmax(tau log m_i)_c`` within
-        :data:`TEMPERATURE_BOUNDS` (bounded scalar search; the objective is concave in tau).
+        `TEMPERATURE_BOUNDS` (bounded scalar search; the objective is concave in tau).
     """
     if log_matches.shape != label_weights.shape:
         raise ValueError(

@@ -2,7 +2,7 @@
 
 The learner does not know the user's frame either: every candidate frame labels the history
 its own way and trains its own decoders, with its own number of classes (feedback 2,
-guidance one per guidance action). One :class:`~calibration_free.learner.CalibrationFreeLearner`
+guidance one per guidance action). One `CalibrationFreeLearner`
 per frame keeps those decoders and every task's matching log-likelihood; the hypotheses are
 all their (task, frame) pairs, hypothesis ``h = f * n_tasks + t``.
 
@@ -20,11 +20,11 @@ count (tested), and the pairwise confidence compares what the signals explain be
 still drift apart like random walks (the pairwise confidence of the best pair passes 0.9 by
 step 200 in 10 to 20 % of shuffled-label sessions), so a pair is confident only when its
 pairwise confidence exceeds ``beta`` *and* its decoder's cross-validated balanced accuracy
-on its own labels beats chance by :data:`CHANCE_MARGIN_Z` standard errors, counted per
-class (:func:`beats_chance`). A shuffled-label control then stays undecided (tested).
+on its own labels beats chance by `CHANCE_MARGIN_Z` standard errors, counted per
+class (`beats_chance`). A shuffled-label control then stays undecided (tested).
 
 **The thesis code's Student-t.** With ``decoder="student_t"`` frame hypotheses use, by
-default (:data:`FRAME_DEFAULTS`), the thesis code's count (``student_t_counts="total"``:
+default (`FRAME_DEFAULTS`), the thesis code's count (``student_t_counts="total"``:
 every class's predictive with the total number of signals): a class such as the line world's
 no-move, labelled only at a goal, takes part from its second signal instead of its 12th
 (11-D signals), and it is the class that tells the two goals apart under guidance.
@@ -152,7 +152,7 @@ class FrameHypothesesLearner:
         return PairBeliefs(scores, confidence, best, confident)
 
     def _beats_chance(self, hypothesis: int) -> bool:
-        """Whether the pair's decoder beats chance on its own labels (:func:`beats_chance`
+        """Whether the pair's decoder beats chance on its own labels (`beats_chance`
         of its 10-fold balanced accuracy and its class weights)."""
         frame, task = divmod(hypothesis, self.world.n_tasks)
         learner = self._learners[frame]
@@ -181,7 +181,7 @@ def beats_chance(
         Mean recall over the classes with signals, in [0, 1].
     class_weights : ndarray, shape (n_classes,)
         Total label weight of each class (0 for a class without signals).
-    z : float, default :data:`CHANCE_MARGIN_Z`
+    z : float, default `CHANCE_MARGIN_Z`
     """
     weights = np.asarray(class_weights, dtype=float)
     weights = weights[weights > 0]

@@ -12,7 +12,7 @@ A frame gives, for every task ``t``, state ``s`` and action ``a``:
   classes. This is ``p(l | s, a, t)`` of the matching pseudo-likelihood.
 
 Feedback frame (ErrP): class 0 = correct, 1 = error; an action is correct under ``t`` iff
-it is optimal (:attr:`calibration_free.world.World.optimal`).
+it is optimal (`calibration_free.world.World.optimal`).
 
 Guidance frame: class ``k`` is the guidance action ``world.guidance_actions[k]`` (the
 grid's move directions up, down, left, right) the user wants *from the state where the
@@ -21,8 +21,8 @@ optimal, and over all of them where none is (the grid's task cell itself).
 
 Storage is compact: a frame has only a few distinct label rows (feedback: 2; guidance: one
 per set of optimal guidance actions, at most ``2 ** n_classes``), kept once in
-:attr:`Frame.weight_rows` and :attr:`Frame.distribution_rows`, and a table
-:attr:`Frame.row_index` of which row applies where: ``(n_tasks, n_states, n_actions)``
+`Frame.weight_rows` and `Frame.distribution_rows`, and a table
+`Frame.row_index` of which row applies where: ``(n_tasks, n_states, n_actions)``
 uint8 for feedback (a view of the world's optimality table), ``(n_tasks, n_states, 1)`` for
 guidance, whose label does not depend on the action. The table is built on first use.
 """
@@ -161,7 +161,7 @@ class Frame:
         """Dense training weights, shape (n_tasks, n_states, n_actions, n_classes).
 
         Built on every call (``T S A K`` floats): for small worlds and checks only; the
-        learner uses :meth:`weights_at`.
+        learner uses `weights_at`.
         """
         return self._dense(self.weight_rows)
 
@@ -169,6 +169,6 @@ class Frame:
     def label_distribution(self) -> np.ndarray:
         """Dense ``p(l | s, a, t)``, shape (n_tasks, n_states, n_actions, n_classes).
 
-        Built on every call: for small worlds and checks only (see :attr:`label_weights`).
+        Built on every call: for small worlds and checks only (see `label_weights`).
         """
         return self._dense(self.distribution_rows)

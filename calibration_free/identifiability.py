@@ -52,7 +52,7 @@ def confusable_pairs(frame: Frame) -> list[Confusable]:
     Each pair is listed once, with the first permutation (in lexicographic order, so the
     identity first) under which the two tasks' expected labels agree at every (state,
     action). Cost: one pass over the frame's row table per permutation of the classes
-    (``K!``; frames with more than :data:`MAX_PERMUTED_CLASSES` classes are checked for
+    (``K!``; frames with more than `MAX_PERMUTED_CLASSES` classes are checked for
     identical pairs only).
 
     Returns

@@ -4,10 +4,10 @@ The learner's only inputs are (state, action, signal): it never sees a label nor
 user's target. Signals enter as float32 (the service's wire format) and are computed on
 in float64, so every path sees the same numbers.
 
-Its parts are plug-ins chosen by :class:`~calibration_free.config.LearnerConfig`: the
-likelihood (:mod:`calibration_free.task_likelihoods`), the confidence rule
-(:data:`calibration_free.likelihood.CONFIDENCES`), the decoders
-(:mod:`calibration_free.task_decoders`) and the planner (:mod:`calibration_free.planning`).
+Its parts are plug-ins chosen by `LearnerConfig`: the
+likelihood (`calibration_free.task_likelihoods`), the confidence rule
+(`calibration_free.likelihood.CONFIDENCES`), the decoders
+(`calibration_free.task_decoders`) and the planner (`calibration_free.planning`).
 The decoders are fitted when first needed after each signal (by the next observation or
 proposal), with cross-validation only for a likelihood that corrects by the confusion.
 """
@@ -60,7 +60,7 @@ class Proposal:
     Attributes
     ----------
     action : int
-        Index into :data:`calibration_free.world.ACTIONS`.
+        Index into `calibration_free.world.ACTIONS`.
     declares_target : bool
         True when the action is the world's declaration action (the grid's ``goal``)
         performed while confident, in the state of the task the learner is confident
@@ -103,7 +103,7 @@ class Beliefs:
         Signals observed so far.
     rule : str
         The confidence rule in force (a key of
-        :data:`~calibration_free.likelihood.CONFIDENCES`): ``LearnerConfig.confidence``, or
+        `CONFIDENCES`): ``LearnerConfig.confidence``, or
         "normalised" while the evidence is calibrated.
     threshold : float
         The rule's threshold (``beta``, ``calibrated_beta`` while the evidence is
@@ -111,7 +111,7 @@ class Beliefs:
         switch).
     required : float
         The confidence a target needs now: ``threshold``, or more until the first target
-        while the history is short (:func:`first_target_requirement`).
+        while the history is short (`first_target_requirement`).
     """
 
     log_likelihood: np.ndarray
@@ -125,16 +125,16 @@ class Beliefs:
     required: float
 
     def normalised_likelihood(self) -> np.ndarray:
-        """``L_t / sum_u L_u`` of :attr:`log_likelihood` (no power prior), shape (n_tasks,)."""
+        """``L_t / sum_u L_u`` of `log_likelihood` (no power prior), shape (n_tasks,)."""
         return normalised_likelihood(self.log_likelihood)
 
 
 class TaskLearner:
     """What the calibration-free learner and the calibrated baseline share.
 
-    Subclasses provide :attr:`log_likelihood`, :meth:`observe`,
-    :meth:`_predicted_samples` and :meth:`_class_means`, and may override :meth:`_scores`
-    and :meth:`_decision_rule`.
+    Subclasses provide `log_likelihood`, `observe`,
+    `_predicted_samples` and `_class_means`, and may override `_scores`
+    and `_decision_rule`.
     """
 
     log_likelihood: np.ndarray
@@ -151,7 +151,7 @@ class TaskLearner:
         self.rng = np.random.default_rng(rng)
         self.n_signals = 0
         self.n_targets = 0
-        #: Whether the learner started from a prior's adopted labels (:meth:`adopt_prior`).
+        #: Whether the learner started from a prior's adopted labels (`adopt_prior`).
         self.prior_adopted = False
         self._n_features: int | None = None
         self._pending_target: int | None = None
@@ -300,8 +300,8 @@ class TaskLearner:
         recorded device declared ``task`` reached (``goal`` there while confident), the
         user moved on to a new target, so the learner must switch task at that step, to
         that task, whether or not it is confident itself. Call this instead of
-        :meth:`propose` before :meth:`observe` of that step; the observation then counts
-        the target and relabels the history exactly as after a :meth:`propose` that
+        `propose` before `observe` of that step; the observation then counts
+        the target and relabels the history exactly as after a `propose` that
         declared ``task``. Like a declaring proposal, it has no effect if the next
         observation is not ``goal`` performed in ``task``. Draws nothing from the rng.
         """
@@ -310,7 +310,7 @@ class TaskLearner:
     def withdraw_declaration(self) -> None:
         """Forget the target the last proposal declared: the next observation counts no
         target, whatever its action (a caller that performs another learner's proposal
-        instead, :class:`calibration_free.prior.ReturningLearner`). Draws nothing."""
+        instead, `calibration_free.prior.ReturningLearner`). Draws nothing."""
         self._pending_target = None
 
     def _explore(self, state: int, beliefs: Beliefs) -> int:
@@ -405,7 +405,7 @@ def expect_the_chosen_label(
     user picked one of them; matching against the uniform split would cost the true task
     ``log 2`` at every such step against any task that labels the same signals
     unambiguously. The allowed classes' expected mass (``1 - eps``) is instead split as
-    the decoder resolved the choice (``resolved``, see :func:`resolve_ambiguous_labels`).
+    the decoder resolved the choice (``resolved``, see `resolve_ambiguous_labels`).
     Labels allowing one class (feedback) or every class (the task's own cell) are kept.
     All arrays (n_tasks, K).
     """
@@ -468,7 +468,7 @@ class CalibrationFreeLearner(TaskLearner):
     @property
     def evidence_temperature(self) -> float:
         """The measured temperature where the segment's evidence is calibrated
-        (:mod:`calibration_free.evidence_temperature`), else 1."""
+        (`calibration_free.evidence_temperature`), else 1."""
         return self._evidence_temperature or 1.0
 
     @property
@@ -506,7 +506,7 @@ class CalibrationFreeLearner(TaskLearner):
         self, task: int, label_weights: np.ndarray | None = None
     ) -> float | None:
         """Cross-validated balanced accuracy of ``task``'s decoder on the history so far
-        (see :func:`~calibration_free.task_decoders.balanced_accuracy`); None before two
+        (see `balanced_accuracy`); None before two
         classes have signals.
 
         Against ``task``'s own labels by default, or against ``label_weights``
@@ -589,17 +589,17 @@ class CalibrationFreeLearner(TaskLearner):
         self, signals: np.ndarray, label_weights: np.ndarray, weights: np.ndarray
     ) -> None:
         """Start from earlier sessions' signals and the labels adopted for them, before
-        any observation (:mod:`calibration_free.prior`).
+        any observation (`calibration_free.prior`).
 
         Each signal joins the history as if it had been observed and its labels adopted at
         a target, counted with its weight in every statistic (a weighted pseudo-observation,
-        :meth:`~calibration_free.task_decoders.TaskHistory.add`; weight 1 is exactly a
+        `add`; weight 1 is exactly a
         signal observed live). The learner then starts as after a target on that history:
         every task has those labels, the shrinkage after a target is in force (chosen on
         them with ``shrinkage="cv"``), the power prior takes its form after a target, and
         the first segment's evidence is calibrated on them where ``calibrated_evidence``
         applies and the history holds ``calibration_signals``. Today's signals count from
-        0 (:attr:`n_signals`); the stricter first target and the novelty bonus do not apply.
+        0 (`n_signals`); the stricter first target and the novelty bonus do not apply.
 
         Parameters
         ----------
@@ -639,9 +639,9 @@ class CalibrationFreeLearner(TaskLearner):
 
     def _choose_first_target_shrinkage(self) -> None:
         """With ``first_target_shrinkage="cv"``, until the first target, every
-        :data:`FIRST_CHOICE_PERIOD` signals from the :data:`FIRST_CHOICE_START`-th, choose
+        `FIRST_CHOICE_PERIOD` signals from the `FIRST_CHOICE_START`-th, choose
         the decoders' shrinkage on the leading task's labels (the best score: no label is
-        trusted yet) among :data:`FIRST_TARGET_GRID`; a choice that cannot be measured
+        trusted yet) among `FIRST_TARGET_GRID`; a choice that cannot be measured
         keeps the current one."""
         if (
             not self.config.chooses_first_target_shrinkage

@@ -1,6 +1,6 @@
 """The matching pseudo-likelihood of method.md §3 (confusion correction, match) and the
 confidence rules read from the tasks' log scores (the power prior:
-:mod:`calibration_free.power_prior`)."""
+`calibration_free.power_prior`)."""
 
 from __future__ import annotations
 
@@ -25,7 +25,7 @@ def confusion_matrices(
     label_counts : ndarray, shape (n_tasks, n_classes, n_classes)
         ``sum_i w_ik(t) p_ij(t)``: each task's (true) label weights of the signals against
         their out-of-fold predicted class probabilities (see
-        :meth:`~calibration_free.task_decoders.TaskHistory.label_confusion_counts`).
+        `label_confusion_counts`).
     present : ndarray, shape (n_tasks, n_classes), bool
         Classes each task's decoder knows; the matrix is restricted to them (other rows
         and columns are 0).
@@ -84,7 +84,7 @@ def label_log_matches(corrected: np.ndarray, eps: float) -> np.ndarray:
     Returns
     -------
     ndarray, shape (n_signals, K)
-        :func:`log_match` of each label's expected distribution against ``q``.
+        `log_match` of each label's expected distribution against ``q``.
     """
     n_classes = corrected.shape[1]
     expected = (1.0 - eps) * np.eye(n_classes) + eps / (n_classes - 1) * (

@@ -1,7 +1,7 @@
 """Choosing the next action while not confident: the planners (method.md §6,
-method-extensions §1(a)7 and §6.3), behind one interface, :class:`Planner`.
+method-extensions §1(a)7 and §6.3), behind one interface, `Planner`.
 
-:data:`PLANNERS`: ``"uncertainty"`` (meaning-space uncertainty, value iteration),
+`PLANNERS`: ``"uncertainty"`` (meaning-space uncertainty, value iteration),
 ``"information"`` (the expected information of the next answer about the task, value
 iteration),
 ``"signal"`` (signal-space uncertainty from the class means, value iteration),
@@ -70,7 +70,7 @@ class PlanningInputs:
         neither).
     predicted_samples : callable () -> ndarray (n_tasks, n_signals, n_classes) or None
         Every task's prediction (the likelihood's, see
-        :meth:`calibration_free.task_likelihoods.TaskLikelihood.predict`) of past signals
+        `calibration_free.task_likelihoods.TaskLikelihood.predict`) of past signals
         sampled for this step; None before any decoder. Draws the sample from the
         learner's rng.
     class_means : callable () -> ndarray (n_tasks, n_classes, n_features) or None
@@ -135,7 +135,7 @@ class EpsilonGreedyPlanner(Planner):
 class RewardPlanner(Planner):
     """Value iteration on an uncertainty reward, then the best action (ties at random).
 
-    Subclasses provide :meth:`reward`. Before it can be computed (no decoder yet) the
+    Subclasses provide `reward`. Before it can be computed (no decoder yet) the
     action is uniform.
 
     Parameters
@@ -173,7 +173,7 @@ class UncertaintyPlanner(RewardPlanner):
     variance of ``m_t`` across tasks, weighted by the task weights, summed over the
     signals; value iteration on that reward gives the action to take.
 
-    The frame has few distinct label rows ``D_r`` (:class:`~calibration_free.frames.Frame`),
+    The frame has few distinct label rows ``D_r`` (`Frame`),
     so ``m_t(s, a, e) = M[t, e, r]`` with ``M = q D^T`` and ``r`` the row of (t, s, a).
     Both moments over tasks are then sums over the rows of ``(weights x M)`` times the
     indicator of row ``r`` (T x columns): per step ``(n_rows - 1)`` products of an
@@ -240,7 +240,7 @@ class UncertaintyPlanner(RewardPlanner):
         """Chunks of the columns of the frame's row table ``columns`` (T, C): ``(start,
         stop, [float indicator (T, stop - start) of row r, for r = 1 .. n_rows - 1])``. The
         table never changes: the indicators are kept if they fit in
-        :data:`KEPT_INDICATOR_BYTES`, else built again at each call, a chunk at a time."""
+        `KEPT_INDICATOR_BYTES`, else built again at each call, a chunk at a time."""
         if self._kept_indicators is not None:
             return self._kept_indicators
         n_tasks, n_columns = columns.shape
@@ -265,7 +265,7 @@ class UncertaintyPlanner(RewardPlanner):
 
     @staticmethod
     def _combine(per_signal: np.ndarray, summed: np.ndarray) -> np.ndarray:
-        """The reward of every column from the task sums of :meth:`_task_terms`, (n, C) and
+        """The reward of every column from the task sums of `_task_terms`, (n, C) and
         (C,): the weighted variance ``sum_e (sum_t w m^2 - (sum_t w m)^2)``."""
         return summed - np.sum(per_signal**2, axis=0)
 
@@ -281,7 +281,7 @@ class InformationPlanner(UncertaintyPlanner):
     with ``M(e) = sum_t w_t m~_t(e)``. The decoder's uncertainty is in it through the
     confusion-corrected ``q``: a decoder that cannot tell classes apart gives every
     signal the same match, and no information. Same row-indicator sums and value
-    iteration as :class:`UncertaintyPlanner` (whose weighted variance is this quantity's
+    iteration as `UncertaintyPlanner` (whose weighted variance is this quantity's
     second-order approximation, without the division by ``M``).
     """
 
@@ -306,7 +306,7 @@ class SignalPlanner(RewardPlanner):
     the lower class) and the mean of that class in task t's decoder give the signal t
     expects; the reward is the weighted spread of those means,
     ``U(s, a) = sum_t w_t ||mu_t(s, a) - mu_bar(s, a)||^2``
-    (:func:`calibration_free.signal_space.signal_space_uncertainty`).
+    (`calibration_free.signal_space.signal_space_uncertainty`).
 
     Parameters
     ----------
@@ -334,7 +334,7 @@ class SignalPlanner(RewardPlanner):
 def make_planner(
     kind: str, frame: Frame, discount: float = DEFAULT_DISCOUNT, epsilon: float = DEFAULT_EPSILON
 ) -> Planner:
-    """The planner of kind ``kind`` (one of :data:`PLANNERS`)."""
+    """The planner of kind ``kind`` (one of `PLANNERS`)."""
     check_option("planner", kind, PLANNERS)
     if kind == "uncertainty":
         return UncertaintyPlanner(frame, discount)

@@ -3,13 +3,13 @@
 method.md's prior breaks the symmetry between hypotheses whose label sets are nearly
 complementary (opposite corners): a decoder fitted on a task's labels is as good as one
 fitted on the complementary labels, so only a premise about the signals themselves tells
-the two apart. Forms of the same premise behind one interface (:class:`PowerPrior`):
+the two apart. Forms of the same premise behind one interface (`PowerPrior`):
 
-- :class:`MeanPowerRatio` (``"ratio"``, method.md's): ``log(P_error(t) / P_correct(t))``,
+- `MeanPowerRatio` (``"ratio"``, method.md's): ``log(P_error(t) / P_correct(t))``,
   the log ratio of each class's mean power ``||e||^2`` under task t's label weights,
   recomputed from the whole history; bounded (about 0.3-0.5 on ErrP data), so it weighs
   as much after 500 signals as after 20.
-- :class:`LogPowerEvidence` (``"evidence"``): the premise as evidence that grows with the
+- `LogPowerEvidence` (``"evidence"``): the premise as evidence that grows with the
   data. Each signal's log power ``z = log ||e||^2`` is modelled as Gaussian with one mean
   per class and a shared variance; under task t's label weights, the profile likelihood
   ratio of "errors have the higher mean log power" against "the lower" is
@@ -17,7 +17,7 @@ the two apart. Forms of the same premise behind one interface (:class:`PowerPrio
   of variance's statistic in log form; ``S`` sums of squares of ``z``). A labelling and its
   complement get opposite values, so the complement of the user's task loses what the
   task gains. Being a log ratio of powers, it does not depend on the signals' units.
-- :class:`EvidenceThenRatio` (``"evidence_then_ratio"``, the default): the evidence until
+- `EvidenceThenRatio` (``"evidence_then_ratio"``, the default): the evidence until
   the first target, where no label is adopted yet and a task and its complement are the
   confusion that locks a session in; the ratio from the first target on, where the
   adopted labels have settled the mapping and the evidence, added uncalibrated to the
@@ -119,7 +119,7 @@ class LogPowerEvidence(_ClassSums):
 
 
 class EvidenceThenRatio(PowerPrior):
-    """:class:`LogPowerEvidence` until the first target switch, :class:`MeanPowerRatio`
+    """`LogPowerEvidence` until the first target switch, `MeanPowerRatio`
     from then on (the ratio kept from the first signal, so that it has the whole history;
     the evidence, never read again after the switch, no longer fed)."""
 
@@ -164,7 +164,7 @@ def power_log_ratio(power_sums: np.ndarray, weight_sums: np.ndarray) -> np.ndarr
 
 
 def make_power_prior(kind: str, n_tasks: int, n_classes: int = 2) -> PowerPrior:
-    """The power prior of ``kind`` (one of :data:`POWER_PRIOR_KINDS`)."""
+    """The power prior of ``kind`` (one of `POWER_PRIOR_KINDS`)."""
     check_option("power_prior_kind", kind, POWER_PRIOR_KINDS)
     return _FORMS[kind](n_tasks, n_classes)
 

@@ -1,22 +1,22 @@
 """One interface for every learner of tasks from unlabelled interaction, and its adapters.
 
-A learner (:class:`Learner`) proposes an action in a state, observes the signal the user
+A learner (`Learner`) proposes an action in a state, observes the signal the user
 produced after it, and reports its beliefs over the tasks; after its construction it never
-receives a label or the user's target. :class:`~calibration_free.learner.TaskLearner`
+receives a label or the user's target. `TaskLearner`
 (the calibration-free learner and the calibrated baseline) meets the protocol as it is; the
 other learners meet it through an adapter built with the same arguments as the learner it
-wraps (:attr:`learner`):
+wraps (`learner`):
 
-* :class:`FrameHypothesesAdapter`: the (task, frame) pairs of
-  :class:`~calibration_free.frame_hypotheses.FrameHypothesesLearner` are its tasks;
-* :class:`PuddleLearnerAdapter`: the puddle world's 660 tasks, the normalised likelihood
-  of :class:`~calibration_free.puddle_learner.PuddleLearner` their confidence;
-* :class:`ContinuousLearnerAdapter`: the particles of
-  :class:`~calibration_free.continuous_goals.ContinuousGoalLearner` are its tasks, the
+* `FrameHypothesesAdapter`: the (task, frame) pairs of
+  `FrameHypothesesLearner` are its tasks;
+* `PuddleLearnerAdapter`: the puddle world's 660 tasks, the normalised likelihood
+  of `PuddleLearner` their confidence;
+* `ContinuousLearnerAdapter`: the particles of
+  `ContinuousGoalLearner` are its tasks, the
   probe point its action; it has no state (``None``).
 
 An adapter calls the wrapped learner's methods exactly as a direct caller does, in the same
-order and with the same arguments, so no random draw moves; its :meth:`beliefs` only reads
+order and with the same arguments, so no random draw moves; its `beliefs` only reads
 the learner (it draws nothing). It validates the signals the wrapped learner would take
 unchecked (one size for a session, finite), so that a bad signal is a ``ValueError``
 naming it and leaves the learner as it was.
@@ -42,23 +42,23 @@ from calibration_free.world import World
 from decoding.validation import check_array
 
 #: The confidence rule whose confidences sum to 1 over the tasks (a key of
-#: :data:`calibration_free.likelihood.CONFIDENCES`).
+#: `calibration_free.likelihood.CONFIDENCES`).
 NORMALISED = "normalised"
 #: The continuous learner's confidence rule: each particle's pairwise-min normal-difference
-#: probability over sampled classifiers (:mod:`calibration_free.sampled_confidence`).
+#: probability over sampled classifiers (`calibration_free.sampled_confidence`).
 SAMPLED = "sampled"
 
 
 @runtime_checkable
 class TaskBeliefs(Protocol):
-    """What every learner's beliefs tell (:class:`calibration_free.learner.Beliefs` has
+    """What every learner's beliefs tell (`calibration_free.learner.Beliefs` has
     more).
 
     Attributes
     ----------
     confidence : ndarray, shape (n_tasks,)
         Every task's confidence, in [0, 1]; summing to 1 when ``rule`` is
-        :data:`NORMALISED`.
+        `NORMALISED`.
     best_task : int
         The task the learner would pick, in ``[0, n_tasks)``.
     confident : bool
@@ -66,7 +66,7 @@ class TaskBeliefs(Protocol):
     n_signals : int
         Signals observed so far.
     rule : str
-        The confidence rule (:data:`NORMALISED`, "pairwise", :data:`SAMPLED`).
+        The confidence rule (`NORMALISED`, "pairwise", `SAMPLED`).
     """
 
     @property
@@ -87,8 +87,8 @@ class TaskBeliefs(Protocol):
 
 @runtime_checkable
 class ProposalLike(Protocol):
-    """A proposed action (:class:`~calibration_free.learner.Proposal`,
-    :class:`PointProposal`).
+    """A proposed action (`Proposal`,
+    `PointProposal`).
 
     Attributes
     ----------
@@ -156,7 +156,7 @@ class PointProposal:
 
 @dataclass(frozen=True)
 class AdaptedBeliefs:
-    """An adapter's beliefs: the fields of :class:`TaskBeliefs`.
+    """An adapter's beliefs: the fields of `TaskBeliefs`.
 
     Attributes
     ----------
@@ -205,13 +205,13 @@ def _check_no_state(state: Any) -> None:
 
 
 class FrameHypothesesAdapter:
-    """:class:`~calibration_free.frame_hypotheses.FrameHypothesesLearner` as a
-    :class:`Learner`: its tasks are the (task, frame) hypotheses ``f * n_tasks + t``.
+    """`FrameHypothesesLearner` as a
+    `Learner`: its tasks are the (task, frame) hypotheses ``f * n_tasks + t``.
 
     Parameters
     ----------
     world, frames, config, rng
-        As :class:`~calibration_free.frame_hypotheses.FrameHypothesesLearner`'s.
+        As `FrameHypothesesLearner`'s.
 
     Attributes
     ----------
@@ -250,16 +250,16 @@ class FrameHypothesesAdapter:
 
 
 class PuddleLearnerAdapter:
-    """:class:`~calibration_free.puddle_learner.PuddleLearner` as a :class:`Learner`.
+    """`PuddleLearner` as a `Learner`.
 
     The state is the agent's point, shape (2,); the beliefs are the 660 tasks' normalised
-    likelihoods of the last update (:attr:`PuddleLearner.probabilities`); it declares
+    likelihoods of the last update (`PuddleLearner.probabilities`); it declares
     nothing.
 
     Parameters
     ----------
     world, config, rng
-        As :class:`~calibration_free.puddle_learner.PuddleLearner`'s.
+        As `PuddleLearner`'s.
 
     Attributes
     ----------
@@ -299,18 +299,18 @@ class PuddleLearnerAdapter:
 
 
 class ContinuousLearnerAdapter:
-    """:class:`~calibration_free.continuous_goals.ContinuousGoalLearner` as a
-    :class:`Learner`.
+    """`ContinuousGoalLearner` as a
+    `Learner`.
 
     It has no state (``None``); its action is the probe point, shape (2,); its tasks are
-    the current particles (:attr:`ContinuousGoalLearner.particles`, resampled by every
+    the current particles (`ContinuousGoalLearner.particles`, resampled by every
     proposal after the initial probes), their confidence ``W`` of the last observation. It
     declares nothing.
 
     Parameters
     ----------
     config, rng
-        As :class:`~calibration_free.continuous_goals.ContinuousGoalLearner`'s.
+        As `ContinuousGoalLearner`'s.
 
     Attributes
     ----------

@@ -165,7 +165,7 @@ def mixed_frame(
     Returns
     -------
     ndarray, shape (n_tasks, n, 6)
-        Each row sums to 1; labels in :data:`MIXED_LABELS` order.
+        Each row sums to 1; labels in `MIXED_LABELS` order.
     """
     taken = np.take_along_axis(optimal, actions[None, :, None], axis=2)[..., 0]
     correct = np.where(taken, 1.0 - alpha, alpha)

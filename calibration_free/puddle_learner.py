@@ -2,7 +2,7 @@
 
 Every ``update_every`` steps the learner relabels the whole history under each of the 660
 tasks with the mixed frame, fits every task's 6-class shrinkage LDA at once (the shared
-statistics of :func:`decoding.lda.fit_pooled_lda`) and scores each task by batch matching
+statistics of `decoding.lda.fit_pooled_lda`) and scores each task by batch matching
 without cross-validation (the likelihood ch. 4 used for speech):
 ``log L_t = sum_i log sum_l p(l | s_i, a_i, t) p_t(l | e_i)``; the task probabilities are
 ``L_t / sum_u L_u`` (the normalised likelihood). Between updates the decoders and task

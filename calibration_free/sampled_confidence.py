@@ -64,7 +64,7 @@ def shrunk_class_moments(
         shares them with the uncertainty map).
     signals : ndarray, shape (n, d)
     shrinkage : float
-        Weight of the scaled identity (see :func:`decoding.statistics.shrink_towards_identity`).
+        Weight of the scaled identity (see `decoding.statistics.shrink_towards_identity`).
 
     Returns
     -------
@@ -168,7 +168,7 @@ def sampled_log_likelihoods(
     label_distributions : ndarray, shape (H, n, K)
         ``p(l | x_i, t)`` of each hypothesis's frame at each step.
     classifiers : SampledClassifiers
-        From :func:`sample_classifiers`.
+        From `sample_classifiers`.
 
     Returns
     -------
@@ -253,7 +253,7 @@ def normal_difference_confidence(log_likelihoods: np.ndarray) -> np.ndarray:
     Returns
     -------
     ndarray, shape (H,)
-        :func:`pairwise_normal_difference` of the mean and unbiased variance over draws of
+        `pairwise_normal_difference` of the mean and unbiased variance over draws of
         the likelihoods normalised across hypotheses within each draw.
     """
     normalised = np.exp(log_softmax(log_likelihoods, axis=0))  # P_t^(j), per draw

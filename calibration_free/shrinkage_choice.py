@@ -2,22 +2,22 @@
 
 The learner tells tasks apart by the matching evidence its decoders give: per signal, the
 log match of the label a task expects against that of the other labels
-(:mod:`calibration_free.likelihood`). A task's score pulls away from the others sooner
+(`calibration_free.likelihood`). A task's score pulls away from the others sooner
 when that evidence is large *relative to its spread*. So the shrinkage that serves the
 learner is the one whose decoders give the most discriminating evidence, measured as the
 learner computes it: out-of-fold (signal ``i`` in fold ``i % n_folds``),
 confusion-corrected, tempered by the user error rate ``eps``, on labels the learner trusts
 (the history it adopted at its targets).
 
-:func:`evidence_discriminability` measures it for a grid of shrinkages;
-:func:`choose_shrinkage` picks the heaviest that is not clearly worse than the best (the
+`evidence_discriminability` measures it for a grid of shrinkages;
+`choose_shrinkage` picks the heaviest that is not clearly worse than the best (the
 grid's floor and the margin are the learner settings ``shrinkage_floor`` and
 ``shrinkage_margin``); before the first target it is made on the leading task's labels
-(``first_target_shrinkage="cv"``: :data:`FIRST_TARGET_GRID`). The grid after the first
+(``first_target_shrinkage="cv"``: `FIRST_TARGET_GRID`). The grid after the first
 target stops at the fixed default, 0.5: where the data show no clear gain from less
 shrinkage (the synthetic ErrP data) the learner keeps its tuned default, and where they do
 (correlated features whose class difference is spread over weak directions: the mixed
-Gaussian signals of :mod:`acquisition.gaussian`, and the real ErrP features of ``s4.mat``)
+Gaussian signals of `acquisition.gaussian`, and the real ErrP features of ``s4.mat``)
 it takes less. README: "Issue 13's levers".
 """
 
@@ -40,7 +40,7 @@ CHOSEN_SHRINKAGE = "cv"
 #: to 0.01 (the mixed Gaussian tuning signals chose 0.05 at most targets when it was the
 #: floor; with 0.01 they choose 0.02 most: README, "The shrinkage choice's grid and
 #: margin"). The setting ``shrinkage_floor`` keeps its values from a floor up
-#: (:func:`shrinkage_grid`).
+#: (`shrinkage_grid`).
 SHRINKAGE_GRID: tuple[float, ...] = (0.01, 0.02, 0.05, 0.1, 0.2, 0.3, 0.5)
 #: How far below the best evidence a heavier shrinkage may be and still be chosen, in
 #: standard errors of that evidence, by default (the setting ``shrinkage_margin``; tuned on
@@ -52,8 +52,8 @@ STANDARD_ERRORS = 0.5
 
 #: The shrinkages chosen among until the first target (``first_target_shrinkage="cv"``),
 #: before any label is trusted: on the leading task's labels, every
-#: :data:`FIRST_CHOICE_PERIOD` signals from the :data:`FIRST_CHOICE_START`-th, the heaviest
-#: within :data:`FIRST_TARGET_STANDARD_ERRORS` of the best. Heavier than after the first
+#: `FIRST_CHOICE_PERIOD` signals from the `FIRST_CHOICE_START`-th, the heaviest
+#: within `FIRST_TARGET_STANDARD_ERRORS` of the best. Heavier than after the first
 #: target (few signals, many mislabelled), and a wider margin: a leader's labels may be
 #: wrong, and the choice must not follow their noise (tuned on synthetic data, seeds
 #: 100-199: README, "A first-target shrinkage chosen from the data").
@@ -67,7 +67,7 @@ FIRST_CHOICE_PERIOD = 5
 
 
 def shrinkage_grid(floor: float) -> tuple[float, ...]:
-    """:data:`SHRINKAGE_GRID`'s intensities from ``floor`` up (at least its heaviest, 0.5)."""
+    """`SHRINKAGE_GRID`'s intensities from ``floor`` up (at least its heaviest, 0.5)."""
     return tuple(s for s in SHRINKAGE_GRID if s >= min(floor, SHRINKAGE_GRID[-1]))
 
 
@@ -139,8 +139,8 @@ def choose_shrinkage(
     margin: float = STANDARD_ERRORS,
 ) -> float | None:
     """The heaviest shrinkage of ``grid`` whose evidence is within ``margin`` standard errors
-    (default :data:`STANDARD_ERRORS`, 0.5) of the most discriminating
-    (:func:`evidence_discriminability` of ``task``'s labels of ``history``), or None when
+    (default `STANDARD_ERRORS`, 0.5) of the most discriminating
+    (`evidence_discriminability` of ``task``'s labels of ``history``), or None when
     it cannot be measured (a class too rare).
 
     The one-standard-error rule of cross-validation (Hastie, Tibshirani and Friedman, *The

@@ -2,7 +2,7 @@
 
 The session seed ``s`` is expanded with ``numpy.random.SeedSequence(s).spawn(3)`` into, in
 order, the *data* stream (the synthetic generator's draws), the *user* stream (start cell,
-targets, labels, pool shuffles; see :mod:`acquisition.user`) and the *learner* stream
+targets, labels, pool shuffles; see `acquisition.user`) and the *learner* stream
 (planner choices). Any process that spawns the same way reproduces the session exactly:
 offline simulation, the live service and replay all take their streams from here.
 """
@@ -58,6 +58,6 @@ WORLD_STREAM = 3
 def world_stream(seed: int) -> np.random.Generator:
     """The world stream of a session seed, ``SeedSequence(seed).spawn(4)[3]``: consumed only
     by stochastic transitions, so that the data, user and learner streams (the first three
-    spawned, :func:`session_streams`) are those of a deterministic world."""
+    spawned, `session_streams`) are those of a deterministic world."""
     child = np.random.SeedSequence(seed).spawn(WORLD_STREAM + 1)[WORLD_STREAM]
     return np.random.default_rng(child)

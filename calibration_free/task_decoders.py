@@ -1,13 +1,13 @@
 """The decoders of all task hypotheses, computed together from shared statistics.
 
-All T tasks see the same signals and differ only in their labels. :class:`TaskHistory`
+All T tasks see the same signals and differ only in their labels. `TaskHistory`
 keeps, per fold, the signals' uncentred scatter matrix, sum and count, shared by every
 task, and per task, fold and class only the weighted count and sum of the signals, each
 updated in one step per new signal. Every task's full decoder and its k-fold decoders
 (trained on all folds but one) are functions of these (totals minus one fold): one
 eigendecomposition per training set (kept, and refreshed every few signals in turn, by the
 learner: ``eigen_period``) and a K x K solve per task
-(:func:`~decoding.lda.fit_pooled_lda`); no task is ever refitted from its raw history.
+(`fit_pooled_lda`); no task is ever refitted from its raw history.
 Fold ``f`` holds the signals ``i`` with ``i % n_folds == f`` (0-based arrival order), so
 folds never move as the history grows.
 
@@ -17,8 +17,8 @@ numbers, updated every step), the cost the shared form avoids. The categorical d
 (symbolic signals) needs only the class counts and sums.
 
 Tasks whose labels agree on every signal since the last switch have the same statistics,
-so the same decoders: :attr:`TaskHistory.labellings` groups them (each new signal splits a
-group by the label it gets; a switch merges them all) and :class:`TaskModels` fits,
+so the same decoders: `TaskHistory.labellings` groups them (each new signal splits a
+group by the label it gets; a switch merges them all) and `TaskModels` fits,
 cross-validates and predicts once per labelling. In feedback a move's label depends on
 which side of the agent's cell the target lies, so a few dozen labellings stand for the
 400 tasks of a 20 x 20 grid; the results are every task's, exactly as if each were fitted.
@@ -114,11 +114,11 @@ class TaskHistory:
         Also keep every task's per-class scatter matrices (the Student-t decoder).
     keeps_frame_labels : bool, default False
         Also keep every task's frame label weights of the signals since the last switch,
-        before any ambiguous label was split (:meth:`resplit_own_labels` needs them).
+        before any ambiguous label was split (`resplit_own_labels` needs them).
     eigen_period : int or None, default None
         Also keep the training sets' scatters decomposed, each decomposed again every
-        ``eigen_period`` signals in turn (:mod:`decoding.scatter_eigen`;
-        :func:`~decoding.scatter_eigen.refresh_period` balances the cost), for the pooled
+        ``eigen_period`` signals in turn (`decoding.scatter_eigen`;
+        `refresh_period` balances the cost), for the pooled
         LDA with a fixed shrinkage; None: the decoders decompose the scatters.
     """
 
@@ -225,7 +225,7 @@ class TaskHistory:
 
         ``weight`` (> 0): how much the signal counts in the shared statistics (its fold's
         scatter ``w x x^T``, sum ``w x`` and size ``w``; the decomposed scatters get ``sqrt(w)
-        x``): a pseudo-observation of an earlier session (:mod:`calibration_free.prior`),
+        x``): a pseudo-observation of an earlier session (`calibration_free.prior`),
         whose label weights the caller scales by ``w`` too, so that the signal's unit of
         weight is ``w`` in every statistic. 1: a signal observed live (the same numbers as
         without the argument).
@@ -286,7 +286,7 @@ class TaskHistory:
         A frame label that allows several classes but not all (guidance: two optimal
         directions) is shared among them in proportion to ``proba`` (n_tasks, n_signals -
         n_adopted, K), each task's latest out-of-fold class probabilities of the signals
-        since the switch (:meth:`TaskModels.held_out_proba` from :attr:`n_adopted`): one EM step
+        since the switch (`TaskModels.held_out_proba` from `n_adopted`): one EM step
         on which of the allowed classes the user chose, where the split made when each
         signal arrived used the decoder of that time. The tasks' statistics since the
         switch are rebuilt from the new weights. Needs ``keeps_frame_labels``.
@@ -409,7 +409,7 @@ class TaskHistory:
         (indices, (m,)) alone: (m, K, K).
 
         ``by_fold`` (n_folds, per_fold, n_tasks or m, K): class probabilities of every signal in
-        the layout of :meth:`cross_validated_proba` (signal ``i`` at ``[i % n_folds, i //
+        the layout of `cross_validated_proba` (signal ``i`` at ``[i % n_folds, i //
         n_folds]``; the padding beyond the last signal is ignored). Row ``k`` of the result
         is the predictions summed over the signals with task ``t``'s label weight
         ``w_ik(t)``. The labels shared by every task (those adopted at target switches) take
@@ -438,7 +438,7 @@ class TaskHistory:
         ``i % n_folds`` at position ``i // n_folds``, so the signals, zero-padded to a
         multiple of ``n_folds``, reshape to (n_folds, per_fold, n_features) and every
         fold's decoders score their own fold in one batched call; the padding's rows are
-        not predictions. :func:`in_signal_order` gives the (n_tasks, n_signals, K) view.
+        not predictions. `in_signal_order` gives the (n_tasks, n_signals, K) view.
         """
         n_signals, n_folds = self.n_signals, self.n_folds
         per_fold = -(-n_signals // n_folds)
@@ -452,7 +452,7 @@ class TaskHistory:
 
 
 def _one_labelling(n_tasks: int) -> tuple[np.ndarray, np.ndarray]:
-    """Every task in labelling 0, task 0 standing for it (see :attr:`TaskHistory.labellings`)."""
+    """Every task in labelling 0, task 0 standing for it (see `TaskHistory.labellings`)."""
     return np.zeros(n_tasks, dtype=np.intp), np.zeros(1, dtype=np.intp)
 
 
@@ -478,7 +478,7 @@ def _doubled(rows: np.ndarray) -> np.ndarray:
 
 
 def signals_from(by_fold: np.ndarray, first: int, n_signals: int) -> np.ndarray:
-    """Probabilities by fold (:meth:`TaskHistory.cross_validated_proba`) of signals
+    """Probabilities by fold (`TaskHistory.cross_validated_proba`) of signals
     ``first`` to ``n_signals - 1``, in signal order: (n, n_tasks, K) (a copy)."""
     index = np.arange(first, n_signals)
     n_folds = by_fold.shape[0]
@@ -486,7 +486,7 @@ def signals_from(by_fold: np.ndarray, first: int, n_signals: int) -> np.ndarray:
 
 
 def in_signal_order(by_fold: np.ndarray, n_signals: int, task: int | None = None) -> np.ndarray:
-    """Probabilities by fold (:meth:`TaskHistory.cross_validated_proba`) in signal order:
+    """Probabilities by fold (`TaskHistory.cross_validated_proba`) in signal order:
     (n_tasks, n_signals, K), or (n_signals, K) for one ``task`` (a copy)."""
     n_tasks, n_classes = by_fold.shape[2:]
     if task is not None:
@@ -519,20 +519,20 @@ DECODERS: tuple[str, ...] = ("lda", "student_t", "gaussian", "categorical")
 
 @dataclass(frozen=True)
 class DecoderFit:
-    """How every task's decoders are fitted on a :class:`TaskHistory`.
+    """How every task's decoders are fitted on a `TaskHistory`.
 
     Attributes
     ----------
     kind : {"lda", "student_t", "gaussian", "categorical"}
         Pooled-covariance shrinkage LDA on the shared statistics
-        (:mod:`decoding.lda`); the Student-t predictive (:mod:`decoding.student_t`) or
-        a plain Gaussian per class (QDA, :mod:`decoding.gaussian`), both on per-class
+        (`decoding.lda`); the Student-t predictive (`decoding.student_t`) or
+        a plain Gaussian per class (QDA, `decoding.gaussian`), both on per-class
         statistics; or button frequencies of symbolic signals
-        (:mod:`decoding.categorical`), on the class counts and sums alone.
+        (`decoding.categorical`), on the class counts and sums alone.
     shrinkage : float
         Covariance shrinkage (not used by "categorical").
     student_t_counts : {"class", "total"}, default "class"
-        The count in the Student-t predictive (:func:`decoding.student_t.fit_student_t`):
+        The count in the Student-t predictive (`decoding.student_t.fit_student_t`):
         each class's own, or the training set's total (the thesis code's).
     """
 
@@ -580,7 +580,7 @@ class DecoderFit:
 
 
 def decoder_fit(decoder: str, shrinkage: float, student_t_counts: str = "class") -> DecoderFit:
-    """The fitting of decoders of kind ``decoder`` (one of :data:`DECODERS`)."""
+    """The fitting of decoders of kind ``decoder`` (one of `DECODERS`)."""
     return DecoderFit(decoder, shrinkage, student_t_counts)
 
 
@@ -589,7 +589,7 @@ class TaskModels:
     """Every task's decoder on the whole history, with its cross-validated confusion
     when it was fitted with one.
 
-    Tasks that share a labelling (:attr:`TaskHistory.labellings`) share their decoders:
+    Tasks that share a labelling (`TaskHistory.labellings`) share their decoders:
     the models hold one per labelling, and every per-task result is that labelling's.
 
     Attributes
@@ -602,7 +602,7 @@ class TaskModels:
         without cross-validation.
     cv_by_fold : ndarray, shape (n_folds, per_fold, n_labellings, n_classes), or None
         The out-of-fold class probabilities the confusion matrices were built from, in
-        the layout of :meth:`TaskHistory.cross_validated_proba` (:attr:`cv_proba`: every
+        the layout of `TaskHistory.cross_validated_proba` (`cv_proba`: every
         task's, in signal order).
     n_signals : int
         Signals the models were fitted on.
@@ -634,7 +634,7 @@ class TaskModels:
         """Fit every labelling's decoders and (with ``cross_validate``) their k-fold
         confusion matrices on ``history``.
 
-        ``smoothing`` and ``balanced``: see :func:`~calibration_free.likelihood.confusion_matrices`.
+        ``smoothing`` and ``balanced``: see `confusion_matrices`.
         """
         labelling, representatives = history.labellings
         decoders, fold_decoders = fit(history, cross_validate, representatives)
@@ -662,7 +662,7 @@ class TaskModels:
 
     def balanced_accuracy(self, task: int, label_weights: np.ndarray) -> float | None:
         """Cross-validated balanced accuracy of ``task``'s decoder
-        (:func:`balanced_accuracy`)."""
+        (`balanced_accuracy`)."""
         if self.cv_by_fold is None:
             raise RuntimeError("these models were fitted without cross-validation")
         proba = in_signal_order(self.cv_by_fold, self.n_signals, int(self.labelling[task]))
@@ -688,13 +688,13 @@ class TaskModels:
 
     def proba(self, signals: np.ndarray) -> np.ndarray:
         """The decoders' own class probabilities ``p`` of signals (n, d): (n_tasks, n, K),
-        with unknown classes treated as in :meth:`corrected_proba`."""
+        with unknown classes treated as in `corrected_proba`."""
         return self._per_task(self.decoders.proba(signals))
 
     def held_out_proba(self, first: int = 0) -> np.ndarray:
         """Every task's out-of-fold class probabilities of the signals it was fitted on
         from signal ``first`` on, (n_tasks, n_signals - first, K), unknown classes treated
-        as in :meth:`corrected_proba`; needs the cross-validation."""
+        as in `corrected_proba`; needs the cross-validation."""
         if self.cv_by_fold is None:
             raise RuntimeError("these models were fitted without cross-validation")
         rows = signals_from(self.cv_by_fold, first, self.n_signals)
@@ -702,7 +702,7 @@ class TaskModels:
 
     def held_out_corrected_proba(self, task: int) -> np.ndarray:
         """``task``'s out-of-fold ``q = C p`` of every signal it was fitted on, (n_signals,
-        K), unknown classes treated as in :meth:`corrected_proba`; needs the
+        K), unknown classes treated as in `corrected_proba`; needs the
         cross-validation."""
         if self.cv_by_fold is None or self.confusion is None:
             raise RuntimeError("these models were fitted without cross-validation")
@@ -713,13 +713,13 @@ class TaskModels:
 
     def _per_task(self, q: np.ndarray) -> np.ndarray:
         """Every labelling's probabilities ``q`` (n_labellings, n, K) as every task's
-        (n_tasks, n, K), unknown classes treated as in :meth:`corrected_proba`."""
+        (n_tasks, n, K), unknown classes treated as in `corrected_proba`."""
         return self._with_unknown_classes(q, slice(None))[self.labelling]
 
     def _with_unknown_classes(self, q: np.ndarray, labellings: slice | np.ndarray) -> np.ndarray:
         """Probabilities ``q`` (n_labellings, n, K) of the labellings ``labellings`` with
         the classes their decoders do not know given ``1 / K`` (see
-        :meth:`corrected_proba`)."""
+        `corrected_proba`)."""
         n_classes = q.shape[-1]
         known = (self.decoders.present & self.decoders.informative[:, None])[labellings]
         share = known.sum(axis=1)[:, None, None] / n_classes

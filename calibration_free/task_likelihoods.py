@@ -2,10 +2,10 @@
 
 A likelihood keeps every task's log pseudo-likelihood since the last target (the current
 *task segment*) and is told, for each new signal, the label distribution every task
-expected (:meth:`TaskLikelihood.take`, before the signal joins the history, with the
+expected (`TaskLikelihood.take`, before the signal joins the history, with the
 decoders trained before it) and then that the signal has joined
-(:meth:`TaskLikelihood.after_signal`); at a target it restarts
-(:meth:`TaskLikelihood.restart`). :data:`LIKELIHOODS`:
+(`TaskLikelihood.after_signal`); at a target it restarts
+(`TaskLikelihood.restart`). `LIKELIHOODS`:
 
 * ``"matching"`` (the default; method.md §3, the thesis's Eq.
   matchingfiltercrossvalidation): a filter, ``log L_t += log sum_l p(l | s, a, t)
@@ -19,12 +19,12 @@ decoders trained before it) and then that the signal has joined
   (every decoder of the learner is trained on the whole history: the relabelled past
   segments and the current one); no cross-validation. Each signal keeps the label
   distribution it was matched with when it arrived (with any ambiguous guidance label
-  resolved then, see :func:`calibration_free.learner.expect_the_chosen_label`).
+  resolved then, see `calibration_free.learner.expect_the_chosen_label`).
 * ``"bhattacharyya"`` (method-extensions §1, thesis §7.3): until the first target,
   ``log L_t += log(1 - rho_t + tiny)`` per signal, ``rho_t`` the Bhattacharyya
   coefficient of the two class Gaussians of task t's labelling of the whole history (shrunk
   as the decoders are); a task is declared when its normalised likelihood
-  ``L_t / sum_u L_u`` exceeds :data:`BHATTACHARYYA_THRESHOLD` (0.99), whatever the
+  ``L_t / sum_u L_u`` exceeds `BHATTACHARYYA_THRESHOLD` (0.99), whatever the
   configured confidence rule. Steps at which some task's labelling leaves a class with less
   than two signals' weight add nothing to any task (an undefined overlap would favour or
   penalise the tasks whose classes fill first, whatever the signals say). At the first
@@ -33,13 +33,13 @@ decoders trained before it) and then that the signal has joined
   most labels their overlaps stop discriminating.
 
 The matching filter may also be preceded, until the first target, by the Gaussian evidence
-(``LearnerConfig.first_target_evidence="gaussian"``, :class:`FirstTargetGaussianEvidence`):
+(``LearnerConfig.first_target_evidence="gaussian"``, `FirstTargetGaussianEvidence`):
 after every signal each task's log-likelihood is the log marginal likelihood of the whole
-history under that task's labels (:mod:`calibration_free.gaussian_evidence`), and a task
+history under that task's labels (`calibration_free.gaussian_evidence`), and a task
 is declared when its normalised likelihood exceeds ``evidence_beta``; from the first target
 on, the matching filter as always.
 
-The prediction a likelihood matches (:meth:`TaskLikelihood.predict`) is also what the
+The prediction a likelihood matches (`TaskLikelihood.predict`) is also what the
 learner splits ambiguous guidance labels with and what the meaning-space planner samples:
 with ``"simple"`` or ``"batch"`` (or Bhattacharyya before its switch) no confusion matrix
 is ever needed.
@@ -98,7 +98,7 @@ class TaskLikelihood:
 
     @property
     def name(self) -> str:
-        """The likelihood in use (one of :data:`LIKELIHOODS`)."""
+        """The likelihood in use (one of `LIKELIHOODS`)."""
         return "matching" if self._corrected else "simple"
 
     @property
@@ -119,7 +119,7 @@ class TaskLikelihood:
         prediction of it (n_tasks, K) by the decoders trained before it (None before any
         decoder: the first signal adds nothing); its log match is multiplied by
         ``temperature`` (the calibrated evidence's,
-        :mod:`calibration_free.evidence_temperature`)."""
+        `calibration_free.evidence_temperature`)."""
         if predicted is not None:
             self.log_likelihood += temperature * log_match(expected, predicted)
 
@@ -169,8 +169,8 @@ class UntilFirstTarget(TaskLikelihood):
 
     Until the first target a task is declared when its normalised likelihood exceeds
     ``threshold``, whatever the configured confidence rule; subclasses name the scoring
-    (:attr:`first_name`) and update the scores from the history after every signal
-    (:meth:`score_history`).
+    (`first_name`) and update the scores from the history after every signal
+    (`score_history`).
 
     Parameters
     ----------
@@ -200,7 +200,7 @@ class UntilFirstTarget(TaskLikelihood):
             self.score_history(history)
 
     def score_history(self, history: TaskHistory) -> None:
-        """Update :attr:`log_likelihood` now that the newest signal has joined ``history``."""
+        """Update `log_likelihood` now that the newest signal has joined ``history``."""
         raise NotImplementedError
 
     def restart(self) -> None:
@@ -213,7 +213,7 @@ class UntilFirstTarget(TaskLikelihood):
 
 class BhattacharyyaOverlap(UntilFirstTarget):
     """The overlap pseudo-likelihood until the first target (declared above
-    :data:`BHATTACHARYYA_THRESHOLD`), then the matching filter.
+    `BHATTACHARYYA_THRESHOLD`), then the matching filter.
 
     Parameters
     ----------
@@ -266,7 +266,7 @@ def make_likelihood(
     first_target_evidence: str,
     evidence_beta: float,
 ) -> TaskLikelihood:
-    """A fresh likelihood of kind ``kind`` (one of :data:`LIKELIHOODS`) for ``n_tasks``;
+    """A fresh likelihood of kind ``kind`` (one of `LIKELIHOODS`) for ``n_tasks``;
     with ``first_target_evidence="gaussian"`` (the "matching" kind only), preceded by the
     Gaussian evidence until the first target, declared above ``evidence_beta``."""
     check_option("likelihood", kind, LIKELIHOODS)

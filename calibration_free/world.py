@@ -1,30 +1,30 @@
 """Worlds: states, actions, transitions, task hypotheses, optimal actions, value iteration.
 
-A :class:`World` is what the learner, the planners, the simulated user and the frames
+A `World` is what the learner, the planners, the simulated user and the frames
 know of the environment:
 
 * ``n_states`` states and ``n_actions`` actions with readable names
-  (:meth:`World.state_name`, :attr:`World.action_names`);
-* :attr:`World.transitions`: for every (state, action) a few possible next states and their
+  (`World.state_name`, `World.action_names`);
+* `World.transitions`: for every (state, action) a few possible next states and their
   probabilities (one outcome with probability 1 in a deterministic world);
 * the task hypotheses: task ``t`` means "the user wants the agent in state
   ``task_states[t]``"; the tasks may be any subset of the states;
-* :attr:`World.optimal`, every task's optimal actions: by value iteration on the task's
-  reward (:meth:`World.task_reward`), or by a closed form where a world has one (the grid);
-* how a target is declared: performing :meth:`World.declaration_action` in the task's
-  state (:meth:`World.declares`); the device does so when it is confident in that task;
-* :attr:`World.guidance_actions`: the actions the guidance frame's classes stand for
+* `World.optimal`, every task's optimal actions: by value iteration on the task's
+  reward (`World.task_reward`), or by a closed form where a world has one (the grid);
+* how a target is declared: performing `World.declaration_action` in the task's
+  state (`World.declares`); the device does so when it is confident in that task;
+* `World.guidance_actions`: the actions the guidance frame's classes stand for
   (class ``k`` means "do ``guidance_actions[k]``").
 
 Large tables (``optimal``, ``(n_tasks, n_states, n_actions)`` booleans) are computed when
 first used, not when the world is built, so that building a session's world is cheap.
 
-Stochastic transitions draw from the session's *world stream* (:func:`transition_draws`):
+Stochastic transitions draw from the session's *world stream* (`transition_draws`):
 step ``k`` of a session (1-based) uses its ``k``-th uniform number, whichever process
 computes the move, so that a live session equals its offline simulation.
 
-:class:`GridWorld` is today's world: the cells of an ``n x n`` grid, indexed
-``s = row * n + col`` with row 0 at the top, and the actions :data:`ACTIONS`: four moves
+`GridWorld` is today's world: the cells of an ``n x n`` grid, indexed
+``s = row * n + col`` with row 0 at the top, and the actions `ACTIONS`: four moves
 that clamp at the walls, and ``goal`` ("I am at the target"), which keeps the state. Every
 cell is a task; the target is declared with ``goal``.
 """
@@ -47,7 +47,7 @@ _DELTAS = ((-1, 0), (1, 0), (0, -1), (0, 1), (0, 0))
 #: Tasks whose optimal actions are computed together (bounds the temporaries' size).
 _TASK_CHUNK_ELEMENTS = 1 << 22
 #: Index of the world stream among the session seed's spawned streams (see
-#: :mod:`calibration_free.streams`: 0 data, 1 user, 2 learner).
+#: `calibration_free.streams`: 0 data, 1 user, 2 learner).
 WORLD_STREAM = 3
 
 
@@ -101,10 +101,10 @@ class Transitions:
 class World(ABC):
     """What every world provides (see the module docstring).
 
-    Subclasses define :attr:`action_names`, :attr:`n_states`, :attr:`task_states`,
-    :attr:`transitions`, :attr:`guidance_actions`, :meth:`state_name` and
-    :meth:`declaration_action`; they may override :meth:`task_reward`,
-    :meth:`start_state` and :meth:`_optimal_table`.
+    Subclasses define `action_names`, `n_states`, `task_states`,
+    `transitions`, `guidance_actions`, `state_name` and
+    `declaration_action`; they may override `task_reward`,
+    `start_state` and `_optimal_table`.
     """
 
     #: Short name of the world kind (``cfbci simulate --world``).
@@ -160,7 +160,7 @@ class World(ABC):
     def step(self, state: int, action: int, draw: float | None = None) -> int:
         """The state reached by ``action`` from ``state``.
 
-        ``draw`` (a uniform number of the world stream, see :func:`transition_draws`) is
+        ``draw`` (a uniform number of the world stream, see `transition_draws`) is
         needed only where the move is stochastic.
         """
         return self.transitions.outcome(int(state), int(action), draw)
@@ -245,7 +245,7 @@ def transition_draws(seed: int) -> TransitionDraws:
     """The world stream of a session seed: ``SeedSequence(seed).spawn(4)[3]``.
 
     The first three spawned streams are the data, user and learner streams
-    (:func:`calibration_free.streams.session_streams`); this fourth one is consumed only
+    (`calibration_free.streams.session_streams`); this fourth one is consumed only
     by stochastic moves, so deterministic worlds' sessions are unchanged by it.
     """
     child = np.random.SeedSequence(seed).spawn(WORLD_STREAM + 1)[WORLD_STREAM]
@@ -358,7 +358,7 @@ class GridWorld(World):
         return divmod(int(state), self.size)
 
 
-#: Largest state space :func:`optimal_action_values` solves by policy iteration (a dense
+#: Largest state space `optimal_action_values` solves by policy iteration (a dense
 #: S x S solve per policy, S^3; value iteration's sweeps grow as S).
 POLICY_ITERATION_STATES = 100
 
@@ -367,8 +367,8 @@ def optimal_action_values(
     reward: np.ndarray, transitions: Transitions, discount: float
 ) -> np.ndarray:
     """Action values ``q`` (n_states, n_actions) of one MDP: exact by
-    :func:`policy_iteration` up to ``POLICY_ITERATION_STATES`` states, by
-    :func:`value_iteration` (to its tolerance) beyond."""
+    `policy_iteration` up to ``POLICY_ITERATION_STATES`` states, by
+    `value_iteration` (to its tolerance) beyond."""
     if reward.shape[0] <= POLICY_ITERATION_STATES:
         return policy_iteration(reward, transitions, discount=discount)
     return value_iteration(reward, transitions, discount=discount)
@@ -430,7 +430,7 @@ def _check_discount(discount: float, max_iterations: int) -> None:
     check_range("max_iterations", max_iterations, 1, np.inf)
 
 
-#: Value-iteration sweeps between two stopping tests (see :func:`value_iteration`), and
+#: Value-iteration sweeps between two stopping tests (see `value_iteration`), and
 #: the state values kept for them at most (many MDPs at once test after every sweep).
 _SWEEPS_PER_BLOCK = 32
 _BLOCK_ELEMENTS = 1 << 16

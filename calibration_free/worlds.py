@@ -1,13 +1,13 @@
 """The worlds besides the grid (method-extensions.md §4 and §6.1), and choosing one by name.
 
-* :class:`LineWorld`: 5 states in a row, actions right, left and no-move; moving into a
+* `LineWorld`: 5 states in a row, actions right, left and no-move; moving into a
   wall leads, with probability 0.5, to the neighbour and otherwise stays (the "edge
   trick"), so that no-move is the unique optimal action at the goal. Two tasks, G1 =
   state 1 and G2 = state 5 (the thesis's numbering; indices 0 and 4); start in the middle.
   The target is declared with no-move in it. Without no-move (``actions=2``) G1 and G2
-  cannot be told apart (see :mod:`calibration_free.identifiability`) and no target can
+  cannot be told apart (see `calibration_free.identifiability`) and no target can
   be declared.
-* :class:`PickAndPlaceWorld`: a robot over 4 columns and 3 cubes (624 valid states),
+* `PickAndPlaceWorld`: a robot over 4 columns and 3 cubes (624 valid states),
   actions right, left, grasp, release; an illegal grasp or release changes nothing. One
   task per state. The target is declared, in the task's state, with the action that is
   a no-op there: grasp when holding a cube, release when the hand is empty.

@@ -4,7 +4,7 @@ Each learner step is some hundred small matrix products and eigendecompositions 
 for ErrP features). OpenBLAS spreads even these over its threads, which wait for each
 other: on a loaded 2-core machine a T = 25 step measured 270 ms with the default two
 threads against 38 ms with one, and ``cfbci simulate --jobs N`` already runs one
-session per core. :func:`single_threaded_blas` limits this process to one BLAS thread
+session per core. `single_threaded_blas` limits this process to one BLAS thread
 and sets the environment so that the processes it starts (simulation workers, services)
 start with one. Results do not depend on it (the products are not split along their sums
 here), only the time does.

@@ -33,7 +33,7 @@ class ErrPFeatures(TransformerMixin, BaseEstimator):
     kept at ``decimate_to`` Hz and concatenated channel by channel. The result of an epoch
     does not depend on the other epochs of the batch.
 
-    Filter edges: :func:`scipy.signal.sosfiltfilt` pads each end of the epoch with its edge
+    Filter edges: `scipy.signal.sosfiltfilt` pads each end of the epoch with its edge
     value over the whole epoch length (``padtype="constant", padlen=n_times - 1``) instead
     of its default odd extension of 27 samples. With a 1 Hz high-pass on a 1.2 s epoch the
     edge transients reach into the window; on synthetic 1/f EEG the window samples differ
@@ -206,7 +206,7 @@ class ErrPFeatures(TransformerMixin, BaseEstimator):
         ----------
         input_features : None
             Ignored: the input is epochs, not named features. Present for the
-            scikit-learn API (e.g. :meth:`sklearn.pipeline.Pipeline.get_feature_names_out`).
+            scikit-learn API (e.g. `sklearn.pipeline.Pipeline.get_feature_names_out`).
 
         Returns
         -------

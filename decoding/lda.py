@@ -16,7 +16,7 @@ V^T`` per training set makes ``c S + nu I`` (``c = (1 - lambda) / N``, ``nu`` a 
 per task) diagonal for every task, and the rank-K correction is a K x K solve per task
 (Woodbury identity). Decoders are kept in the basis ``V``: signals are projected once per
 training set, and every task's scores are then one matrix product. A decomposition may
-also be an earlier one plus the signals added since (:mod:`decoding.scatter_eigen`): those
+also be an earlier one plus the signals added since (`decoding.scatter_eigen`): those
 join the Woodbury step, eliminated first.
 """
 
@@ -103,7 +103,7 @@ class PooledLinearDecoders(BatchedDecoders):
         return log_softmax(np.moveaxis(scores, n_sets, -2))  # (*J, *T, n, K)
 
     def proba(self, X: np.ndarray) -> np.ndarray:
-        """As :meth:`log_proba`, exponentiated; with two classes, from the score
+        """As `log_proba`, exponentiated; with two classes, from the score
         difference alone (half the products, one exponential)."""
         if self.present.shape[-1] != 2:
             return super().proba(X)
@@ -139,7 +139,7 @@ def fit_pooled_lda(
     ``shrinkage``: a fixed intensity in [0, 1]; an array of them broadcasting to the
     labelling axes (``*T``), one per labelling (several intensities fitted at once on
     repeats of one labelling); or ``"oas"`` for each training set and labelling's own
-    (:func:`oas_shrinkage`).
+    (`oas_shrinkage`).
 
     With ``statistics.eigen`` and positive fixed shrinkages, the scatters are not
     decomposed here: the signals added since their last decomposition join the Woodbury
@@ -162,7 +162,7 @@ def fit_pooled_lda(
 def _fit_in_basis(
     statistics: PooledStatistics, eigen: ScatterEigen, shrinkage: float | np.ndarray | str
 ) -> PooledLinearDecoders | None:
-    """:func:`fit_pooled_lda` in the basis of ``eigen``; None if a decoder's diagonal
+    """`fit_pooled_lda` in the basis of ``eigen``; None if a decoder's diagonal
     part is singular while signals are pending (only the least-squares path, which needs
     the whole scatter decomposed, can solve it)."""
     n_sets = statistics.n_signals.ndim
@@ -404,7 +404,7 @@ class ShrinkageLDA(StatisticsClassifier):
 
     scikit-learn's ``LinearDiscriminantAnalysis(solver="lsqr", shrinkage=shrinkage)``
     (empirical priors in the covariance) with the decision made under equal priors (see
-    :func:`fit_pooled_lda`), computed from class statistics.
+    `fit_pooled_lda`), computed from class statistics.
 
     Parameters
     ----------

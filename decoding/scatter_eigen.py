@@ -1,7 +1,7 @@
 """Eigendecompositions of growing scatter matrices, each refreshed in turn.
 
 A learner's training sets (the whole history and every fold's complement) grow by one
-signal per step, and the pooled LDA (:func:`decoding.lda.fit_pooled_lda`) needs each
+signal per step, and the pooled LDA (`decoding.lda.fit_pooled_lda`) needs each
 set's scatter ``S`` in an eigenbasis. Decomposing every set at every step is most of a
 small world's step. Instead, each set keeps the eigendecomposition of its scatter at
 some earlier step and the signals added since:
@@ -55,7 +55,7 @@ def refresh_period(n_tasks: int, n_features: int) -> int:
     """Signals between two decompositions of one set: the d^3 eigendecomposition against
     the pending signals' cost, which grows with the decoders fitted, one per distinct
     labelling (each solves an (r + K)-sized system per set), about ``L = 2.4 sqrt(T)`` of
-    them (:data:`LABELLINGS_PER_ROOT_TASK`, at most T). About ``d / sqrt(4 L)`` signals, at
+    them (`LABELLINGS_PER_ROOT_TASK`, at most T). About ``d / sqrt(4 L)`` signals, at
     least 1 (every set at every step) and at most 8."""
     labellings = min(n_tasks, LABELLINGS_PER_ROOT_TASK * np.sqrt(n_tasks))
     return int(np.clip(n_features / np.sqrt(4.0 * labellings), 1, 8))

@@ -22,15 +22,15 @@ EMPTY_WEIGHT = 1e-9
 
 def at_least(counts: np.ndarray, minimum: float) -> np.ndarray:
     """Where the (weighted) ``counts`` reach ``minimum`` up to a rounding residue
-    (:data:`EMPTY_WEIGHT`): soft labels split in halves sum to a whole count in exact
+    (`EMPTY_WEIGHT`): soft labels split in halves sum to a whole count in exact
     arithmetic, and a decoder's classes must not turn on the last bit of that sum."""
     return counts >= minimum - EMPTY_WEIGHT
 
 
 def more_than(counts: np.ndarray, minimum: float) -> np.ndarray:
     """Where the (weighted) ``counts`` exceed ``minimum`` by more than a rounding residue
-    (:data:`EMPTY_WEIGHT`): a count equal to it in exact arithmetic does not, whatever
-    its last bit (see :func:`at_least`)."""
+    (`EMPTY_WEIGHT`): a count equal to it in exact arithmetic does not, whatever
+    its last bit (see `at_least`)."""
     return counts > minimum + EMPTY_WEIGHT
 
 
@@ -66,7 +66,7 @@ class ClassStatistics:
     def class_moments(self) -> tuple[np.ndarray, np.ndarray]:
         """Class means (*B, K, d) and biased class covariances (*B, K, d, d).
 
-        Classes with no weight (at most :data:`EMPTY_WEIGHT`, a rounding residue) get zero
+        Classes with no weight (at most `EMPTY_WEIGHT`, a rounding residue) get zero
         mean and covariance (their decoder is marked uninformative by the caller).
         """
         empty = self.counts <= EMPTY_WEIGHT
@@ -106,7 +106,7 @@ class PooledStatistics:
         Per training set and labelling, the class-weighted sums of the signals.
     eigen : ScatterEigen or None
         ``scatter`` as an earlier eigendecomposition plus the signals added since
-        (:mod:`decoding.scatter_eigen`), or None: the decoders decompose ``scatter``.
+        (`decoding.scatter_eigen`), or None: the decoders decompose ``scatter``.
     """
 
     scatter: np.ndarray
@@ -141,7 +141,7 @@ class PooledStatistics:
 
 class BatchedDecoders:
     """What every batch of decoders shares (subclasses are dataclasses with a ``present``
-    field, shape (*B, n_classes), bool, and compute :meth:`_known_log_proba`)."""
+    field, shape (*B, n_classes), bool, and compute `_known_log_proba`)."""
 
     present: np.ndarray
 
@@ -166,7 +166,7 @@ class BatchedDecoders:
         return np.where(self.informative[..., None, None], self._known_log_proba(X), uniform)
 
     def proba(self, X: np.ndarray) -> np.ndarray:
-        """Class probabilities, as :meth:`log_proba` (subclasses may compute them directly)."""
+        """Class probabilities, as `log_proba` (subclasses may compute them directly)."""
         return np.exp(self.log_proba(X))
 
     def select(self, index: object) -> Self:

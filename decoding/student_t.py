@@ -17,8 +17,8 @@ covariance), although each class's mean and covariance come from its own (soft-l
 signals. Every class then takes part as soon as the training set has more signals than
 dimensions, however few of them it holds, provided it has a covariance of its own: with
 hard labels (the thesis trains on soft ones, where every class weighs every signal) a
-class needs a weight of at least 2 (:data:`MIN_CLASS_WEIGHT`) and signals that are not
-all the same (:data:`MIN_RELATIVE_SPREAD`); without shrinkage, more signals than
+class needs a weight of at least 2 (`MIN_CLASS_WEIGHT`) and signals that are not
+all the same (`MIN_RELATIVE_SPREAD`); without shrinkage, more signals than
 dimensions. ``N`` is the sum of the class weights, the number of signals when every
 signal is labelled. The default,
 ``counts="class"``, is the exact predictive of each class's own data.
@@ -44,7 +44,7 @@ from decoding.statistics import (
 )
 from decoding.validation import check_option
 
-#: How the predictive counts a class's signals (see :func:`fit_student_t`).
+#: How the predictive counts a class's signals (see `fit_student_t`).
 STUDENT_T_COUNTS: tuple[str, ...] = ("class", "total")
 
 #: Weight a class needs with ``counts="total"``: two signals give it a covariance.
@@ -146,8 +146,8 @@ def _has_own_covariance(
     statistics: ClassStatistics, covariances: np.ndarray, shrinkage: float
 ) -> np.ndarray:
     """Classes whose shrunk covariance is positive definite, shape (*B, n_classes):
-    weight at least :data:`MIN_CLASS_WEIGHT` (more than ``d`` without shrinkage) and
-    signals spread beyond :data:`MIN_RELATIVE_SPREAD`."""
+    weight at least `MIN_CLASS_WEIGHT` (more than ``d`` without shrinkage) and
+    signals spread beyond `MIN_RELATIVE_SPREAD`."""
     counts = statistics.counts
     n_features = covariances.shape[-1]
     enough = (

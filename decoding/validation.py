@@ -1,6 +1,6 @@
 """One place for input checks, so every user-facing error reads the same way.
 
-Each helper raises :class:`ValueError` (or :class:`TypeError`) with a message that says
+Each helper raises `ValueError` (or `TypeError`) with a message that says
 *what* is wrong, *where* (the argument or file it came from) and what was expected.
 """
 

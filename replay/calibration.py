@@ -2,15 +2,15 @@
 
 Over all steps of many sessions, the best hypothesis's confidence is binned and, per bin,
 the fraction of steps at which that hypothesis was the user's target is counted. A
-calibrated confidence of 0.8 is right 80 % of the time. Bins are :data:`N_BINS` equal
+calibrated confidence of 0.8 is right 80 % of the time. Bins are `N_BINS` equal
 intervals of [0, 1], ``[k/10, (k+1)/10)``, the last one closed (a confidence of 1.0 falls
 in the last bin).
 
-Counts are kept per session (:func:`calibration_counts`) so that sessions run apart (Dask
-workers, recordings) pool by summing (:func:`pool_counts`). A learner may decide by more
+Counts are kept per session (`calibration_counts`) so that sessions run apart (Dask
+workers, recordings) pool by summing (`pool_counts`). A learner may decide by more
 than one rule in a session (the pairwise W against ``beta``, the normalised likelihood
 against ``calibrated_beta`` while its evidence is calibrated: see
-:class:`calibration_free.config.LearnerConfig`): :func:`counts_by_rule` keeps one set of
+`calibration_free.config.LearnerConfig`): `counts_by_rule` keeps one set of
 counts per rule and threshold, so that each threshold can be read against its own rule's
 curve.
 """
@@ -58,8 +58,8 @@ def calibration_counts(
 
 @dataclass(frozen=True)
 class RuleCounts:
-    """The counts (:func:`calibration_counts`) of the steps decided by one rule: the
-    confidence rule (a key of :data:`calibration_free.likelihood.CONFIDENCES`) compared
+    """The counts (`calibration_counts`) of the steps decided by one rule: the
+    confidence rule (a key of `calibration_free.likelihood.CONFIDENCES`) compared
     with ``threshold``; and ``above_threshold``, ``[steps, right]`` of the steps whose best
     task's confidence exceeded the threshold (the confident ones)."""
 
@@ -74,7 +74,7 @@ def counts_by_rule(
     best_is_target: Sequence[bool],
     rules: Sequence[tuple[str, float]],
 ) -> list[RuleCounts]:
-    """:func:`calibration_counts` of each rule's steps; ``rules`` holds the ``(rule,
+    """`calibration_counts` of each rule's steps; ``rules`` holds the ``(rule,
     threshold)`` in force at each step. Rules in the order they first occur."""
     if len(rules) != len(best_confidence):
         raise ValueError(f"{len(best_confidence)} confidences but {len(rules)} rules")
@@ -139,7 +139,7 @@ def calibration_curve(counts: Sequence[Sequence[int]]) -> list[CalibrationBin]:
 
 def rule_summary(counts: RuleCounts) -> dict[str, Any]:
     """A rule's pooled counts as JSON: ``rule``, ``threshold``, ``curve`` (the
-    :class:`CalibrationBin` fields per bin) and ``above_threshold`` (``steps``, ``right``)."""
+    `CalibrationBin` fields per bin) and ``above_threshold`` (``steps``, ``right``)."""
     steps, right = counts.above_threshold
     return {
         "rule": counts.rule,
@@ -176,7 +176,7 @@ class CalibrationPanel:
 
     @classmethod
     def of_rule_summary(cls, summary: dict[str, Any]) -> CalibrationPanel:
-        """The panel of one rule's :func:`rule_summary`."""
+        """The panel of one rule's `rule_summary`."""
         above = summary["above_threshold"]
         return cls([CalibrationBin(**b) for b in summary["curve"]], summary["rule"],
                    summary["threshold"], [above["steps"], above["right"]])

@@ -1,6 +1,6 @@
 """What a recording's bytes hold: every intact record, and where the file is cut or damaged.
 
-:func:`scan_mcap` walks an MCAP file record by record (its own parser over the mcap
+`scan_mcap` walks an MCAP file record by record (its own parser over the mcap
 library's record classes) and checks every byte it can:
 
 * the magic at both ends; the Header (``cfbci`` writes profile ``""``, library ``cfbci``);
@@ -9,7 +9,7 @@ library's record classes) and checks every byte it can:
   Schema, Channel or Message) and its message start and end times against its messages;
 * a MessageIndex against the chunk before it (same channel, each entry a message of that
   chunk at that offset and log time, every message of the channel listed);
-* a Metadata record (well formed, named :data:`CONFIG_METADATA`);
+* a Metadata record (well formed, named `CONFIG_METADATA`);
 * the DataEnd record, then the summary section through the Footer's summary CRC and the
   closing magic.
 
@@ -17,7 +17,7 @@ So one flipped bit anywhere is found, except in the few bytes no check covers (n
 cfbci recording: every field above is checked). A record that fails a check is *damaged*:
 the scan resumes at the next offset where a whole, valid Chunk (its CRC matching),
 Metadata record or DataEnd record begins (a damaged length field cannot be trusted), and
-the bytes in between are one :class:`Damage` region (with the messages a damaged chunk
+the bytes in between are one `Damage` region (with the messages a damaged chunk
 apparently held: their topics, read from its unverified bytes, are a guess). A file that
 ends inside a record whose fields are consistent as far as they go, with no valid record
 after it, is *cut* (a killed writer); one whose last bytes are not a record at all is cut
@@ -43,7 +43,7 @@ from mcap.records import Channel, Footer, Header, McapRecord, Message, Metadata,
 MAGIC = b"\x89MCAP0\r\n"
 #: Metadata record holding ``{"session": name, "config": JSON of the configuration}``.
 CONFIG_METADATA = "cfbci.config"
-#: What :class:`replay.recording.SessionRecorder` writes in the Header.
+#: What `replay.recording.SessionRecorder` writes in the Header.
 HEADER_PROFILE, HEADER_LIBRARY = "", "cfbci"
 
 _HEADER, _FOOTER, _SCHEMA, _CHANNEL, _MESSAGE, _CHUNK, _MESSAGE_INDEX = 1, 2, 3, 4, 5, 6, 7
@@ -123,7 +123,7 @@ class Damage:
 
 @dataclass
 class Scan:
-    """What :func:`scan_mcap` found.
+    """What `scan_mcap` found.
 
     Attributes
     ----------
@@ -325,7 +325,7 @@ def _valid_at(data: bytes, at: int, size: int) -> bool:
 
 def _resume(data: bytes, start: int, size: int) -> int | None:
     """The first offset at or after ``start`` where a valid record begins (see
-    :func:`_valid_at`), or None."""
+    `_valid_at`), or None."""
     for match in _RESUME.finditer(data, start):
         if _valid_at(data, match.start(), size):
             return match.start()
@@ -407,7 +407,7 @@ def scan_mcap(data: bytes) -> Scan:
 
 
 def _check_metadata(data: bytes, scan: Scan) -> None:
-    """The :data:`CONFIG_METADATA` record must say what the ``/config`` message says (the
+    """The `CONFIG_METADATA` record must say what the ``/config`` message says (the
     metadata record has no CRC: this is its check, when both were read)."""
     topics = {r.id: r.topic for _, r in scan.records if isinstance(r, Channel)}
     config = next((r for _, r in scan.records if isinstance(r, Message)

@@ -9,7 +9,7 @@ final state. So in an intact file, cut anywhere, the moves are steps ``1..M``, t
 ``F <= S``, and ``S <= M`` except for the final state (``S = M + 1`` when ``F = M``); each
 target move is followed, before the next move, by one ``target_reached`` event.
 
-A damaged region (:class:`replay.damage.Damage`) whose lost messages keep these rules
+A damaged region (`replay.damage.Damage`) whose lost messages keep these rules
 (a belief, a log, a truth, the metadata, a message index, the summary, or the ``/config``
 message whose configuration the metadata also holds) is *harmless* to an analysis: the
 messages after it are used too. The first region that breaks them (a lost move, state,
@@ -30,7 +30,7 @@ from replay.recording import Recording
 
 @dataclass(frozen=True)
 class Extent:
-    """The usable part of a recording (:func:`usable_part`).
+    """The usable part of a recording (`usable_part`).
 
     Attributes
     ----------

@@ -1,13 +1,13 @@
 """Paper-ready PNG figures of a recorded session (matplotlib, Agg backend, headless).
 
-Each ``*_figure`` function returns a :class:`matplotlib.figure.Figure` built without pyplot
-(no global state, safe in worker processes); :func:`session_figures` saves them all as PNG
+Each ``*_figure`` function returns a `matplotlib.figure.Figure` built without pyplot
+(no global state, safe in worker processes); `session_figures` saves them all as PNG
 files and returns their titles and captions. Steps, confidences and accuracies are those
-of :mod:`replay.metrics` (see its docstring for the definitions and their alignment).
+of `replay.metrics` (see its docstring for the definitions and their alignment).
 
-Figures are drawn at their printed size: :data:`FIGURE_WIDTH` inches wide at most, with
-the fonts of :data:`PAPER_STYLE` (8 points and more), which every figure function applies
-(:func:`paper_figure`).
+Figures are drawn at their printed size: `FIGURE_WIDTH` inches wide at most, with
+the fonts of `PAPER_STYLE` (8 points and more), which every figure function applies
+(`paper_figure`).
 """
 
 from __future__ import annotations
@@ -38,7 +38,7 @@ DPI = 150
 #: The widest figure, inches: a one-column paper's text width (a two-column paper's
 #: figure across both columns is a little wider), so that fonts print at their size.
 FIGURE_WIDTH = 6.5
-#: The matplotlib settings of every figure (:func:`paper_figure`): font sizes in points at
+#: The matplotlib settings of every figure (`paper_figure`): font sizes in points at
 #: the printed width, none under 8.
 PAPER_STYLE: dict[str, Any] = {
     "font.size": 9,
@@ -66,7 +66,7 @@ _Built = TypeVar("_Built", Figure, tuple[Figure, str])
 
 
 def paper_figure(build: Callable[_Params, _Built]) -> Callable[_Params, _Built]:
-    """Build a figure (or a ``(figure, text)`` pair) under :data:`PAPER_STYLE`, drawn once
+    """Build a figure (or a ``(figure, text)`` pair) under `PAPER_STYLE`, drawn once
     within it so that every text, tick labels included, takes its sizes."""
 
     @functools.wraps(build)
@@ -86,7 +86,7 @@ class FeatureLayout:
     ``c``'s).
 
     A recording's config says it in ``feature_layout``: ``{"ch_names": [...], "n_times":
-    T}`` (:meth:`of_config`).
+    T}`` (`of_config`).
     """
 
     ch_names: tuple[str, ...]
@@ -119,7 +119,7 @@ class SavedFigure:
     ----------
     kind : str
         "confidence", "belief", "accuracy", "erp" or "latency"; a continuous-world
-        session's: "distance", "particles", "probes" or "latency" (:mod:`replay.plane_report`).
+        session's: "distance", "particles", "probes" or "latency" (`replay.plane_report`).
     path : Path
         The PNG file.
     title : str
@@ -263,14 +263,14 @@ def _cell_xy(cell: int, grid: int) -> tuple[int, int]:
 
 @paper_figure
 def belief_figure(recording: Recording, metrics: SessionMetrics) -> Figure:
-    """Belief maps (confidence of every target cell) at :func:`belief_steps`; in a world
-    without a grid layout, :func:`ranking_figure`.
+    """Belief maps (confidence of every target cell) at `belief_steps`; in a world
+    without a grid layout, `ranking_figure`.
 
     Each panel is the ``/state`` the learner chose that step's move on; row 0 of the grid is
     at the top (``up`` moves towards it). Marked: the agent's cell, the user's true target,
     the learner's best cell, and the most recent moves of the current search (since the
-    last declared target, at most :data:`PATH_MOVES`), more opaque when more recent. Maps
-    are :data:`MAP_SIDE` inches a side, :data:`MAP_COLUMNS` to a row.
+    last declared target, at most `PATH_MOVES`), more opaque when more recent. Maps
+    are `MAP_SIDE` inches a side, `MAP_COLUMNS` to a row.
     """
     states = [m for _, m in recording.messages.get("/state", [])]
     chosen = [k for k in belief_steps(metrics) if k - 1 < len(states)]
@@ -345,7 +345,7 @@ def belief_figure(recording: Recording, metrics: SessionMetrics) -> Figure:
 def ranking_figure(
     recording: Recording, states: list[dict], chosen: list[int], metrics: SessionMetrics
 ) -> Figure:
-    """The :data:`RANKED` most confident tasks, by name, at each of the ``chosen`` steps.
+    """The `RANKED` most confident tasks, by name, at each of the ``chosen`` steps.
 
     One panel per step (the ``/state`` that step's move was chosen on), best task on top:
     the user's true target in red (listed last, below a gap, when it is not among them),
@@ -610,14 +610,14 @@ def session_figures(
     ----------
     recording : Recording
     metrics : SessionMetrics
-        Of ``recording`` (:func:`replay.metrics.session_metrics`).
+        Of ``recording`` (`replay.metrics.session_metrics`).
     out_dir : Path
         Created if missing.
     stem : str
         File name prefix, unique per session.
     layout : FeatureLayout, optional
         The feature vectors' layout where the recording's config does not state it
-        (:func:`erp_figure`).
+        (`erp_figure`).
 
     Returns
     -------

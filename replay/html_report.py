@@ -1,6 +1,6 @@
 """A self-contained HTML report of recorded sessions: one file, images embedded.
 
-:func:`write_html` writes ``index.html`` with an aggregate table at the top (the metrics
+`write_html` writes ``index.html`` with an aggregate table at the top (the metrics
 of the reported sessions' worlds), then one section per session: a warning banner when
 the recording is truncated (saying where it ends) or its re-run diverged, its metrics
 table (with its seed, dataset and decision rules), its learner settings against the
@@ -131,7 +131,7 @@ def aggregate_table(aggregate: dict[str, dict[str, float | int | None]]) -> str:
 
 def metrics_table(metrics: SessionMetrics) -> str:
     """One session's metrics, name and value: those of its world
-    (:func:`replay.metrics.metric_applies`)."""
+    (`replay.metrics.metric_applies`)."""
     latency = metrics.latency
     settings = metrics.settings
     rules = metrics.decision_rules()

@@ -1,9 +1,9 @@
-"""Figures of merit of a recorded session, computed from its :class:`~replay.recording.Recording`.
+"""Figures of merit of a recorded session, computed from its `Recording`.
 
-Pure computation (no plotting, no files): :func:`session_metrics` gives one session's
-:class:`SessionMetrics`, :func:`aggregate` the median, minimum and maximum of every scalar
-metric over the sessions whose world it applies to (:data:`WORLD_METRICS`), and
-:func:`session_settings` what a session ran with (seed, dataset, learner settings against
+Pure computation (no plotting, no files): `session_metrics` gives one session's
+`SessionMetrics`, `aggregate` the median, minimum and maximum of every scalar
+metric over the sessions whose world it applies to (`WORLD_METRICS`), and
+`session_settings` what a session ran with (seed, dataset, learner settings against
 the defaults).
 
 Steps and alignment
@@ -26,7 +26,7 @@ recording holds one more, final, state after the last signal).
   the steps of successive declared targets, correct or wrong (the first search excluded;
   it is ``first_target_step``), i.e. the speed once the decoder is calibrated by use.
 * **Decoder balanced accuracy against the truth** after ``t`` signals: the learner is re-run
-  over the recording (:func:`replay.rerun.recompute`, identical to the service); after it
+  over the recording (`replay.rerun.recompute`, identical to the service); after it
   has observed the epochs of steps ``1..t``, take its best task ``b_t`` (the one the
   ``/state`` after ``t`` signals names) and the out-of-fold class probabilities of ``b_t``'s
   decoder for those ``t`` signals (``TaskModels.cv_proba[b_t]``: each signal predicted by
@@ -40,7 +40,7 @@ recording holds one more, final, state after the last signal).
 * **Decision rule** at step ``k``: the confidence rule and its threshold in force in the
   ``k``-th state, and the confidence a target needed there (the threshold, or more before
   the first target while the history is short:
-  :func:`calibration_free.learner.first_target_requirement`), from the re-run (the state
+  `calibration_free.learner.first_target_requirement`), from the re-run (the state
   of step 1, before any signal, has no requirement recorded).
 * **Update latency**: the moves' ``update_ms`` (the learner's observe + propose time, ms;
   the first move has none), summarised by median, 90th and 99th percentiles (linear
@@ -70,7 +70,7 @@ from session.config import (
 )
 from session.plane import PLANE_FRAMES
 
-#: The scalar metrics :func:`aggregate` summarises, with their meaning (and unit).
+#: The scalar metrics `aggregate` summarises, with their meaning (and unit).
 SCALAR_METRICS: dict[str, str] = {
     "steps": "moves recorded",
     "first_target_step": "step of the first declared target",
@@ -104,7 +104,7 @@ WORLD_METRICS: dict[str, tuple[str, ...]] = {
 
 def metric_applies(name: str, world: str) -> bool:
     """Whether the scalar metric ``name`` applies to a session of ``world`` (a
-    :attr:`SessionMetrics.world`)."""
+    `SessionMetrics.world`)."""
     kind = world if world in PLANE_FRAMES else "discrete"
     return all(name not in names or owner == kind for owner, names in WORLD_METRICS.items())
 
@@ -138,7 +138,7 @@ class SessionSettings:
 
 
 def session_settings(config: dict[str, Any]) -> SessionSettings:
-    """The :class:`SessionSettings` of a recorded configuration."""
+    """The `SessionSettings` of a recorded configuration."""
     try:
         learner = resolved_config(recorded_config(config))["learner"]
         defaults = resolved_config({**config, "learner": {}})["learner"]
@@ -186,7 +186,7 @@ class Latency:
 
 @dataclass
 class SessionMetrics:
-    """Everything :func:`session_metrics` measures in one recording (see the module doc).
+    """Everything `session_metrics` measures in one recording (see the module doc).
 
     Per-step series are lists (None where undefined), JSON-ready.
 
@@ -257,15 +257,15 @@ class SessionMetrics:
         damaged one is damaged.
     damage : dict or None
         A damaged recording's damaged regions and what of it the report uses
-        (:func:`replay.extent.usable_part`; set by :mod:`cfbci.recordings.report`); None if
+        (`replay.extent.usable_part`; set by `cfbci.recordings.report`); None if
         undamaged.
     distance : list of float or None
         Continuous world: the best particle's distance to the goal after each epoch
-        (None elsewhere; see :mod:`replay.plane_report`).
+        (None elsewhere; see `replay.plane_report`).
     final_distance : float or None
         Its last value.
     calibration_counts : list of [int, int] or None
-        Per confidence bin (:mod:`replay.calibration`), the states with a known target whose
+        Per confidence bin (`replay.calibration`), the states with a known target whose
         best task's confidence falls in it, and those whose best task was the target.
     calibration_counts_by_rule : list of RuleCounts or None
         The same split by the decision rule in force at each state (the pairwise W against
@@ -279,7 +279,7 @@ class SessionMetrics:
         ``decision_rule``).
     update_steps : list of int or None
         Puddle world: the epochs after which the learner updated (every ``update_every``;
-        None elsewhere; see :mod:`replay.puddle_report`).
+        None elsewhere; see `replay.puddle_report`).
     taught_likelihood : list of float or None
         Puddle world: the taught task's normalised likelihood after those epochs (float32,
         as the states carry it).
@@ -348,8 +348,8 @@ class SessionMetrics:
     damage: dict[str, Any] | None = None
 
     def scalars(self) -> dict[str, float | int | None]:
-        """The :data:`SCALAR_METRICS` that apply to this session's world
-        (:func:`metric_applies`)."""
+        """The `SCALAR_METRICS` that apply to this session's world
+        (`metric_applies`)."""
         latency = self.latency
         values: dict[str, float | int | None] = {
             name: getattr(self, name) for name in SCALAR_METRICS if hasattr(self, name)
@@ -622,10 +622,10 @@ def session_metrics(recording: Recording, file: str = "", rerun: bool = True) ->
 
 
 def aggregate(sessions: list[SessionMetrics]) -> dict[str, dict[str, float | int | None]]:
-    """Median, minimum and maximum of every :data:`SCALAR_METRICS` over sessions.
+    """Median, minimum and maximum of every `SCALAR_METRICS` over sessions.
 
     A metric is summarised over the sessions whose world it applies to
-    (:func:`metric_applies`), and left out when it applies to none of them; sessions where
+    (`metric_applies`), and left out when it applies to none of them; sessions where
     it is undefined (None) are left out of it; ``n`` counts the sessions that define it.
 
     Returns

@@ -3,9 +3,9 @@
 The session has no declared targets and no decoder of a best task to score against the
 truth; what it has is a goal point (``/truth`` ``target``), the probe points (``/move``
 ``to_state``) and, after every epoch, the particles with their confidences (``/state``
-``points`` and payload). :func:`plane_metrics` fills a :class:`replay.metrics.SessionMetrics`
+``points`` and payload). `plane_metrics` fills a `replay.metrics.SessionMetrics`
 with what applies (steps, latency, the re-run check, the best particle's distance to the
-goal after each epoch); :func:`plane_figures` draws the distance against step, the
+goal after each epoch); `plane_figures` draws the distance against step, the
 particle cloud with the probe points so far at four steps, the probe points over time
 and the update latency.
 """
@@ -97,7 +97,7 @@ def cloud_steps(n_states: int, n: int = CLOUD_PANELS) -> list[int]:
 @paper_figure
 def cloud_figure(recording: Recording, metrics: SessionMetrics) -> Figure:
     """The particle cloud (coloured by confidence), the best particle, the goal and the
-    probe points so far, after :func:`cloud_steps` epochs (two panels to a row)."""
+    probe points so far, after `cloud_steps` epochs (two panels to a row)."""
     states = _states(recording)
     probes = np.array([m["to_state"] for _, m in recording.messages.get("/move", [])])
     goal = _goal(recording)

@@ -4,11 +4,11 @@ The session declares no targets; what it has is the taught task (``/truth`` ``ta
 task index, the same at every step), every task's normalised likelihood after every epoch
 (``/state`` confidences, float32, n_signals 0 to steps), the agent's moves (``/move``
 ``from_state`` and ``to_state``) and the restarts (the recorded epochs' ``reset``).
-:func:`puddle_metrics` fills a :class:`replay.metrics.SessionMetrics` with what applies:
+`puddle_metrics` fills a `replay.metrics.SessionMetrics` with what applies:
 steps, latency, the re-run check, the taught task's likelihood after every epoch
 (``confidence_true``, and ``taught_likelihood`` at the update steps, every
 ``update_every``-th epoch, where the learner refits), the best other task's, and the
-restarts; :func:`puddle_figures` draws the taught task's likelihood against steps, the
+restarts; `puddle_figures` draws the taught task's likelihood against steps, the
 agent's trajectory over the world with the taught task's puddle and goal, and the update
 latency.
 """

@@ -2,5 +2,5 @@
 
 One place builds a session's world, learner and random streams from its config and steps
 it: the live service, the re-run and resume of a recording, the offline simulation, the
-benches and the memory probe all drive a :class:`session.core.Session`.
+benches and the memory probe all drive a `session.core.Session`.
 """

@@ -52,8 +52,8 @@ def world_text(world: World) -> str:
 
 
 def start_state(seed: int, world: World) -> int:
-    """The agent's start state in a session of ``seed``: :meth:`World.start_state` on the
-    session's user stream, as :class:`acquisition.user.SimulatedUser` draws it first."""
+    """The agent's start state in a session of ``seed``: `World.start_state` on the
+    session's user stream, as `acquisition.user.SimulatedUser` draws it first."""
     return world.start_state(session_streams(seed)[1])
 
 
@@ -81,7 +81,7 @@ def learner_settings(values: dict[str, Any], frame: str) -> LearnerConfig:
 def recorded_config(config: dict[str, Any]) -> dict[str, Any]:
     """A config as a recording holds it, with the learner settings the recording lacks
     because they did not exist yet set to the values that reproduce the learner of that
-    time (:data:`calibration_free.config.SETTINGS_BEFORE_THEY_EXISTED`; a missing
+    time (`calibration_free.config.SETTINGS_BEFORE_THEY_EXISTED`; a missing
     ``first_target_shrinkage``, the recording's own ``shrinkage``), so that an older
     recording replays and resumes as it ran. Plane worlds' configs and configs without a
     ``learner`` object are returned as they are."""
@@ -95,14 +95,14 @@ def recorded_config(config: dict[str, Any]) -> dict[str, Any]:
 
 def resolved_config(config: dict[str, Any]) -> dict[str, Any]:
     """A config's fields with its ``learner`` object complete: every setting its learner
-    runs with, defaults included (:meth:`LearnerConfig.to_dict`, or the plane world's
+    runs with, defaults included (`LearnerConfig.to_dict`, or the plane world's
     settings). The service records and compares configs in this form, so that a recording
     replays under the settings it ran with, whatever later versions' defaults are.
 
     Raises
     ------
     ValueError
-        As :func:`learner_settings` and :func:`session.plane.plane_settings`.
+        As `learner_settings` and `session.plane.plane_settings`.
     """
     if is_plane(config):
         settings = dataclasses.asdict(plane_settings(config))

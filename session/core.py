@@ -1,23 +1,23 @@
 """The interface every session implements: a session config in, one record per step out.
 
-A :class:`Session` holds a world, a learner and the session's random streams, built from
-a session config (:func:`session.sessions.open_session`, or a caller's own objects for
+A `Session` holds a world, a learner and the session's random streams, built from
+a session config (`session.sessions.open_session`, or a caller's own objects for
 offline simulation). Its life is a sequence of steps:
 
-1. :meth:`Session.start` chooses the move of step 1;
-2. :meth:`Session.observe` takes the signal answering the last move (the feature vector
+1. `Session.start` chooses the move of step 1;
+2. `Session.observe` takes the signal answering the last move (the feature vector
    the learner sees, float32, shape (d,)) and chooses the next move, or none once every
    step's signal has been observed.
 
-Each returns a :class:`Step`: the ``move`` message's fields, the ``target_reached``
+Each returns a `Step`: the ``move`` message's fields, the ``target_reached``
 events' texts, and (when asked for) the beliefs the move was chosen with.
-:meth:`Session.state` gives the ``state`` message's fields and payload at that point.
+`Session.state` gives the ``state`` message's fields and payload at that point.
 Nothing else in the project calls a learner's ``propose`` or ``observe``: the service, the
 re-run and resume of a recording, the offline simulation, the benches, the memory probe
-and the soak test all step a :class:`Session`, so that live, replay and simulation take
+and the soak test all step a `Session`, so that live, replay and simulation take
 the same decisions by construction.
 
-:class:`SignalPath` turns an epoch's payload into the learner's signal (raw epochs through
+`SignalPath` turns an epoch's payload into the learner's signal (raw epochs through
 the ErrP feature extractor fitted on the session's first epoch; feature vectors as they
 are), for the service and the re-run alike.
 """
@@ -97,7 +97,7 @@ class Session(ABC):
 
     @property
     def step(self) -> int:
-        """The last move's step (1-based; 0 before :meth:`start`)."""
+        """The last move's step (1-based; 0 before `start`)."""
         return len(self.moves)
 
     @property
@@ -147,7 +147,7 @@ class SignalPath:
 
     A session of raw epochs (config ``signal`` "epochs", with ``sfreq``, ``tmin`` and
     ``ch_names``) passes each epoch (channels x samples, microvolts) through
-    :class:`decoding.features.ErrPFeatures` fitted on its first epoch; a session of
+    `decoding.features.ErrPFeatures` fitted on its first epoch; a session of
     feature vectors takes them as they are.
     """
 

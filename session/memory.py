@@ -1,9 +1,9 @@
 """An upper estimate of the memory one session's learner commits, term by term.
 
-The service checks it against its ``max_session_mb`` limit (:mod:`cfbci.service.limits`). It
-follows the learner's data structures (:mod:`calibration_free.task_decoders`,
-:mod:`calibration_free.learner`, :mod:`calibration_free.frames`,
-:mod:`calibration_free.planning`) as functions of the sizes of the world (T tasks, S
+The service checks it against its ``max_session_mb`` limit (`cfbci.service.limits`). It
+follows the learner's data structures (`calibration_free.task_decoders`,
+`calibration_free.learner`, `calibration_free.frames`,
+`calibration_free.planning`) as functions of the sizes of the world (T tasks, S
 states, A actions), the frame (K classes; K' = K + 1 for guidance, whose labels leave some
 signals unlabelled, a class of their own in the pooled fit), the learner settings (F folds,
 J = F + 1 training sets: each fold's and the whole history's; m planning signals), the
@@ -17,7 +17,7 @@ the other, each freeing its temporaries before the next). Each phase's term coun
 arrays alive at once at its peak, read from the code (the counts below); their element
 counts are exact, so the arrays' sum bounds what the learner allocates (pages never
 written, e.g. of ``np.zeros``, are not even resident). The allocator's slack
-(:data:`SLACK` of the arrays) and a constant :data:`OVERHEAD_BYTES` are added. With
+(`SLACK` of the arrays) and a constant `OVERHEAD_BYTES` are added. With
 u = T K d, u' = T K' d, v = T K d² and w = T K n d:
 
 * world tables: ``optimal`` T S A booleans (+ guidance's row table, T S bytes);
@@ -44,13 +44,13 @@ u = T K d, u' = T K' d, v = T K d² and w = T K n d:
   signal planner's indicator chunk (T x min(S A or S, 2^22 / T) columns: 9 bytes each)
   and its value iteration. The uncertainty and information planners keep their row
   indicators from the first step on where they fit in
-  :data:`~calibration_free.planning.KEPT_INDICATOR_BYTES` (T x columns floats for each
+  `KEPT_INDICATOR_BYTES` (T x columns floats for each
   label row but the first: 1 in feedback; in guidance, whose rows are not known before
   the tables are built, as many of the 2^K - 1 possible as would fit): counted with the
   resident tables.
 
 ``python tools/session_memory.py`` measures sessions against this estimate (peak
-resident growth in a fresh process, :mod:`cfbci.bench.memory_probe`).
+resident growth in a fresh process, `cfbci.bench.memory_probe`).
 """
 
 from __future__ import annotations
@@ -66,11 +66,11 @@ from session.config import config_world, learner_settings, world_text
 from session.plane import is_plane, plane_memory_bytes
 
 _FLOAT = 8
-#: The first capacity of :class:`~calibration_free.task_decoders.TaskHistory`'s arrays.
+#: The first capacity of `TaskHistory`'s arrays.
 _HISTORY_CAPACITY = 64
 #: Elements of the temporaries' chunks of the world's optimal table and of the planners
-#: (``_TASK_CHUNK_ELEMENTS`` of :mod:`calibration_free.world`, ``_CHUNK_ELEMENTS`` of
-#: :mod:`calibration_free.planning` and :mod:`calibration_free.signal_space`).
+#: (``_TASK_CHUNK_ELEMENTS`` of `calibration_free.world`, ``_CHUNK_ELEMENTS`` of
+#: `calibration_free.planning` and `calibration_free.signal_space`).
 _CHUNK_ELEMENTS = 1 << 22
 #: Per-session memory besides the learner's arrays (Python objects, the recorder, the
 #: feature extractor), bytes: a measured floor with margin.
@@ -237,8 +237,8 @@ def estimate(world: World, learner: LearnerConfig, steps: int, n_features: int) 
 def config_memory_bytes(config: dict[str, Any], n_features: int = 0) -> tuple[int, str]:
     """Upper estimate of the memory a session of a config commits, in bytes, and a short
     description of what it is of (for a rejection's message): every world's estimate in
-    one place (:func:`estimate` for the discrete worlds,
-    :func:`session.plane.plane_memory_bytes` in the plane).
+    one place (`estimate` for the discrete worlds,
+    `session.plane.plane_memory_bytes` in the plane).
 
     Parameters
     ----------
@@ -250,7 +250,7 @@ def config_memory_bytes(config: dict[str, Any], n_features: int = 0) -> tuple[in
     Raises
     ------
     ValueError
-        As :func:`session.config.learner_settings`.
+        As `session.config.learner_settings`.
     """
     what = f"{n_features} features, " if n_features else ""
     if is_plane(config):

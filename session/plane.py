@@ -1,12 +1,12 @@
-"""The sessions of the worlds in the plane (:class:`ContinuousSession`,
-:class:`PuddleSession`; :func:`plane_session`), their settings and memory estimates.
+"""The sessions of the worlds in the plane (`ContinuousSession`,
+`PuddleSession`; `plane_session`), their settings and memory estimates.
 
 A session config of ``world`` "continuous" (frame "cardinal") carries the
-:class:`calibration_free.continuous_goals.ContinuousConfig` settings in its ``learner``
-object (``n_hypotheses``, ``sampling``, ``probing``, ...). :class:`ContinuousSession` runs
-the :class:`~calibration_free.continuous_goals.ContinuousGoalLearner` on the session's
+`calibration_free.continuous_goals.ContinuousConfig` settings in its ``learner``
+object (``n_hypotheses``, ``sampling``, ``probing``, ...). `ContinuousSession` runs
+the `ContinuousGoalLearner` on the session's
 learner stream (``session_streams(seed)[2]``) in the order of
-:func:`cfbci.offline.continuous.run_continuous_session`: ``move`` proposes the next probe point
+`cfbci.offline.continuous.run_continuous_session`: ``move`` proposes the next probe point
 (resampling the particles), ``observe`` scores them with the epoch of that probe. A move's
 ``from_state`` and ``to_state`` both hold the probe point ``[x, y]`` (the device
 teleports there; its ``action`` is "probe"); the state accompanying it holds the
@@ -17,25 +17,25 @@ resampling of the move it accompanies, so that ``points[best_task]`` is the esti
 The learner's sums depend on the number of BLAS threads (a product split over threads
 adds in another order: differences of 1e-8 in the confidences, which an argmax or a
 resampling draw can turn into another decision), so every step is computed with one BLAS
-thread (:data:`ONE_BLAS_THREAD`), whatever the process's setting, as
+thread (`ONE_BLAS_THREAD`), whatever the process's setting, as
 ``run_continuous_session`` computes it.
 
 A config of ``world`` "puddle" (frame "mixed") carries the
-:class:`calibration_free.puddle_learner.PuddleConfig` settings in its ``learner`` object.
-:class:`PuddleSession` runs the :class:`~calibration_free.puddle_learner.PuddleLearner` in
-the order of :func:`cfbci.offline.puddle.run_puddle_session`, and owns the agent's state and the
-session's world stream (:func:`calibration_free.streams.world_stream`), which the source
+`calibration_free.puddle_learner.PuddleConfig` settings in its ``learner`` object.
+`PuddleSession` runs the `PuddleLearner` in
+the order of `cfbci.offline.puddle.run_puddle_session`, and owns the agent's state and the
+session's world stream (`calibration_free.streams.world_stream`), which the source
 never sees: the start state is its first draw (``uniform(size=2)``); ``move`` proposes the
-action at the state and draws its outcome at once (:meth:`PuddleWorld.move`), so that the
+action at the state and draws its outcome at once (`PuddleWorld.move`), so that the
 ``move`` carries ``from_state``, ``action`` (north, south, east or west) and ``to_state``;
 ``observe`` gives the learner the epoch of that move and, when the epoch says ``reset``
 (the environment, which knows the task, saw ``to_state`` in the goal cell), draws the
 restart state from the world stream before the next move, as the offline loop draws it
 after that step. The learner never sees ``reset``: only the next move's ``from_state``.
 The world's policy tables (value iteration for the 660 tasks, 3-4 s and about 300 MiB of
-temporaries) are built once per process (:func:`puddle_world`; the service builds them on
+temporaries) are built once per process (`puddle_world`; the service builds them on
 a thread of their own before its first puddle session starts, see
-:mod:`cfbci.service`).
+`cfbci.service`).
 """
 
 from __future__ import annotations
@@ -73,7 +73,7 @@ def is_plane(config: dict[str, Any]) -> bool:
 
 def plane_settings(config: dict[str, Any]) -> ContinuousConfig | PuddleConfig:
     """The learner settings of a plane world's config message fields: a
-    :class:`ContinuousConfig` (world "continuous") or a :class:`PuddleConfig` ("puddle").
+    `ContinuousConfig` (world "continuous") or a `PuddleConfig` ("puddle").
 
     Raises
     ------
@@ -152,7 +152,7 @@ def puddle_world() -> PuddleWorld:
 
 
 def puddle_world_built() -> bool:
-    """Whether :func:`puddle_world` has built the tables in this process (it returns at
+    """Whether `puddle_world` has built the tables in this process (it returns at
     once then)."""
     return _built_puddle_world.cache_info().currsize > 0
 
@@ -282,7 +282,7 @@ class PuddleSession(_PlaneSession):
     config : dict
         A config message's fields (``world`` "puddle").
     world : PuddleWorld, optional
-        The world, its policy tables built or not; default :func:`puddle_world`, shared
+        The world, its policy tables built or not; default `puddle_world`, shared
         by every session of the process.
 
     Attributes
@@ -393,8 +393,8 @@ def plane_session(config: dict[str, Any]) -> ContinuousSession | PuddleSession:
 
 
 def plane_memory_bytes(config: dict[str, Any], n_features: int = 0) -> int:
-    """The memory estimate of a plane world's config (:func:`continuous_memory_bytes` or
-    :func:`puddle_memory_bytes`)."""
+    """The memory estimate of a plane world's config (`continuous_memory_bytes` or
+    `puddle_memory_bytes`)."""
     settings = plane_settings(config)
     if isinstance(settings, PuddleConfig):
         return puddle_memory_bytes(settings, config["steps"], n_features)

@@ -1,10 +1,10 @@
 """Sessions of the discrete worlds (grid, line, pick-and-place): a task learner stepped.
 
-:class:`TaskSession` steps a learner of tasks (:class:`CalibrationFreeLearner`, the
+`TaskSession` steps a learner of tasks (`CalibrationFreeLearner`, the
 calibrated baseline, the frame-hypotheses learner) in a discrete world: the agent's state,
-the session's world stream (:func:`calibration_free.world.transition_draws`: a stochastic
+the session's world stream (`calibration_free.world.transition_draws`: a stochastic
 move takes its outcome from the stream's number of its step) and the start state of the
-session's user stream (:func:`session.config.start_state`). ``move_fields``,
+session's user stream (`session.config.start_state`). ``move_fields``,
 ``state_fields`` and ``target_text`` build the ``move``, ``state`` and ``target_reached``
 messages (docs/protocol.md).
 """
@@ -35,10 +35,10 @@ class TaskSession(Session):
         The session seed (world stream and start state).
     steps : int
     decisions : bool
-        Keep the beliefs each move was chosen with (:attr:`Step.decision`): the offline
+        Keep the beliefs each move was chosen with (`Step.decision`): the offline
         simulation's traces and metrics need them; the service does not.
     start : int, optional
-        The agent's start state; default the session's (:func:`session.config.start_state`).
+        The agent's start state; default the session's (`session.config.start_state`).
 
     Attributes
     ----------
@@ -106,7 +106,7 @@ class OpenLoop:
     """A task learner fed a recorded history (open-loop re-analysis): it observes every
     recorded ``(state, action, signal)`` in order, never proposes, and switches task where
     the recorded device declared a target, to the declared state
-    (:meth:`calibration_free.learner.TaskLearner.follow_declaration`).
+    (`calibration_free.learner.TaskLearner.follow_declaration`).
 
     Parameters
     ----------
@@ -133,7 +133,7 @@ def move_fields(
 ) -> dict[str, Any]:
     """The fields of the ``move`` message of ``proposal`` taken in ``state`` at ``step``.
 
-    ``draws`` is the session's world stream (:func:`calibration_free.world.transition_draws`):
+    ``draws`` is the session's world stream (`calibration_free.world.transition_draws`):
     a stochastic move takes its outcome from the stream's number of ``step``.
     """
     return {

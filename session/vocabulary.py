@@ -7,15 +7,15 @@ sessions use.
 
 from __future__ import annotations
 
-#: The discrete worlds (:data:`calibration_free.worlds.WORLDS`).
+#: The discrete worlds (`calibration_free.worlds.WORLDS`).
 WORLDS: tuple[str, ...] = ("grid", "line", "pick-and-place")
-#: The discrete worlds' frames (:data:`calibration_free.frames.FRAMES`).
+#: The discrete worlds' frames (`calibration_free.frames.FRAMES`).
 FRAMES: tuple[str, ...] = ("feedback", "guidance")
 #: The plane worlds the live path runs, and the frame each requires.
 PLANE_FRAMES: dict[str, str] = {"continuous": "cardinal", "puddle": "mixed"}
 #: The continuous world's only action: teleport to the probe point.
 PROBE = "probe"
-#: The puddle world's actions, in its order (:data:`calibration_free.puddle.ACTIONS`).
+#: The puddle world's actions, in its order (`calibration_free.puddle.ACTIONS`).
 PUDDLE_MOVES: tuple[str, ...] = ("north", "south", "east", "west")
 #: The discrete worlds' action names, in world order then action order.
 DISCRETE_ACTIONS: tuple[str, ...] = (

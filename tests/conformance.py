@@ -1,29 +1,29 @@
-"""Conformance checks of a learner (:class:`calibration_free.protocol.Learner`), in the spirit
+"""Conformance checks of a learner (`calibration_free.protocol.Learner`), in the spirit
 of scikit-learn's ``check_estimator``: plain functions raising ``AssertionError``.
 
 Each check takes ``make_learner`` (a seed -> a fresh learner built on that seed) and, for
-those that run sessions, ``make_teacher`` (a seed -> a fresh :class:`Teacher`: the world
+those that run sessions, ``make_teacher`` (a seed -> a fresh `Teacher`: the world
 and a simulated user answering from labelled data) and a number of steps:
 
-* :func:`check_label_free_interface`: after its construction the learner never receives a
+* `check_label_free_interface`: after its construction the learner never receives a
   label or the target: ``propose(state)``, ``observe(state, action, signal)`` and
   ``beliefs()`` take exactly those parameters, and the only label-like constructor
   parameters are the declared calibration inputs (the calibrated baseline's);
-* :func:`check_learns_from_signals_alone`: a closed-loop session with the labelled teacher
+* `check_learns_from_signals_alone`: a closed-loop session with the labelled teacher
   is replayed step for step by a fresh learner given the recorded states and signals
   alone (no teacher, labels or target exist for it);
-* :func:`check_deterministic`: two learners of one seed fed the same signals propose the
+* `check_deterministic`: two learners of one seed fed the same signals propose the
   same actions and end with equal beliefs, whether their beliefs are read at every step
   or not (reading them draws nothing), and neither touches the global random states;
-* :func:`check_beliefs_well_formed`: at every step, the beliefs meet
-  :class:`~calibration_free.protocol.TaskBeliefs`, are finite, the confidence in [0, 1]
+* `check_beliefs_well_formed`: at every step, the beliefs meet
+  `TaskBeliefs`, are finite, the confidence in [0, 1]
   (summing to 1 where the rule is "normalised"), ``best_task`` a task of the largest
   confidence, ``n_signals`` the count observed; beliefs already returned do not change;
-* :func:`check_rejects_malformed_signals`: a signal of the wrong size, of two dimensions
+* `check_rejects_malformed_signals`: a signal of the wrong size, of two dimensions
   or holding NaN (the first signal too) is a ``ValueError`` whose message names the
   signal and what is wrong, and the learner goes on exactly as one that never saw it.
 
-:func:`check_learner` runs them all. The learner gets every signal as a read-only float32
+`check_learner` runs them all. The learner gets every signal as a read-only float32
 copy (the wire format), never the dataset row itself.
 """
 
@@ -231,7 +231,7 @@ def check_beliefs_well_formed(
     make_learner: LearnerFactory, make_teacher: TeacherFactory, steps: int, seed: int = 3
 ) -> None:
     """The beliefs before the first signal and after every one are well formed (see
-    :func:`assert_well_formed`), the number of tasks does not change, and beliefs returned
+    `assert_well_formed`), the number of tasks does not change, and beliefs returned
     earlier are not changed by later observations."""
     n_tasks: list[int] = []
     kept: list[tuple[TaskBeliefs, TaskBeliefs]] = []
@@ -259,7 +259,7 @@ def check_rejects_malformed_signals(
 ) -> None:
     """At the first step, signals of two dimensions and holding NaN, and halfway through
     the session these and signals one value short and one too long, are each a
-    ``ValueError`` naming the signal and what is wrong (:func:`malformed_signals`); the
+    ``ValueError`` naming the signal and what is wrong (`malformed_signals`); the
     learner then goes on as a learner of the same seed that never saw them."""
     learner, reference = make_learner(seed), make_learner(seed)
 
@@ -336,7 +336,7 @@ def _assert_rejected(
 
 
 def assert_well_formed(beliefs: TaskBeliefs, n_observed: int, where: str) -> int:
-    """The beliefs meet :class:`TaskBeliefs`, every array and number in them is finite,
+    """The beliefs meet `TaskBeliefs`, every array and number in them is finite,
     the confidence lies in [0, 1] (summing to 1 under the "normalised" rule),
     ``best_task`` is a task of the largest confidence, ``confident`` a bool and
     ``n_signals`` equal to ``n_observed``. Returns the number of tasks."""
@@ -428,7 +428,7 @@ def gaussian_data(
 
 
 class TaskTeacher:
-    """A discrete world with the simulated user (:class:`acquisition.user.SimulatedUser`)
+    """A discrete world with the simulated user (`acquisition.user.SimulatedUser`)
     of a session seed's user stream; a declared target makes it pick a new one; a move's
     outcome takes its draw from the seed's world stream.
 
@@ -460,7 +460,7 @@ class TaskTeacher:
 
 
 class ContinuousTeacher:
-    """The continuous world's teacher (:class:`acquisition.cardinal_teacher.CardinalTeacher`)
+    """The continuous world's teacher (`acquisition.cardinal_teacher.CardinalTeacher`)
     of a session seed: it answers probe points; there is no state."""
 
     def __init__(self, seed: int) -> None:
@@ -476,7 +476,7 @@ class ContinuousTeacher:
 
 
 class PuddleTeacher:
-    """The puddle world's teacher (:class:`acquisition.mixed_teacher.MixedTeacher`) of a
+    """The puddle world's teacher (`acquisition.mixed_teacher.MixedTeacher`) of a
     session seed; the moves and restarts (on entering the goal cell) draw from the seed's
     world stream.
 

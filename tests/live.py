@@ -45,7 +45,7 @@ def rewrite(recording: Recording, path: Path) -> None:
 def answering_challenges(session: zenoh.Session) -> Iterator[None]:
     """Answer every ``session_pending`` challenge heard on ``session`` with a ``ready``
     message, as a source listening to its session's events does: for tests that send
-    configs by hand (the client loop, :mod:`wire.client`, answers for the real sources)."""
+    configs by hand (the client loop, `wire.client`, answers for the real sources)."""
     outbox = Outbox(session)
 
     def on_event(sample: zenoh.Sample) -> None:

@@ -1,13 +1,13 @@
 """Plain references for the per-task decoders and matching update.
 
-* :class:`EqualPriorLDA`: scikit-learn's ``LinearDiscriminantAnalysis(solver="lsqr",
+* `EqualPriorLDA`: scikit-learn's ``LinearDiscriminantAnalysis(solver="lsqr",
   shrinkage=...)`` (empirical priors, so its covariance is the pooled within-class one)
   with the documented prior correction ``log(1/K) - log(prior_k)`` added to its scores:
   the learner's decoder for hard labels.
-* :func:`weighted_lda_log_proba`: the same formulas written out with numpy for any class
+* `weighted_lda_log_proba`: the same formulas written out with numpy for any class
   weights (soft labels, and signals a task gives no label, whose rest weight makes a
   class of their own in the covariance).
-* :func:`reference_log_match`: per task, the full decoder and ``cross_val_predict`` with
+* `reference_log_match`: per task, the full decoder and ``cross_val_predict`` with
   ``KFold`` for the confusion. The learner assigns signal ``i`` to fold ``i % k``;
   ordering the history by (fold, arrival) turns those folds into ``KFold``'s contiguous
   blocks of the same sizes.

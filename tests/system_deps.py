@@ -16,7 +16,7 @@ REQUIRE = "CFBCI_REQUIRE_SYSTEM_DEPS"
 
 
 def require(program: str, package: str, debian_path: str | None = None) -> str:
-    """The path of ``program``; skip (or fail, under :data:`REQUIRE`) when it is absent,
+    """The path of ``program``; skip (or fail, under `REQUIRE`) when it is absent,
     naming ``package``, the Debian package that installs it."""
     found = shutil.which(program) or (
         debian_path if debian_path is not None and Path(debian_path).exists() else None

@@ -257,7 +257,7 @@ def answered_in_turn(outbox: Outbox, monitor: Monitor, user: str) -> None:
 class Source:
     """A source started by hand, as wire/client.py does it (docs/protocol.md, "Starting a
     session"): its config, then a ``ready`` message repeating the ``session_pending``
-    event's challenge; it answers moves only when told to (:meth:`answer`)."""
+    event's challenge; it answers moves only when told to (`answer`)."""
 
     def __init__(self, session: zenoh.Session, sid: str) -> None:
         self.sid, self.outbox = sid, Outbox(session)
@@ -284,7 +284,7 @@ class Source:
                 return message
 
     def next(self, kind: str) -> protocol.Message:
-        """The next message of ``kind`` received (moves are kept in :attr:`moves`)."""
+        """The next message of ``kind`` received (moves are kept in `moves`)."""
         while True:
             message = _decoded(self.inbox)
             if message.kind == "move":

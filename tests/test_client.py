@@ -1,6 +1,6 @@
 """How ``cfbci source`` ends when its session does not run: one line on stderr and exit
 status 1, as ``cfbci replay --publish`` and ``cfbci lsl-bridge`` end (the clients' loop,
-:mod:`wire.client`).
+`wire.client`).
 
 The command runs in a process of its own, as a user runs it, over real Zenoh on loopback:
 against a real service process that rejects its config, and against a peer that hears

@@ -80,7 +80,7 @@ def session_steps(seed: int = 0) -> list[tuple[int, int, np.ndarray, int | None]
 
 
 def replay(config: LearnerConfig) -> tuple[CalibrationFreeLearner, list[tuple]]:
-    """A learner fed :func:`session_steps` open-loop; per step after the target, (its
+    """A learner fed `session_steps` open-loop; per step after the target, (its
     log-likelihood, the decision rule's confidence of the best task)."""
     learner = CalibrationFreeLearner(WORLD, config, rng=0)
     after_target = []

@@ -1,6 +1,6 @@
 """``cfbci export``: a recording's raw epochs as MNE Epochs, read back with MNE.
 
-The recordings are those of :mod:`test_recording_dataset` (a real service over loopback
+The recordings are those of `test_recording_dataset` (a real service over loopback
 Zenoh recording real replay sources): raw synthetic epochs, and feature vectors.
 """
 

@@ -1,4 +1,4 @@
-"""``cfbci datasets fetch`` and ``path`` (:mod:`acquisition.fetch`) against a local mirror.
+"""``cfbci datasets fetch`` and ``path`` (`acquisition.fetch`) against a local mirror.
 
 The mirror is a real HTTP server on loopback serving copies of ``../shared/datasets`` laid
 out as ``BASE/OWNER/REPOSITORY/COMMIT/PATH``; the cache folder is a temporary one.

@@ -1,7 +1,7 @@
 """A session on an LSL stream the project did not write: mne-lsl's ``PlayerLSL``.
 
 The amplifier is mne-lsl's ``PlayerLSL`` playing a continuous raw ``.fif``
-(:mod:`acquisition.fif_stream`): the synthetic epochs a simulated user answers the seed's
+(`acquisition.fif_stream`): the synthetic epochs a simulated user answers the seed's
 moves with, laid out in time, each onset an annotation ``onset <step>``. The player is the
 stimulus program too: its annotation stream (``<name>-annotations``, strings) is the
 bridge's ``--markers``, and ``onset 1``, ``onset 2``, ... come in the order the bridge

@@ -1,6 +1,6 @@
 """MNE epochs files (``-epo.fif``) and XDF recordings as datasets.
 
-The ``.fif`` files are written by MNE itself; the XDF files by :func:`write_xdf` below, from
+The ``.fif`` files are written by MNE itself; the XDF files by `write_xdf` below, from
 the XDF specification (pyxdf only reads), and read by pyxdf.
 """
 

@@ -1,9 +1,9 @@
 """Fuzz: a real recording, mutated (bit flips, cuts, garbage, zeroed blocks; seeded), through
 ``cfbci replay``, ``report``, ``recover`` and ``export``.
 
-Each case must give no traceback, finish within :data:`CASE_SECONDS` (a timer that fails
+Each case must give no traceback, finish within `CASE_SECONDS` (a timer that fails
 the test, not a sleep), exit with a status ``docs/recordings.md`` documents for the mutant
-(:data:`cfbci.bench.fuzz.ALLOWED`; an error said as ``error: ...``), leave its input
+(`cfbci.bench.fuzz.ALLOWED`; an error said as ``error: ...``), leave its input
 unmodified and, recovered, give a copy that reads back complete. The commands run in this
 process (``cfbci.cli.main``); two mutants also as ``cfbci`` processes, whose stderr must
 hold no traceback. The long version: ``cfbci bench fuzz-recordings``.
@@ -52,7 +52,7 @@ class Hang(Exception):
 
 @contextlib.contextmanager
 def time_limit(seconds: float, what: str) -> Iterator[None]:
-    """Fail the case (raise :class:`Hang`) if it runs longer than ``seconds``."""
+    """Fail the case (raise `Hang`) if it runs longer than ``seconds``."""
     def expired(signum: int, frame: object) -> None:
         raise Hang(f"{what}: no result in {seconds:g} s")
 

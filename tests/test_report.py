@@ -1,9 +1,9 @@
 """``cfbci report``: metrics of recordings, figures and the HTML report.
 
-Recordings are written in-process with :class:`SessionRecorder` (no Zenoh): a hand-built one
+Recordings are written in-process with `SessionRecorder` (no Zenoh): a hand-built one
 whose every metric is known by construction, and a real one made by running the learner and
 a simulated user exactly as the service and the replay source do (checked with
-:func:`replay.rerun.replay_check`).
+`replay.rerun.replay_check`).
 """
 
 from __future__ import annotations

@@ -3,7 +3,7 @@ and learner settings; calibration panels titled for what they count; the aggrega
 the sessions' worlds only; figures readable at a paper's width; feature vectors drawn per
 channel where their layout is known.
 
-Recordings are made in-process (:mod:`test_report`'s writers: the learner and a simulated
+Recordings are made in-process (`test_report`'s writers: the learner and a simulated
 user as the service runs them, or hand-built ones whose every value is known).
 """
 
@@ -329,9 +329,9 @@ def undrawn_tick_labels(figure: Figure) -> set[int]:
 
 
 def check_readable(figure: Figure, name: str) -> None:
-    """Every text of ``figure`` at least :data:`SMALLEST_FONT` points, within the figure
-    and clear of the others, and every belief map at least :data:`SMALLEST_MAP` inches a
-    side, once printed :data:`PRINT_WIDTH` wide (or less)."""
+    """Every text of ``figure`` at least `SMALLEST_FONT` points, within the figure
+    and clear of the others, and every belief map at least `SMALLEST_MAP` inches a
+    side, once printed `PRINT_WIDTH` wide (or less)."""
     figure.draw_without_rendering()
     scale = min(1.0, PRINT_WIDTH / figure.get_figwidth())
     undrawn = undrawn_tick_labels(figure)

@@ -29,7 +29,7 @@ KILL_AT = 25  # the service is killed once the move of this step has been seen
 
 def run_with_a_kill(settings: SourceSettings, tmp_path: Path, steps: int) -> SourceSummary:
     """Run a session of ``steps`` steps whose service, recording to ``tmp_path``, is killed
-    with SIGKILL once the move of :data:`KILL_AT` has been seen and started again on the
+    with SIGKILL once the move of `KILL_AT` has been seen and started again on the
     same directory and endpoints; the source's summary."""
     sid = settings.session
     endpoint, observer_endpoint = free_tcp_endpoint(), free_tcp_endpoint()

@@ -71,7 +71,7 @@ def wait_for_offers(client: zenoh.Session, services: set[str]) -> None:
 
 def next_message(inbox: queue.SimpleQueue[Received]) -> protocol.Message:
     """The next message but ``session_pending`` challenges (answered by
-    :func:`live.answering_challenges` where a test needs its sessions started)."""
+    `live.answering_challenges` where a test needs its sessions started)."""
     while True:
         message = protocol.decode(inbox.get(timeout=TIMEOUT).data)
         if message.kind != "event" or message.fields["event"] != "session_pending":

@@ -56,7 +56,7 @@ def correlated_pair(n, rng):
 
 
 def correlated_signal(label, rng):
-    """One signal of :func:`correlated_pair`'s kind, of class ``label``."""
+    """One signal of `correlated_pair`'s kind, of class ``label``."""
     pair = rng.normal() * 3.0 + 0.3 * rng.normal(size=2) + 0.5 * np.array([label, -label])
     return np.r_[pair, rng.normal(size=4)]
 

@@ -1,4 +1,4 @@
-"""``cfbci sweep`` on a real Dask cluster, and where jobs run (:mod:`cfbci.offline.parallel`)."""
+"""``cfbci sweep`` on a real Dask cluster, and where jobs run (`cfbci.offline.parallel`)."""
 
 from __future__ import annotations
 

@@ -4,14 +4,14 @@ Selenium through chromedriver, fed by a real service and source over Zenoh on lo
 The view runs in a spawned process listening on its own Zenoh endpoint; the services
 (one for the module, one more that records the session the re-publishing test sends
 again) connect to it and the sources connect to both, as ``cfbci view --listen`` is used.
-Every page is opened with the view's access token (:data:`TOKEN`), as from the address
+Every page is opened with the view's access token (`TOKEN`), as from the address
 ``cfbci view`` prints. The pages tell what they show in ``data-*`` attributes of ``#view``
 (session, status, step, agent, layout, correct, wrong, best), which the tests compare with
 the messages the service published. Chromium resolves every ``*.test`` name to 127.0.0.1:
 a page of another site (``attacker.test``, served by a plain HTTP server of the test) and a
 rebound name of the view's own address are then real to the browser. Without Chromium the
 tests fail (CI installs it). The last tests check the view's bookkeeping
-(:mod:`cfbci.view.model`) on real encoded messages; tests/test_view_security.py checks the
+(`cfbci.view.model`) on real encoded messages; tests/test_view_security.py checks the
 access rules over HTTP and the model's refusal of malformed messages.
 """
 
@@ -78,7 +78,7 @@ def _view_process(listen: str, connect: list[str], access: Access, ready: Any) -
 def _view_running(
     connect: tuple[str, ...] = (), allow_origins: tuple[str, ...] = ()
 ) -> Iterator[tuple[str, str]]:
-    """A view in a spawned process, its token :data:`TOKEN`: (its address without the
+    """A view in a spawned process, its token `TOKEN`: (its address without the
     token, e.g. ``http://127.0.0.1:8080``, its Zenoh endpoint)."""
     endpoint = free_tcp_endpoint()
     ready = SPAWN.Queue()
@@ -120,7 +120,7 @@ socket.onclose = () => {{ if (document.title !== "open") document.title = "refus
 
 @pytest.fixture(scope="module")
 def other_site() -> Iterator[int]:
-    """A plain HTTP server of pages of another site (:class:`_OtherSite`): its port.
+    """A plain HTTP server of pages of another site (`_OtherSite`): its port.
     ``friend.test`` on that port is an origin the view allows, ``attacker.test`` not."""
     server = ThreadingHTTPServer(("127.0.0.1", 0), _OtherSite)
     thread = threading.Thread(target=server.serve_forever, daemon=True)
@@ -162,7 +162,7 @@ def browser(tmp_path_factory: pytest.TempPathFactory) -> Iterator[webdriver.Chro
 @pytest.fixture(scope="module")
 def service(view: tuple[str, str], tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
     """A service connected to the view; its endpoint, once it answers (see
-    :func:`_wait_for_service`). The tests' sessions have ids of their own."""
+    `_wait_for_service`). The tests' sessions have ids of their own."""
     endpoint = free_tcp_endpoint()
     with service_process(endpoint, tmp_path_factory.mktemp("recordings"), connect=(view[1],)):
         _wait_for_service(endpoint)

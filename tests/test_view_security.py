@@ -5,9 +5,9 @@ keeps per session is bounded.
 
 The HTTP tests run the real command (``python -m cfbci.cli view``) in a process of its own,
 a real aiohttp server on loopback and a real Zenoh peer, and talk to it with urllib and
-aiohttp's WebSocket client. The model tests feed :class:`cfbci.view.model.SessionBook`
+aiohttp's WebSocket client. The model tests feed `cfbci.view.model.SessionBook`
 messages of every world (grid, line, pick-and-place, continuous, puddle), and
-:class:`cfbci.view.server.ViewServer` real wire bytes. The pages in a real Chromium are
+`cfbci.view.server.ViewServer` real wire bytes. The pages in a real Chromium are
 tested in ``tests/test_view.py``.
 """
 
@@ -307,7 +307,7 @@ def _opening(world: str) -> list[protocol.Message]:
 
 
 def _started(world: str) -> SessionBook:
-    """A book with session ``s`` of ``world`` (:func:`_opening`)."""
+    """A book with session ``s`` of ``world`` (`_opening`)."""
     book = SessionBook()
     for message in _opening(world):
         book.update(message, 0)
@@ -468,7 +468,7 @@ def test_the_server_drops_bad_wire_bytes_with_a_warning_and_keeps_the_session(
 
 def test_forged_epochs_moves_and_truths_leave_the_per_step_maps_bounded() -> None:
     """Epochs, truths and moves of steps that never pair up (a session without a config:
-    any step goes) are remembered up to :data:`PENDING_STEPS` each, the newest."""
+    any step goes) are remembered up to `PENDING_STEPS` each, the newest."""
     book = SessionBook()
     last = 7 * 20 * PENDING_STEPS
     for step in range(7, last + 1, 7):

@@ -172,7 +172,7 @@ def _raw_config(session: str, **fields: object) -> bytes:
 
 def next_event_of(inbox: queue.SimpleQueue[Received], session: str) -> dict:
     """The fields of the next event of ``session`` in ``inbox`` (others, and the
-    ``session_pending`` challenges that :func:`live.answering_challenges` answers, are
+    ``session_pending`` challenges that `live.answering_challenges` answers, are
     skipped)."""
     while True:
         received = inbox.get(timeout=TIMEOUT)

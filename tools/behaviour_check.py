@@ -1,12 +1,12 @@
 """Before-and-after behaviour check: the same ``cfbci`` command lines, the same decisions.
 
-A table of cases (:data:`CASES`), each one ``cfbci simulate`` or ``cfbci session`` command
+A table of cases (`CASES`), each one ``cfbci simulate`` or ``cfbci session`` command
 line, small enough to take a few seconds. ``--write DIR`` runs every case and stores its
 outputs in DIR as reference files (``NAME.trace``, ``NAME.json``, ``NAME.mcap``);
 ``--check DIR`` runs them again and compares:
 
 * ``--trace`` files byte for byte;
-* ``--json`` files as parsed JSON, after dropping timing keys (:func:`without_timings`: the
+* ``--json`` files as parsed JSON, after dropping timing keys (`without_timings`: the
   present outputs hold none; keys named as wall-clock times are dropped should a later
   version add some), floats exactly;
 * a live session's recording: ``cfbci replay NAME.mcap`` on the *reference* recording must
@@ -61,7 +61,7 @@ S4 = "../shared/datasets/errp-features-s4/s4.mat"
 FINGER = "../shared/datasets/finger-moves/move_finger.mat"
 
 #: Keys that are timings (wall clock), dropped before JSON outputs are compared; a key ending
-#: in one of :data:`TIMING_SUFFIXES` is one too.
+#: in one of `TIMING_SUFFIXES` is one too.
 TIMING_KEYS = frozenset({"time", "elapsed", "duration", "wall_time", "seconds"})
 TIMING_SUFFIXES = ("_ms", "_seconds", "_elapsed", "_duration")
 
@@ -83,7 +83,7 @@ class Case:
     trace : bool
         Whether the command writes a ``--trace``.
     data : tuple of str
-        Files of :data:`DATA` copied into the case's directory.
+        Files of `DATA` copied into the case's directory.
     """
 
     name: str

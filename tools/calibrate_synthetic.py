@@ -1,14 +1,14 @@
 """Measure the difficulty curve of the synthetic ErrP generator and print its table.
 
-For each gain of a grid, :func:`acquisition.synthetic.generate_errp_epochs_at_gain` draws
+For each gain of a grid, `acquisition.synthetic.generate_errp_epochs_at_gain` draws
 ``--n-correct`` correct and ``--n-error`` error epochs for each of ``--seeds`` seeds; the
 score is the balanced accuracy of a shrinkage LDA (``solver="lsqr", shrinkage=0.5``, equal
-priors) on :class:`decoding.features.ErrPFeatures` features, 10-fold stratified
+priors) on `decoding.features.ErrPFeatures` features, 10-fold stratified
 cross-validation, averaged over the seeds. The printed constants are the calibration table
-of :mod:`acquisition.synthetic`; the extra columns (power ratio error / correct of the
+of `acquisition.synthetic`; the extra columns (power ratio error / correct of the
 feature vectors, standard error of the mean accuracy) are for information.
 
-``--verify`` instead generates epochs with :func:`acquisition.synthetic.generate_errp_epochs`
+``--verify`` instead generates epochs with `acquisition.synthetic.generate_errp_epochs`
 at a few nominal accuracies (on seeds other than the calibration ones) and prints the
 achieved accuracy.
 
@@ -76,7 +76,7 @@ def python_tuple(name: str, values: list[str]) -> str:
 
 
 def verify(n_seeds: int, n_correct: int, n_error: int) -> None:
-    """Print the achieved accuracy of :func:`generate_errp_epochs` at nominal accuracies."""
+    """Print the achieved accuracy of `generate_errp_epochs` at nominal accuracies."""
     print(f"{'nominal':>8} {'achieved':>9} {'sem':>7} {'power ratio':>12}")
     seeds = range(VERIFY_SEED_OFFSET, VERIFY_SEED_OFFSET + n_seeds)
     for nominal in NOMINAL:

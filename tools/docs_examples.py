@@ -25,7 +25,7 @@ runs it:
 ``expect: TEXT``
     the block's output must contain ``TEXT``. Repeatable.
 ``timeout: SECONDS``
-    how long the block may take (default :data:`DEFAULT_TIMEOUT`).
+    how long the block may take (default `DEFAULT_TIMEOUT`).
 
 A page's blocks run in order in one fresh folder, as one reader's terminal: a block sees the
 files the blocks before it wrote, their shell variables and their working directory.
@@ -210,7 +210,7 @@ def _prefix_words(words: list[str]) -> Iterator[str]:
 
 
 def check_same_as(block: Block, repository: Path) -> None:
-    """Raise :class:`ExampleError` unless the page a ``same-as`` block names runs that very
+    """Raise `ExampleError` unless the page a ``same-as`` block names runs that very
     block (the same code and markers)."""
     other = page_blocks(repository / block.same_as)
     if not any(b.runs_here and b.signature() == block.signature() for b in other):
@@ -368,7 +368,7 @@ class PageRun:
         self.stop()
 
     def run(self, block: Block) -> str:
-        """Run one block (its test variant); its output. Raises :class:`ExampleError`."""
+        """Run one block (its test variant); its output. Raises `ExampleError`."""
         self.count += 1
         code = self._ports(variant_code(block))
         if block.kind == "console":

@@ -1,7 +1,7 @@
 """How many distinct labellings the tasks form: the figure behind shared decoders.
 
 Tasks whose labels agree on every signal since the last target share their decoders
-(:attr:`calibration_free.task_decoders.TaskHistory.labellings`), so a step's fitting,
+(`calibration_free.task_decoders.TaskHistory.labellings`), so a step's fitting,
 cross-validation and prediction cost follows the number of labellings, not of tasks. This
 runs one simulated session (synthetic ErrP features, the default learner) and prints that
 number's mean, median, 90th percentile and maximum over the steps, with the targets reached.

@@ -2,9 +2,9 @@
 
     python tools/session_memory.py [--json OUT]
 
-Runs every case of :data:`cfbci.bench.memory_probe.TABLE_CASES` in its own fresh process
-(:func:`cfbci.bench.memory_probe.measure`; Linux) and prints, per case, the estimate
-(:func:`cfbci.service.limits.world_memory_bytes`), the measured peak resident growth and their
+Runs every case of `cfbci.bench.memory_probe.TABLE_CASES` in its own fresh process
+(`cfbci.bench.memory_probe.measure`; Linux) and prints, per case, the estimate
+(`cfbci.service.limits.world_memory_bytes`), the measured peak resident growth and their
 ratio, as the README's table. Cases run one after the other (a pnp session with d = 57
 takes about a minute on a loaded 2-core machine).
 """

@@ -2,10 +2,10 @@
 
 For ``--draws`` random subsets of ``--signals`` labelled signals (seeded), at every
 shrinkage of the grid: the balanced accuracy on the remaining signals of the project's
-shrinkage LDA (:class:`decoding.lda.ShrinkageLDA`, equal priors) fitted on the subset, and
+shrinkage LDA (`decoding.lda.ShrinkageLDA`, equal priors) fitted on the subset, and
 the discriminability of the learner's cross-validated matching evidence on the subset
-(:func:`calibration_free.shrinkage_choice.evidence_discriminability`, eps 0.1, 10 folds);
-then the shrinkage the learner would choose (:func:`~calibration_free.shrinkage_choice.
+(`calibration_free.shrinkage_choice.evidence_discriminability`, eps 0.1, 10 folds);
+then the shrinkage the learner would choose (`
 choose_shrinkage`), as counts over the draws. Feedback (two-class) data only.
 
 Usage::

@@ -1,27 +1,27 @@
 """One client loop for every source of the service (docs/protocol.md, "A session, message
 by message", "Re-sending", "Errors and rejections").
 
-The simulated user (:mod:`acquisition.simulated_source`, ``cfbci source``), the LSL bridge
-(:mod:`acquisition.lsl_bridge`, ``cfbci lsl-bridge``) and the re-publication of a
-recording (:mod:`cfbci.recordings.publish`, ``cfbci replay --publish``) play the same part: they
-send a config, then answer every move with the epoch of its step. :class:`Client` is that
+The simulated user (`acquisition.simulated_source`, ``cfbci source``), the LSL bridge
+(`acquisition.lsl_bridge`, ``cfbci lsl-bridge``) and the re-publication of a
+recording (`cfbci.recordings.publish`, ``cfbci replay --publish``) play the same part: they
+send a config, then answer every move with the epoch of its step. `Client` is that
 part, once: it subscribes to the session's ``move``, ``state`` and ``event`` keys before
 anything is sent, waits for a service to subscribe to the config, sends the config and
 re-sends it until its ``session_started`` arrives (answering the service's
 ``session_pending`` challenge with a ``ready`` message, re-sent with the config: the proof
 that this client listens to the session's events), hands every move to the client's own
-:class:`Answerer` once and in step order, sends the epochs the answerer gives it (with the
+`Answerer` once and in step order, sends the epochs the answerer gives it (with the
 step's truth) and re-sends the latest until the next move arrives, checks the sequence
 numbers of what it receives (gaps are logged), takes a repeated move or state as the one
 it has, and ends when ``session_ended`` has come with every move and state. It ends early
 only on the documented reasons: a ``session_rejected`` answering its own config
-(:class:`RuntimeError`), or a service that keeps it waiting for ``timeout`` seconds
-(:class:`TimeoutError`); an ``error`` event, or a rejection of someone else's config on
+(`RuntimeError`), or a service that keeps it waiting for ``timeout`` seconds
+(`TimeoutError`); an ``error`` event, or a rejection of someone else's config on
 the same id, is only logged. What stays with each client is its own: where its epochs
 come from and what it does with a move.
 
 Layer: the loop speaks only the protocol (keys, messages, sequence numbers, re-sending,
-the events that start and end a session) through :mod:`wire.transport`; it knows no user,
+the events that start and end a session) through `wire.transport`; it knows no user,
 amplifier or recording. It serves clients of two layers, ``acquisition`` (the simulated
 source, the bridge) and ``cfbci`` (``replay --publish``), so it lives in ``wire``, below
 both, next to the transport it drives.
@@ -63,8 +63,8 @@ class Answerer(Protocol):
 
     def on_move(self, move: protocol.Message) -> None:
         """Take the move of the next step: each step's once, in step order, after the
-        session started. Answer it now or later (:meth:`poll`) with
-        :meth:`Client.send_epoch`."""
+        session started. Answer it now or later (`poll`) with
+        `Client.send_epoch`."""
 
     def poll(self) -> float:
         """Do what is due now (after every message, every re-send, every wait); return
@@ -85,7 +85,7 @@ class Client:
         Where the client's warnings (sequence problems, ``error`` events) go.
     timeout : float
         Seconds the service may keep the client waiting (for ``session_started``, a move,
-        the session's end) before :meth:`run` gives up; also the wait for a service to
+        the session's end) before `run` gives up; also the wait for a service to
         subscribe to the config.
     resend_interval : float
         Seconds between two sendings of the unanswered config or epoch.
@@ -161,7 +161,7 @@ class Client:
 
     def latency_ns(self) -> list[int]:
         """Per epoch but the last: from its first sending to the next move taken off the
-        subscriber, ns (``steps - 1`` values once :attr:`complete`)."""
+        subscriber, ns (``steps - 1`` values once `complete`)."""
         return [self.move_ns[step + 1] - self.epoch_ns[step] for step in range(1, self.steps)]
 
     def run(
@@ -172,7 +172,7 @@ class Client:
     ) -> None:
         """Run the session: send ``config`` (its fields, or a function giving them once a
         service has subscribed), then take the service's messages and hand the moves to
-        ``answerer`` until :attr:`complete` (or until ``keep_running()`` is false).
+        ``answerer`` until `complete` (or until ``keep_running()`` is false).
 
         Raises
         ------

@@ -2,17 +2,17 @@
 
 Every received message is filed under the session id of its key expression
 (``cfbci/<session>/<kind>``). A session the service runs has a FIFO of its own
-(:meth:`Intake.open`); every other message (configs of new sessions, messages for unknown
-sessions, undecodable key expressions) shares one FIFO, ``other``. :meth:`Intake.get`
+(`Intake.open`); every other message (configs of new sessions, messages for unknown
+sessions, undecodable key expressions) shares one FIFO, ``other``. `Intake.get`
 serves the non-empty FIFOs round-robin, one message at a time, so a flood on some keys
 delays another session's next message by at most one message per FIFO.
 
 Nothing grows without bound: a message longer than ``max_bytes`` is dropped before it is
 copied out of Zenoh, a session id that has sent ``rate`` messages in the current second
 gets its further messages of that second dropped, and a FIFO that holds
-:data:`QUEUE_MESSAGES` messages or :data:`QUEUE_BYTES` bytes drops what comes next.
-Dropped messages are counted per reason (:meth:`Intake.take_drops`). Pump threads call
-:meth:`Intake.put`; one thread (the service's loop) calls :meth:`Intake.get`.
+`QUEUE_MESSAGES` messages or `QUEUE_BYTES` bytes drops what comes next.
+Dropped messages are counted per reason (`Intake.take_drops`). Pump threads call
+`Intake.put`; one thread (the service's loop) calls `Intake.get`.
 """
 
 from __future__ import annotations
@@ -133,7 +133,7 @@ class Intake:
                 self._ready.append(OTHER)
 
     def stop(self) -> None:
-        """Make every :meth:`get` return None (safe from a signal handler's thread)."""
+        """Make every `get` return None (safe from a signal handler's thread)."""
         with self._changed:
             self._stopped = True
             self._changed.notify_all()

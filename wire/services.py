@@ -1,8 +1,8 @@
 """Several services on one Zenoh network: each session served by exactly one of them.
 
 Every service answers a Zenoh *queryable* on ``cfbci/services/<service id>`` with its load
-(:class:`ServiceOffer`, JSON). A source that wants one service asks ``cfbci/services/*``,
-picks the least loaded offer (:func:`pick_service`) and names it in its config's
+(`ServiceOffer`, JSON). A source that wants one service asks ``cfbci/services/*``,
+picks the least loaded offer (`pick_service`) and names it in its config's
 ``service`` field; the other services ignore that config. The chosen service *claims* the
 session with a Zenoh liveliness token ``cfbci/<session>/served-by/<service id>`` for as long
 as it runs it, and refuses a session another service already claims (a second source
@@ -101,7 +101,7 @@ class ServiceRegistration:
     """A service's side: its queryable of offers and its claims.
 
     The other services' claims are followed with a liveliness subscriber (with history, so
-    the claims made before this service started are known too): :meth:`claim` checks them
+    the claims made before this service started are known too): `claim` checks them
     locally and never waits on the network.
 
     Parameters
@@ -160,11 +160,11 @@ class ServiceRegistration:
         service that holds it (the smallest, if several).
 
         The claims heard so far decide; with ``ask``, the network is also asked
-        (:func:`claims_of`, up to :data:`QUERY_TIMEOUT`): for a service that has just
+        (`claims_of`, up to `QUERY_TIMEOUT`): for a service that has just
         started (resuming its recordings), whose subscriber may not have heard the
         existing claims yet. Two services may claim one session at the same moment, each
         before it hears of the other's claim: then the smaller id keeps it, and the other
-        finds it in :meth:`take_conflicts`."""
+        finds it in `take_conflicts`."""
         if sid in self._claims:
             return None
         with self._lock:
@@ -182,7 +182,7 @@ class ServiceRegistration:
 
     def take_conflicts(self) -> dict[str, str]:
         """The sessions this service must give up, each with the smaller id of the service
-        that keeps it (see :meth:`claim`); each reported once."""
+        that keeps it (see `claim`); each reported once."""
         with self._lock:
             conflicts, self._conflicts = self._conflicts, {}
         return conflicts

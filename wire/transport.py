@@ -2,7 +2,7 @@
 
 Publications are RELIABLE with congestion control BLOCK: a slow receiver slows the
 sender down instead of losing messages. Subscriptions use a bounded FIFO channel that a
-thread of ours (a :class:`Pump`) empties into a Python queue; no Zenoh callback ever calls
+thread of ours (a `Pump`) empties into a Python queue; no Zenoh callback ever calls
 back into Zenoh or into the application.
 """
 
@@ -30,7 +30,7 @@ class Received:
     Attributes
     ----------
     tag : str
-        Which subscription it came from (the :class:`Pump`'s tag).
+        Which subscription it came from (the `Pump`'s tag).
     key_expr : str
         The key expression it was published on.
     data : bytes
@@ -78,7 +78,7 @@ def reliable_publisher(session: zenoh.Session, key_expr: str) -> zenoh.Publisher
 def wait_for_subscribers(publisher: zenoh.Publisher, timeout: float) -> bool:
     """Wait until some subscriber matches ``publisher``; False after ``timeout`` seconds.
 
-    The matching listener's callback only sets a :class:`threading.Event`.
+    The matching listener's callback only sets a `threading.Event`.
     """
     matched = threading.Event()
     listener = publisher.declare_matching_listener(
@@ -91,13 +91,13 @@ def wait_for_subscribers(publisher: zenoh.Publisher, timeout: float) -> bool:
 
 
 class Sink(Protocol):
-    """Where a :class:`Pump` puts what it receives (a ``queue.SimpleQueue``, an intake)."""
+    """Where a `Pump` puts what it receives (a ``queue.SimpleQueue``, an intake)."""
 
     def put(self, item: Received, /) -> Any: ...
 
 
 class Pump:
-    """A subscriber whose samples a thread of ours moves into a queue, as :class:`Received`.
+    """A subscriber whose samples a thread of ours moves into a queue, as `Received`.
 
     Parameters
     ----------
@@ -105,7 +105,7 @@ class Pump:
     key_expr : str
         What to subscribe to (wildcards allowed).
     tag : str
-        Put in every :class:`Received`, to tell subscriptions apart in a shared queue.
+        Put in every `Received`, to tell subscriptions apart in a shared queue.
     queue : Sink
         Where samples go, in the order the subscriber received them.
     admit : callable, optional
@@ -113,7 +113,7 @@ class Pump:
         refused is dropped before its payload is copied.
 
     The thread ends when the subscriber is undeclared or the session closed
-    (:meth:`close`).
+    (`close`).
     """
 
     def __init__(
@@ -155,7 +155,7 @@ class Pump:
 class Outbox:
     """Publishes protocol messages, numbering them per key expression from 0.
 
-    Publishers are declared on first use and kept until :meth:`forget` or :meth:`close`;
+    Publishers are declared on first use and kept until `forget` or `close`;
     sequence numbers are kept for the life of the outbox, so a key expression's ``seq``
     never restarts.
     """
@@ -183,7 +183,7 @@ class Outbox:
         Parameters
         ----------
         kind, session : str
-            See :func:`wire.protocol.key`.
+            See `wire.protocol.key`.
         fields : dict
             The kind's header fields.
         payload : ndarray or None
@@ -254,7 +254,7 @@ class Resender:
         payload: Any = None,
         companion: bool = False,
     ) -> protocol.Message:
-        """Send a message (see :meth:`Outbox.send`) and await its answer; a ``companion``
+        """Send a message (see `Outbox.send`) and await its answer; a ``companion``
         is re-sent with the pending message and needs no answer of its own."""
         message = self.outbox.send(kind, session, fields, payload)
         if companion:
@@ -273,7 +273,7 @@ class Resender:
         self.pending, self._group = None, []
 
     def wait(self, longest: float) -> float:
-        """Seconds to wait for a message before :meth:`poll` is due (at most ``longest``)."""
+        """Seconds to wait for a message before `poll` is due (at most ``longest``)."""
         if self.pending is None:
             return longest
         return min(longest, max(0.0, (self._due_ns - time.monotonic_ns()) / 1e9))

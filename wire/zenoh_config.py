@@ -121,7 +121,7 @@ def config_document(
 
 
 def build_config(document: Mapping[str, Any], origin: Path | None = None) -> zenoh.Config:
-    """A :class:`zenoh.Config` from a configuration dictionary, checked by Zenoh.
+    """A `zenoh.Config` from a configuration dictionary, checked by Zenoh.
 
     Raises
     ------
@@ -170,7 +170,7 @@ def router_config(
     connect: Sequence[str] = (),
     zenoh_config: Path | None = None,
 ) -> zenoh.Config:
-    """As :func:`peer_config`, for a Zenoh router (``cfbci router``).
+    """As `peer_config`, for a Zenoh router (``cfbci router``).
 
     Raises
     ------
@@ -193,7 +193,7 @@ def router_config(
 #: Where the kernel says its ephemeral ports are (Linux); the ports it hands to outgoing
 #: connections and to ``bind(0)``.
 EPHEMERAL_PORT_RANGE = Path("/proc/sys/net/ipv4/ip_local_port_range")
-#: The lowest port :func:`free_tcp_endpoint` picks below the ephemeral range.
+#: The lowest port `free_tcp_endpoint` picks below the ephemeral range.
 LOWEST_LISTEN_PORT = 10000
 
 

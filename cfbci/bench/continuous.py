@@ -1,7 +1,7 @@
 """The cost of one continuous-goal step (issue 10): resampling, probe choice, relabelling,
 the sampled-classifier confidence and the uncertainty map, at a given history length.
 
-``cfbci bench update`` prints it as its continuous row (:func:`print_continuous`), timed in
+``cfbci bench update`` prints it as its continuous row (`print_continuous`), timed in
 a fresh process with one BLAS thread, as the service and ``cfbci simulate`` run it. The
 uncertainty map's expected matches were once computed on a second thread beside the
 particles' scores: on this project's 2-vCPU machine that step took 66 ms against 59 ms on
@@ -43,7 +43,7 @@ def bench_continuous_step(
     """Time ``steps`` steps of a learner whose history holds ``history`` signals at the
     first timed step (11-D four-class Gaussian signals, like ``move_finger.mat``'s); the
     history grows by one signal per timed step. One BLAS thread and glibc told to keep freed
-    memory (:func:`cfbci.memory.keep_freed_memory`), as in ``cfbci simulate`` and the service
+    memory (`cfbci.memory.keep_freed_memory`), as in ``cfbci simulate`` and the service
     (this process and its children: run it in a process of its own)."""
     config = config or ContinuousConfig()
     if history < 1 or steps < 1:

@@ -2,21 +2,21 @@
 
 Three processes on loopback Zenoh (spawned; multicast off): the service (recording), the
 replay source of one real session, and a hostile client that floods the service with
-malformed and adversarial messages (:func:`attacks`): undecodable bytes, header lengths
+malformed and adversarial messages (`attacks`): undecodable bytes, header lengths
 that lie, huge numbers, oversized payloads, maximum-size configs it follows (and feeds a
 maximum-size epoch), valid configs for sessions nobody follows, and garbage on the real
-session's own keys (at most :data:`LIVE_SHARE` of the rate limit), before the real
+session's own keys (at most `LIVE_SHARE` of the rate limit), before the real
 session starts and while it runs. Before the real session asks for a slot, a *slot hog*
-sends four configs per slot of the service (:func:`slot_hog`) while it listens to every
+sends four configs per slot of the service (`slot_hog`) while it listens to every
 session's events (``cfbci/**/event``) but never answers their challenge, as a client that
 tries to hold every slot does: none of its sessions may start, and the real one must.
 Afterwards:
 
 * the real session's decisions equal ``cfbci simulate``'s for its seed, and its recording
-  replays identically (:func:`replay.rerun.replay_check`);
+  replays identically (`replay.rerun.replay_check`);
 * the largest queueing delay any of its epochs saw in the service's intake (the
   ``queued_ms`` the service records with each move), and the end-to-end latency;
-* the service's peak resident memory (``VmHWM``) against :func:`memory_bound`;
+* the service's peak resident memory (``VmHWM``) against `memory_bound`;
 * the service's exit code after SIGTERM (0: clean).
 """
 
@@ -57,7 +57,7 @@ TIMEOUT = 120.0
 #: Seconds between two sendings of an unanswered maximum-size config.
 RESEND_S = 1.0
 #: Resident memory of an idle service (Python, numpy, scipy, Zenoh), MiB: a measured
-#: figure with margin, the base of :func:`memory_bound`.
+#: figure with margin, the base of `memory_bound`.
 BASE_MB = 250.0
 _LIVE = "real"
 #: Share of the rate limit the flood spends on the real session's own keys. The limit is
@@ -136,8 +136,8 @@ def attacks(live: str, limits: ServiceLimits, round_: int) -> list[tuple[str, st
 
 def largest_fitting_features(limits: ServiceLimits, grid: int, steps: int) -> int:
     """The longest feature vector (<= ``max_features``) with which a session of
-    :func:`_config` (``grid``, ``steps``, feedback, default learner) stays within
-    ``max_session_mb`` by :func:`~cfbci.service.limits.world_memory_bytes`; 0 if none does."""
+    `_config` (``grid``, ``steps``, feedback, default learner) stays within
+    ``max_session_mb`` by `world_memory_bytes`; 0 if none does."""
     world, learner, budget = GridWorld(grid), LearnerConfig(), limits.max_session_mb * 2**20
     fits = [
         d for d in range(1, limits.max_features + 1)
@@ -170,7 +170,7 @@ def slot_hog(limits: ServiceLimits) -> list[tuple[str, bytes]]:
 
 def _flood(endpoint: str, limits: ServiceLimits, rounds: int, done: Event, counts: Any) -> None:
     """The hostile client (a spawned process): garbage until the real session has started
-    (it watches its events), then maximum-size sessions, and rounds of :func:`attacks`
+    (it watches its events), then maximum-size sessions, and rounds of `attacks`
     until ``rounds`` are sent or ``done`` is set."""
     sent: Counter[str] = Counter()
     if rounds == 0:  # the reference run: no flood at all
@@ -288,7 +288,7 @@ class FloodReport:
     end_to_end_ms : dict of str to float
         Epoch published to next move received by the real source: median, p99, max, ms.
     peak_rss_mb, rss_bound_mb : float
-        The service's peak resident memory, and :func:`memory_bound`, MiB.
+        The service's peak resident memory, and `memory_bound`, MiB.
     exit_code : int or None
         The service's exit code after SIGTERM.
     elapsed_s : float
@@ -325,10 +325,10 @@ def bench_flood(
     steps, grid, seed : int
         The real session (synthetic raw epochs, feedback frame).
     rounds : int
-        Rounds of :func:`attacks` (15 messages each), at most; the flood stops when the
+        Rounds of `attacks` (15 messages each), at most; the flood stops when the
         real session ends. 0: no flood (the reference).
     limits : ServiceLimits, optional
-        The service's limits; default :class:`ServiceLimits` with a 20 s idle timeout.
+        The service's limits; default `ServiceLimits` with a 20 s idle timeout.
     record_dir : Path, optional
         Where the service records (default: a temporary directory, removed afterwards).
     """

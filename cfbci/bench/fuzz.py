@@ -4,10 +4,10 @@ A real recording (``cfbci session``, synthetic raw epochs; or ``--recording FILE
 mutated, seeded: one flipped bit, several flipped bits, a cut, a cut with garbage appended,
 garbage appended to the whole file, a zeroed block. Each mutant goes through ``cfbci
 replay`` (with ``--json``), ``cfbci report``, ``cfbci recover`` and ``cfbci export`` in one
-child process (:func:`check_file`, the commands' ``main`` called in turn), killed after
+child process (`check_file`, the commands' ``main`` called in turn), killed after
 ``--timeout`` seconds (a hang), and is checked: no traceback (an exception escaping a
 command), no hang, the input unmodified (its SHA-256 before and after), each command's exit
-status one :data:`ALLOWED` documents for the mutant (see ``docs/recordings.md``), an error
+status one `ALLOWED` documents for the mutant (see ``docs/recordings.md``), an error
 (status 2) said on stderr as ``error: ...`` and a recovered copy that reads back complete.
 A few mutants (every ``--cli-every``-th) also run the four commands as ``cfbci``
 processes, to see that no traceback reaches stderr there either.
@@ -90,7 +90,7 @@ def sha256(path: Path) -> str:
 
 
 def command_lines(path: Path, out: Path) -> dict[str, list[str]]:
-    """The arguments of each of :data:`COMMANDS` for a mutant, outputs under ``out``."""
+    """The arguments of each of `COMMANDS` for a mutant, outputs under ``out``."""
     return {
         "replay": ["replay", str(path), "--json", str(out / "replay.json")],
         "report": ["report", str(path), "--out", str(out / "report"), "--jobs", "1"],
@@ -125,7 +125,7 @@ def run_command(main: Main, argv: list[str]) -> dict[str, Any]:
 def check_file(main: Main, path: Path, out: Path) -> dict[str, Any]:
     """Every command over one file, in this process; then whether the recovered copy reads
     back complete with the count recover printed. ``results.json`` in ``out`` holds them
-    too (what :func:`fuzz_one`'s child process hands back)."""
+    too (what `fuzz_one`'s child process hands back)."""
     from replay.recording import read_recording
 
     results = {name: run_command(main, argv) for name, argv in command_lines(path, out).items()}
@@ -173,9 +173,9 @@ ALLOWED_INTACT = {name: {0} for name in COMMANDS}
 
 
 def allowed_statuses(source: bytes, mutant: bytes) -> dict[str, set[int]]:
-    """:data:`ALLOWED` for a mutant of ``source``: :data:`ALLOWED_INTACT` if unchanged,
-    :data:`ALLOWED_CUT` if only cut in the data section (a cut in the summary, after the
-    data's DataEnd record, is summary damage: :data:`ALLOWED`)."""
+    """`ALLOWED` for a mutant of ``source``: `ALLOWED_INTACT` if unchanged,
+    `ALLOWED_CUT` if only cut in the data section (a cut in the summary, after the
+    data's DataEnd record, is summary damage: `ALLOWED`)."""
     from replay.damage import scan_mcap
 
     if mutant == source:
@@ -205,7 +205,7 @@ def judge(outcome: Outcome, results: dict[str, dict[str, Any]],
 
 
 def _child(path: Path, out: Path, timeout: float) -> tuple[dict[str, Any] | None, str]:
-    """:func:`check_file` in a child process, killed after ``timeout`` s (None: a hang)."""
+    """`check_file` in a child process, killed after ``timeout`` s (None: a hang)."""
     report = out / "results.json"
     argv = [sys.executable, "-m", "cfbci.cli", "bench", "fuzz-recordings", "--check-file",
             str(path), str(out)]

@@ -12,13 +12,13 @@ rather than in lock step; in a **burst** run every source starts at once instead
 all first epochs arrive together. Per epoch k of a session (all but the last):
 
 * **end to end**: from the epoch of step k published by the source to the move of step
-  k + 1 taken off the source's subscriber (:attr:`SourceSummary.latency_ns`, the source's
+  k + 1 taken off the source's subscriber (`SourceSummary.latency_ns`, the source's
   monotonic clock);
 * **update**: the learner's own time inside the service, ``observe`` of epoch k plus
-  ``propose`` of move k + 1 (:attr:`cfbci.service._Session.update_ns`), sent back to this
+  ``propose`` of move k + 1 (`cfbci.service._Session.update_ns`), sent back to this
   process through a pipe when the session ends (the wire protocol has no field for it);
 * **queue**: from the epoch's arrival at the service (its pump) to the start of its
-  computation (:attr:`cfbci.service._Session.queued_ms`): the time it waited behind other
+  computation (`cfbci.service._Session.queued_ms`): the time it waited behind other
   sessions' messages in the service's single worker;
 * **transport + rest**: end to end minus update: encoding, Zenoh both ways, decoding,
   checks, feature extraction, the ``state`` and its balanced accuracy, recording (none
@@ -65,7 +65,7 @@ WARMUP = 5
 
 def default_interval(sessions: int) -> float:
     """The pacing when none is given: as fast as possible for one session, else
-    :data:`SESSIONS_INTERVAL`."""
+    `SESSIONS_INTERVAL`."""
     return 0.0 if sessions == 1 else SESSIONS_INTERVAL
 
 
@@ -148,7 +148,7 @@ def bench_latency(
         Concurrent sessions on the one service (>= 1).
     interval : float or None
         Seconds each source waits before answering a move (>= 0); None:
-        :func:`default_interval`.
+        `default_interval`.
     grid : int
         Grid side (>= 2).
     burst : bool
@@ -161,7 +161,7 @@ def bench_latency(
         "update_ms", "queue_ms", "transport_ms", "steady_end_to_end_ms",
         "non_learner_share", "worst_session", "per_session"}``; each ``*_ms`` is
         ``{"median", "p99", "max"}`` in ms over all sessions' epochs (``steady_*``: without
-        each session's first :data:`WARMUP` epochs; None when ``steps <= WARMUP``);
+        each session's first `WARMUP` epochs; None when ``steps <= WARMUP``);
         ``non_learner_share`` is the total transport + rest time over the total end-to-end
         time, in [0, 1]; ``per_session`` lists ``{"session", "seed", "phase_s"}`` and the
         four timings of each session; ``worst_session`` is the id of the one with the
@@ -170,7 +170,7 @@ def bench_latency(
     Raises
     ------
     TimeoutError
-        If the service does not answer or report within :data:`TIMEOUT` seconds.
+        If the service does not answer or report within `TIMEOUT` seconds.
     """
     if steps < 1:
         raise ValueError(f"--steps must be at least 1; got {steps}")

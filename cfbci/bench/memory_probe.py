@@ -1,22 +1,22 @@
 """Measure the memory one learner session really commits: peak resident growth in a fresh
-process, beside :func:`cfbci.service.limits.world_memory_bytes`' estimate of it.
+process, beside `cfbci.service.limits.world_memory_bytes`' estimate of it.
 
-Each measurement (:func:`measure`) runs in its own spawned process, set up as the service
-runs (:func:`cfbci.memory.keep_freed_memory`, one BLAS thread). There it draws the
+Each measurement (`measure`) runs in its own spawned process, set up as the service
+runs (`cfbci.memory.keep_freed_memory`, one BLAS thread). There it draws the
 session's signals (a seeded K-class Gaussian set of ``features`` dimensions, 600 per
-class, :func:`acquisition.gaussian.generate_gaussian_features`), runs a 12-step warm-up
+class, `acquisition.gaussian.generate_gaussian_features`), runs a 12-step warm-up
 session on a 2 x 2 grid with the same learner settings (what a service pays once, not per
 session: lazy imports, LAPACK workspaces), gives the heap's free memory back to the kernel,
 resets the kernel's peak-RSS counter (``/proc/self/clear_refs``), reads ``VmRSS`` and runs
-the session (:func:`cfbci.offline.simulation.run_session`, the learner's session and a simulated
+the session (`cfbci.offline.simulation.run_session`, the learner's session and a simulated
 user, no network) with the learner stepped as the service steps it: every observation is
 followed by the state message's fields (its ``after_observe``:
-:func:`session.tasks.state_fields`, whose cross-validated
+`session.tasks.state_fields`, whose cross-validated
 balanced accuracy fits the k-fold decoders even for a likelihood that needs none). The
 peak resident growth is ``VmHWM`` afterwards minus ``VmRSS`` before. Linux only.
 
-``python tools/session_memory.py`` prints the table of cases (:data:`TABLE_CASES`).
-:func:`measure_puddle` measures a puddle-world session the same way, from before its
+``python tools/session_memory.py`` prints the table of cases (`TABLE_CASES`).
+`measure_puddle` measures a puddle-world session the same way, from before its
 world's policy tables are built.
 """
 
@@ -70,7 +70,7 @@ class MemoryCase:
     features : int
         Length of the signals (d).
     learner : dict
-        :class:`~calibration_free.config.LearnerConfig` settings (``frame``, ``decoder``,
+        `LearnerConfig` settings (``frame``, ``decoder``,
         ``likelihood``, ...); the others default.
     seed : int
     """
@@ -92,7 +92,7 @@ class MemoryCase:
         )
 
     def estimate_bytes(self) -> int:
-        """:func:`cfbci.service.limits.world_memory_bytes` of this session."""
+        """`cfbci.service.limits.world_memory_bytes` of this session."""
         return world_memory_bytes(self.make_world(), self.settings, self.steps, self.features)
 
     def describe(self) -> str:
@@ -167,7 +167,7 @@ def _status_kib(name: str) -> int:
 def _release_free_heap() -> None:
     """Give the heap's free memory back to the kernel (glibc ``malloc_trim(0)``).
 
-    :func:`~cfbci.memory.keep_freed_memory` keeps freed memory resident for reuse: without
+    `keep_freed_memory` keeps freed memory resident for reuse: without
     this, what the warm-up and the data's generation freed would serve the session's
     first allocations unseen by ``VmHWM``.
     """
@@ -203,7 +203,7 @@ def _peak_growth_mib(case: MemoryCase) -> float:
 def measure_puddle(steps: int, seed: int = 0) -> tuple[float, float]:
     """A puddle session of ``steps`` steps measured in a fresh spawned process, the world's
     policy tables built in it (what a service pays for its first puddle session), beside
-    :func:`session.plane.puddle_memory_bytes`' estimate: ``(measured MiB, estimate MiB)``."""
+    `session.plane.puddle_memory_bytes`' estimate: ``(measured MiB, estimate MiB)``."""
     with ProcessPoolExecutor(1, mp_context=_SPAWN) as pool:
         measured = pool.submit(_puddle_peak_growth_mib, steps, seed).result()
     estimate = puddle_memory_bytes(PuddleConfig(), steps, SIGNAL_DIMS) / 2**20

@@ -11,7 +11,7 @@ default learner, as fast as the service answers (no reaction time).
   arrived, the service's resident set size (``VmRSS`` of ``/proc/<pid>/status``, Linux) is
   read; per step also the end-to-end time (epoch of step k published to the move of step
   k + 1 received, the source's clock) and the learner's update inside the service
-  (:attr:`cfbci.service._Session.update_ns`, sent back through a pipe at the end). A row
+  (`cfbci.service._Session.update_ns`, sent back through a pipe at the end). A row
   per ``--every`` steps is printed as the session runs; the table at the end gives, per
   window, the RSS and its growth, the median and 99th percentile of both times, and a
   speed reference taken at the window's end while the service waits: the median of 30
@@ -32,7 +32,7 @@ default learner, as fast as the service answers (no reaction time).
 * **Short sessions** (``--sessions``, default 200, of ``--session-steps`` steps each, one
   after the other, distinct ids): the RSS before the first, after each. The growth from
   the end of the first session to the end of the last, per session, is what a leak would
-  show (with glibc, :func:`cfbci.memory.keep_freed_memory` keeps freed memory in the heap,
+  show (with glibc, `cfbci.memory.keep_freed_memory` keeps freed memory in the heap,
   so RSS holds the peak: memory a session freed is reused by the next, and does not make
   the curve go down and up).
 """
@@ -98,7 +98,7 @@ class _Service:
     results: Connection
 
     def update_ns(self, session: str) -> list[int]:
-        """The learner's per-epoch times of an ended session (see :mod:`cfbci.bench.latency`)."""
+        """The learner's per-epoch times of an ended session (see `cfbci.bench.latency`)."""
         if not self.results.poll(TIMEOUT):
             raise TimeoutError(f"the service did not report session {session!r} in {TIMEOUT} s")
         reported, update_ns = self.results.recv()
@@ -109,7 +109,7 @@ class _Service:
 
 @contextmanager
 def _running_service(record_dir: Path) -> Iterator[_Service]:
-    """A fresh service in a spawned process (:func:`cfbci.service.process.spawned`)."""
+    """A fresh service in a spawned process (`cfbci.service.process.spawned`)."""
     endpoint = free_tcp_endpoint()
     receiver, sender = SPAWN.Pipe(duplex=False)
     with spawned(_service, [endpoint], record_dir, sender, name="cfbci-soak-service") as process:
@@ -202,7 +202,7 @@ class _OfflineSession:
     n_features : int
         Length of the feature vectors.
     steps : int
-        Steps it will be asked for (:meth:`step`).
+        Steps it will be asked for (`step`).
     """
 
     def __init__(self, n_features: int, steps: int) -> None:
@@ -228,7 +228,7 @@ def _learner_bytes_per_step(
     n_features: int, steps: int = 200, warmup: int = 40
 ) -> tuple[float, float]:
     """Python memory the learner's history takes per step, bytes (tracemalloc, from step
-    ``warmup`` to step ``steps`` of an :class:`_OfflineSession`): what it keeps between
+    ``warmup`` to step ``steps`` of an `_OfflineSession`): what it keeps between
     steps, and its peak within a step (what it keeps plus the step's temporaries, which
     also grow with the history; with freed memory kept in the heap, RSS follows the peak).
     """
@@ -264,7 +264,7 @@ class _SpeedReference:
     recording : Path
         The long session's recording (its feature size).
     windows : int
-        Windows of the long session (calls of :meth:`measure_ms`).
+        Windows of the long session (calls of `measure_ms`).
     warmup, steps : int
         Offline steps before the first window, and per window.
     """

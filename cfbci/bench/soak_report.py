@@ -1,5 +1,5 @@
 """What ``cfbci bench soak`` prints and plots of its report
-(:func:`cfbci.bench.soak.bench_soak`)."""
+(`cfbci.bench.soak.bench_soak`)."""
 
 from __future__ import annotations
 

@@ -19,7 +19,7 @@ at most ``NAIVE_TASKS`` tasks (all of them at T = 25, an evenly spaced slice of 
 beyond) and, on larger grids, extrapolated linearly to T.
 
 ``bench simulate``: the wall time of whole offline sessions (``cfbci simulate``'s
-:func:`~cfbci.offline.simulation.run_session`) in one process, process start and dataset loading
+`run_session`) in one process, process start and dataset loading
 excluded, and how much faster than real time they run at ``SECONDS_PER_ACTION`` per
 device action.
 """

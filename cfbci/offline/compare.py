@@ -3,7 +3,7 @@
 Each ``cfbci simulate --json`` file holds one object per session under ``sessions``; a
 per-session number (``final_distance`` of the continuous world, ``first_confident_step``
 of the grid worlds, ...) of run A is tested against run B with the Mann-Whitney U test
-(:func:`scipy.stats.mannwhitneyu`, exact or asymptotic as scipy chooses for the sizes,
+(`scipy.stats.mannwhitneyu`, exact or asymptotic as scipy chooses for the sizes,
 ties corrected). ``--alternative less`` tests whether A's values tend to be smaller than
 B's (the thesis's "uncertainty + active beats uncertainty + random" on final distances).
 """

@@ -1,8 +1,8 @@
 """Offline sessions of the continuous-goal world (method-extensions §3): learner and teacher.
 
-Random streams are those of :mod:`calibration_free.streams`: the user stream drives the
-:class:`acquisition.cardinal_teacher.CardinalTeacher` (goal, directions, pools), the
-learner stream the :class:`calibration_free.continuous_goals.ContinuousGoalLearner`.
+Random streams are those of `calibration_free.streams`: the user stream drives the
+`acquisition.cardinal_teacher.CardinalTeacher` (goal, directions, pools), the
+learner stream the `calibration_free.continuous_goals.ContinuousGoalLearner`.
 """
 
 from __future__ import annotations
@@ -61,12 +61,12 @@ def run_continuous_session(
     on_step: Callable[[ContinuousGoalLearner], None] | None = None,
 ) -> ContinuousResult:
     """One closed-loop session of ``steps`` probes on a 4-class dataset: a teacher
-    answering a :class:`session.plane.ContinuousSession`; ``on_step`` is called with the
+    answering a `session.plane.ContinuousSession`; ``on_step`` is called with the
     learner after each observation (it must not change it).
 
     The learner gets each signal as float32, the wire format (as
-    :func:`cfbci.offline.simulation.run_session` does), and computes with one BLAS thread (see
-    :mod:`session.plane`), so that a live session equals this one.
+    `cfbci.offline.simulation.run_session` does), and computes with one BLAS thread (see
+    `session.plane`), so that a live session equals this one.
     """
     with threadpool_limits(**ONE_BLAS_THREAD):
         return _run(seed, config, data, steps, class_order, on_step)

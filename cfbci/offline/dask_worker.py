@@ -1,7 +1,7 @@
 """What every Dask worker that runs cfbci's jobs does first (a worker plugin).
 
-Its own module so that importing :mod:`cfbci.offline.parallel` (and so the CLI) does not import
-Dask distributed, which takes seconds; :func:`cfbci.offline.parallel.run_parallel` imports it only
+Its own module so that importing `cfbci.offline.parallel` (and so the CLI) does not import
+Dask distributed, which takes seconds; `cfbci.offline.parallel.run_parallel` imports it only
 to run on a cluster.
 """
 
@@ -15,7 +15,7 @@ from cfbci.memory import keep_freed_memory
 
 
 class KeepFreedMemory(WorkerPlugin):
-    """Runs :func:`cfbci.memory.keep_freed_memory` in every worker of the cluster, those
+    """Runs `cfbci.memory.keep_freed_memory` in every worker of the cluster, those
     that join or restart later included."""
 
     name = "cfbci-keep-freed-memory"

@@ -8,7 +8,7 @@ every answer is a signal drawn uniformly from the whole dataset (data stream) wh
 user's label: the signals then say nothing about the labels, the shuffled-label control of
 the page. (Permuting the dataset's labels once is not such a control: the user draws from
 fixed per-class pools without replacement, and a decoder learns the pools' members.)
-Random streams are those of :mod:`calibration_free.streams`; the world stream drives the
+Random streams are those of `calibration_free.streams`; the world stream drives the
 line world's edge moves.
 """
 
@@ -87,7 +87,7 @@ def run_frame_session(
     shuffle_labels: bool = False,
 ) -> FrameSessionResult:
     """One closed-loop session of ``steps`` actions: a simulated user answering a
-    :class:`session.tasks.TaskSession` of the frame-hypotheses learner."""
+    `session.tasks.TaskSession` of the frame-hypotheses learner."""
     data_rng, user_rng, learner_rng = session_streams(seed)
     teacher_frame = TEACHER_FRAMES[seed % 2]
     user = SimulatedUser(world, teacher_frame, data.labels, user_rng)
@@ -109,7 +109,7 @@ def run_frame_session(
 
 class _UserPair:
     """What the beliefs say of the user's pair after every signal (the session's
-    ``on_observe``): the fields of :class:`FrameSessionResult` it names.
+    ``on_observe``): the fields of `FrameSessionResult` it names.
 
     Parameters
     ----------

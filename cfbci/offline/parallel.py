@@ -1,6 +1,6 @@
 """Run independent jobs on Dask distributed, with a progress bar, results in job order.
 
-Where the jobs run is a :class:`Scheduler`:
+Where the jobs run is a `Scheduler`:
 
 * **in this process**, one after the other: one worker (``--jobs 1``, or a single job) and
   no ``--scheduler``;
@@ -16,8 +16,8 @@ Where the jobs run is a :class:`Scheduler`:
 
 A job's result depends only on the job, so every place gives the same results (the tests
 compare a local cluster with a single-process run). Every process that runs jobs first runs
-:func:`cfbci.memory.keep_freed_memory` (Dask workers through a worker plugin, so also those
-that join the cluster later: :class:`cfbci.offline.dask_worker.KeepFreedMemory`).
+`cfbci.memory.keep_freed_memory` (Dask workers through a worker plugin, so also those
+that join the cluster later: `cfbci.offline.dask_worker.KeepFreedMemory`).
 """
 
 from __future__ import annotations

@@ -71,7 +71,7 @@ def live_source_fields(
 ) -> dict[str, Any]:
     """The plane-world fields of a ``SourceSettings`` (``class_order``), after checking the
     learner settings as the service will (``LearnerConfig`` in a discrete world,
-    :func:`session.plane.plane_settings` in a plane world: ``ContinuousConfig`` or
+    `session.plane.plane_settings` in a plane world: ``ContinuousConfig`` or
     ``PuddleConfig`` settings).
 
     Raises
@@ -116,7 +116,7 @@ def plane_summary(sessions: Sequence[dict[str, Any]]) -> dict[str, Any]:
 
 
 def print_plane_report(report: dict[str, Any], console: Console) -> None:
-    """A readable summary of :func:`simulate_plane_world`'s report."""
+    """A readable summary of `simulate_plane_world`'s report."""
     summary = report["summary"]
     if report["config"]["world"] == "continuous":
         table = Table(title=f"cfbci simulate --world continuous - {report['config']['dataset']}")

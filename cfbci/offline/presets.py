@@ -28,7 +28,7 @@ class Preset:
         Defaults of ``cfbci simulate`` options, by argparse destination (``seeds``,
         ``steps``, ``world``, ``synthetic``...).
     learner : dict
-        Learner settings (:class:`calibration_free.config.LearnerConfig` fields).
+        Learner settings (`calibration_free.config.LearnerConfig` fields).
     dataset : str or None
         The dataset the experiment needs when it does not run on synthetic data
         (``--dataset`` must then be given).

@@ -1,6 +1,6 @@
 """Offline sessions of the puddle world (method-extensions §2).
 
-Streams (:mod:`calibration_free.streams`): the data stream generates the signals (six
+Streams (`calibration_free.streams`): the data stream generates the signals (six
 classes of the Gaussian generator, 20-D, nominal accuracy 0.95, as many per class as the
 ErrP synthetic pools), the user stream drives the teacher, the learner stream the learner,
 and the world stream the start state, the move lengths and the restarts: when the agent
@@ -73,9 +73,9 @@ class PuddleStep:
     state : ndarray, shape (2,)
         The agent's state when the action was chosen.
     action : int
-        Index into :data:`calibration_free.puddle.ACTIONS`.
+        Index into `calibration_free.puddle.ACTIONS`.
     label : int
-        The teacher's label (index into :data:`calibration_free.puddle.MIXED_LABELS`).
+        The teacher's label (index into `calibration_free.puddle.MIXED_LABELS`).
     next_state : ndarray, shape (2,)
         The move's outcome (in the goal cell when ``restart`` is not None).
     restart : ndarray of shape (2,) or None
@@ -99,11 +99,11 @@ def run_puddle_session(
     data: LabelledFeatures | None = None,
     on_step: Callable[[PuddleStep], None] | None = None,
 ) -> PuddleResult:
-    """One closed-loop session: a teacher answering a :class:`session.plane.PuddleSession`,
+    """One closed-loop session: a teacher answering a `session.plane.PuddleSession`,
     which restarts the agent (``reset``) when a move enters the task's goal cell; ``data``
-    defaults to :func:`gaussian_signals`.
+    defaults to `gaussian_signals`.
 
-    ``on_step``, if given, is called with every step's :class:`PuddleStep` (it changes
+    ``on_step``, if given, is called with every step's `PuddleStep` (it changes
     nothing in the session).
     """
     data_rng, user_rng, _ = session_streams(seed)

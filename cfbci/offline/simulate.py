@@ -1,4 +1,4 @@
-"""``cfbci simulate``: many offline sessions, on Dask (:mod:`cfbci.offline.parallel`),
+"""``cfbci simulate``: many offline sessions, on Dask (`cfbci.offline.parallel`),
 summarised."""
 
 from __future__ import annotations
@@ -37,7 +37,7 @@ def _resolved(data: DataSpec, frame: str) -> LabelledFeatures | DataFactory:
 
 
 def run_job(job: SimulationJob) -> tuple[SessionResult, list[StepRecord]]:
-    """Run one session (a job of :func:`cfbci.offline.parallel.run_parallel`); its trace if
+    """Run one session (a job of `cfbci.offline.parallel.run_parallel`); its trace if
     asked."""
     trace: list[StepRecord] = []
     result = run_session(

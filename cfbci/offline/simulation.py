@@ -5,9 +5,9 @@ reached when the device performs the world's declaration action (the grid's ``go
 while confident, in the state of the task it is confident about; the user then picks a
 new target.
 
-Random streams: :mod:`calibration_free.streams` (data, user and learner streams of a
+Random streams: `calibration_free.streams` (data, user and learner streams of a
 session seed); stochastic moves (the line world's edges) draw from the seed's world stream
-(:func:`calibration_free.world.transition_draws`), one number per step.
+(`calibration_free.world.transition_draws`), one number per step.
 """
 
 from __future__ import annotations
@@ -63,9 +63,9 @@ class SessionConfig:
     user_error_rate : float
         Probability that the simulated user gives the wrong label.
     world : {"grid", "line", "pick-and-place"}
-        The world (:func:`calibration_free.worlds.make_world`).
+        The world (`calibration_free.worlds.make_world`).
     prior : Prior or None
-        Earlier sessions of the user the learner starts from (:mod:`calibration_free.prior`);
+        Earlier sessions of the user the learner starts from (`calibration_free.prior`);
         None: none (the report's config then has no ``prior`` key).
     """
 
@@ -88,8 +88,8 @@ class SessionConfig:
         return make_world(self.world, grid=self.grid)
 
     def to_dict(self) -> dict[str, Any]:
-        """Every setting, the learner's as :meth:`LearnerConfig.to_dict` writes them, the
-        prior's description (:meth:`Prior.describe`) if there is one."""
+        """Every setting, the learner's as `LearnerConfig.to_dict` writes them, the
+        prior's description (`Prior.describe`) if there is one."""
         settings = asdict(dataclasses.replace(self, prior=None))
         del settings["prior"]
         if self.prior is not None:
@@ -97,7 +97,7 @@ class SessionConfig:
         return settings | {"learner": self.learner.to_dict()}
 
 
-#: Steps between two samples of the user's task likelihood (:class:`SessionResult`).
+#: Steps between two samples of the user's task likelihood (`SessionResult`).
 LIKELIHOOD_EVERY = 10
 
 
@@ -114,9 +114,9 @@ class SessionResult:
     user_task_likelihood : list of float
         Normalised likelihood ``L_t / sum_u L_u`` of the user's current target (the
         matching log-likelihood without the power prior, within the current task segment)
-        after steps 10, 20, 30, ... (:data:`LIKELIHOOD_EVERY`).
+        after steps 10, 20, 30, ... (`LIKELIHOOD_EVERY`).
     calibration_counts : list of [int, int]
-        Per confidence bin (:mod:`replay.calibration`), the steps whose best task had a
+        Per confidence bin (`replay.calibration`), the steps whose best task had a
         confidence in it (before the step's action) and those where it was the user's
         target then.
     calibration_counts_by_rule : list of RuleCounts
@@ -156,7 +156,7 @@ def run_session(
     on_move: Callable[[TaskSession, Step], None] | None = None,
 ) -> SessionResult:
     """Run one closed-loop session: a simulated user answering a
-    :class:`session.tasks.TaskSession`.
+    `session.tasks.TaskSession`.
 
     Parameters
     ----------
@@ -166,14 +166,14 @@ def run_session(
     data : LabelledFeatures, or a function of the data stream returning them
         The signals the user answers with (synthetic data are generated per session).
     on_step : callable, optional
-        Called with every :class:`StepRecord` (for traces and progress).
+        Called with every `StepRecord` (for traces and progress).
     after_observe : callable, optional
         Called with the learner after it observes each step's signal (for measurements of
         its state, e.g. ``tools/labellings.py``); it must not change the learner.
     on_move : callable, optional
         Called with the session and every step it produced (the first move, then each
         observation's), to record the session as the service does
-        (:mod:`cfbci.bench.returning`); it must not change the learner.
+        (`cfbci.bench.returning`); it must not change the learner.
     """
     data_rng, user_rng, learner_rng = session_streams(seed)
     dataset = data(data_rng) if callable(data) else data

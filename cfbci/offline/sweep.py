@@ -1,7 +1,7 @@
 """``cfbci sweep``: the cross product of learner settings, datasets and seeds, on Dask.
 
 A *cell* is one combination of the ``--grid`` settings with one dataset; it runs one session
-per seed. Every session of every cell is one job of :func:`cfbci.offline.parallel.run_parallel` (the
+per seed. Every session of every cell is one job of `cfbci.offline.parallel.run_parallel` (the
 same job as ``cfbci simulate``'s, so a cell's sessions equal those of ``cfbci simulate
 --dataset D --set K=V ...`` with the same seeds). Written to ``--out DIR``:
 
@@ -76,7 +76,7 @@ class CellResult:
 
     def first_targets(self) -> np.ndarray:
         """Steps to the first target per session, float, shape (n_seeds,); a session with
-        none counts as steps + 1 (as :func:`cfbci.offline.simulation.summarise`)."""
+        none counts as steps + 1 (as `cfbci.offline.simulation.summarise`)."""
         return np.array([r.first_target_step or r.steps + 1 for r in self.results], float)
 
     def row(self) -> dict[str, Any]:

@@ -1,16 +1,16 @@
 """``cfbci export FILE.mcap --format fif``: a recording's epochs as MNE ``Epochs``.
 
 The exported epochs are those a recording gives as a dataset
-(:func:`acquisition.loaders.load_recording_dataset`: every accepted epoch with a ``/truth``
+(`acquisition.loaders.load_recording_dataset`: every accepted epoch with a ``/truth``
 of its step, in step order), with their truth labels as events (see
-:func:`acquisition.loaders.save_epochs_fif`) named by the recorded world's classes
-(:func:`acquisition.lab_formats.class_names`: ``correct``/``error``; guidance ``up``,
+`acquisition.loaders.save_epochs_fif`) named by the recorded world's classes
+(`acquisition.lab_formats.class_names`: ``correct``/``error``; guidance ``up``,
 ``down``, ``left``, ``right`` on a grid, the world's guidance actions elsewhere, e.g.
 ``pick-and-place/grasp``). Only raw epochs can be exported: a recording of feature vectors
 is refused.
 
 A truncated recording gives the epochs it holds; a damaged one those of its intact chunks
-(read as :func:`replay.recording.recover` reads it: the file is salvaged into a temporary
+(read as `replay.recording.recover` reads it: the file is salvaged into a temporary
 clean copy, the input only read), and the command says where the file is cut or damaged
 (exit 3 when damaged records were dropped; see ``docs/recordings.md``).
 """
@@ -39,7 +39,7 @@ def export_fif(recording: Path, out: Path) -> LabelledEpochs:
         If ``recording`` does not exist.
     ValueError
         If it is not a recording usable as a dataset (see
-        :func:`~acquisition.loaders.load_recording_dataset`), holds feature vectors, or
+        `load_recording_dataset`), holds feature vectors, or
         ``out`` is not an MNE epochs file name.
     """
     read = read_recording(recording, salvage=True)

@@ -6,11 +6,11 @@ session id: its ``config`` (the recorded fields; ``steps`` cut to the epochs the
 holds, ``dataset`` noting the recording it comes from), then every accepted recorded epoch
 in order (a puddle epoch with its ``reset`` flag), each followed by the recorded
 ``truth`` of its step (so that a recording service records it), all with fresh sequence
-numbers and timestamps (:class:`wire.transport.Outbox`, reliable publication with
+numbers and timestamps (`wire.transport.Outbox`, reliable publication with
 congestion control BLOCK). The service's answers are read by our
-own threads (:class:`wire.transport.Pump`), never in Zenoh callbacks. The loop (re-sending,
+own threads (`wire.transport.Pump`), never in Zenoh callbacks. The loop (re-sending,
 sequence numbers, the events that start and end the session, the timeout) is every
-client's, :class:`wire.client.Client`.
+client's, `wire.client.Client`.
 
 Pacing
     The service checks that an epoch carries the step of its last move and answers each
@@ -26,7 +26,7 @@ Regression check
     Open-loop, the epochs are the recorded ones whatever the service answers. With the same
     configuration and seed a deterministic service makes the recorded decisions again: its
     moves (step, cells, action, target reached) equal the recorded moves, and its states
-    (beliefs, confidences bit for bit) the recorded states; :class:`PublishResult` tells
+    (beliefs, confidences bit for bit) the recorded states; `PublishResult` tells
     whether they do and where they first differ.
 """
 
@@ -230,7 +230,7 @@ def _prepare(recording: Recording, where: str) -> _Published:
 
 
 class _Publisher:
-    """The re-publication's side of the session (a :class:`wire.client.Answerer`): epoch
+    """The re-publication's side of the session (a `wire.client.Answerer`): epoch
     ``k`` answers move ``k`` once its paced time has come (see the module docstring)."""
 
     def __init__(self, client: Client, published: _Published, speed: float) -> None:
@@ -241,7 +241,7 @@ class _Publisher:
         self.truths = 0  # truths sent
 
     def on_move(self, move: protocol.Message) -> None:
-        """Move ``k`` came: epoch ``k`` is due at its paced time (:meth:`poll`)."""
+        """Move ``k`` came: epoch ``k`` is due at its paced time (`poll`)."""
         self.moves += 1
 
     def poll(self) -> float:
@@ -273,14 +273,14 @@ def publish_recording(
     resend_interval: float = RESEND_INTERVAL,
 ) -> PublishResult:
     """Publish a recorded session to the service reachable through ``session`` (the loop:
-    :class:`wire.client.Client`; the recorded epochs and their pace: this module).
+    `wire.client.Client`; the recorded epochs and their pace: this module).
 
     Parameters
     ----------
     session : zenoh.Session
     recording : Recording or path
     session_id : str, optional
-        Default :func:`default_session_id`.
+        Default `default_session_id`.
     speed : float
         Pace factor (see the module docstring); 0 or ``inf``: as fast as possible.
     timeout : float
@@ -343,7 +343,7 @@ def run_publish(
     **options: Any,
 ) -> PublishResult:
     """Open a Zenoh peer on the endpoints (``zenoh_config``: a Zenoh JSON5 file merged over
-    the defaults) and :func:`publish_recording` ``path``."""
+    the defaults) and `publish_recording` ``path``."""
     if not listen and not connect and zenoh_config is None:
         raise ValueError("give at least one --connect (the service's endpoint) or --listen")
     recording = read_recording(path)  # a bad file fails before the network is touched

@@ -6,10 +6,10 @@ re-scored by learners with other settings, to compare settings on identical data
 Open loop
     A re-scoring learner never chooses an action: it observes the recorded
     ``(from_state, action, signal)`` of every step, in order (raw epochs go through the ErrP
-    feature extractor as in the service, :func:`replay.rerun.recorded_signals`). Where the
+    feature extractor as in the service, `replay.rerun.recorded_signals`). Where the
     recorded device declared a target (a ``move`` with ``target_reached``), the user then
     picked a new target, so every re-scoring learner switches task *at the same steps, to
-    the same declared cells* (:meth:`calibration_free.learner.TaskLearner.follow_declaration`):
+    the same declared cells* (`calibration_free.learner.TaskLearner.follow_declaration`):
     the history's segments are the recording's, whatever the re-scoring learner believed.
     ``observe`` draws nothing from the learner's random stream, so with the recording's own
     settings the re-scored beliefs equal the recorded ``/state`` messages exactly; that is
@@ -18,7 +18,7 @@ Open loop
 Steps
     Step ``k`` (1-based) is the recording's ``k``-th move; the beliefs *of step k* are those
     the move of step ``k`` was chosen from, after ``k - 1`` epochs (the ``k``-th ``/state``),
-    as in ``cfbci simulate --trace`` and :mod:`replay.metrics`. The user's target at step
+    as in ``cfbci simulate --trace`` and `replay.metrics`. The user's target at step
     ``k`` is the ``/truth`` target of step ``k``. A learner *is confident at step k* when its
     beliefs of step ``k`` are (its best task's confidence exceeds ``beta``): it would then
     walk to its best task instead of exploring. The final beliefs, after the last epoch,
@@ -30,7 +30,7 @@ Segments
     setting and segment the report gives the first step at which the learner is confident,
     on which cell, and whether that cell is the user's target at that step.
 
-Settings that only choose actions (:data:`ACTING`: the planner's) change nothing open-loop;
+Settings that only choose actions (`ACTING`: the planner's) change nothing open-loop;
 the report says so when they are all an alternative changes.
 """
 
@@ -153,7 +153,7 @@ class Outcome:
     Attributes
     ----------
     name : str
-        :data:`OWN` for the recording's own settings, else the ``key=value`` given.
+        `OWN` for the recording's own settings, else the ``key=value`` given.
     settings : dict
         Every learner setting (``LearnerConfig.to_dict()``).
     differs : dict of str to (recorded value, this value)
@@ -433,7 +433,7 @@ def reanalyse(
     Returns
     -------
     Reanalysis
-        ``outcomes[0]`` is the recording's own settings (:data:`RECORDED`), then one per
+        ``outcomes[0]`` is the recording's own settings (`RECORDED`), then one per
         alternative, in order.
 
     Raises

@@ -1,5 +1,5 @@
 """Console output of ``cfbci replay FILE.mcap --option ...`` (see
-:mod:`cfbci.recordings.reanalysis`): the settings compared, a summary table, a per-segment
+`cfbci.recordings.reanalysis`): the settings compared, a summary table, a per-segment
 table and, if asked, every step's beliefs. The alternatives are labelled A, B, ... in the
 tables."""
 

@@ -1,14 +1,14 @@
 """``cfbci report FILE.mcap [...] --out DIR``: metrics, figures and an HTML report of sessions.
 
-Every recording is one job (:func:`report_session`, run on Dask by
-:func:`cfbci.offline.parallel.run_parallel`; on an existing cluster its workers must see the
+Every recording is one job (`report_session`, run on Dask by
+`cfbci.offline.parallel.run_parallel`; on an existing cluster its workers must see the
 recordings and the output directory at the same paths): read it (a truncated file gives
-what it holds), measure it (:mod:`replay.metrics`, which re-runs the learner), and draw its
-figures (:mod:`replay.figures`, ``DIR/<stem>_<kind>.png``; the feature vectors of a pinned
-data set per channel, :func:`pinned_feature_layout`, where the recording does not say their
+what it holds), measure it (`replay.metrics`, which re-runs the learner), and draw its
+figures (`replay.figures`, ``DIR/<stem>_<kind>.png``; the feature vectors of a pinned
+data set per channel, `pinned_feature_layout`, where the recording does not say their
 layout). This process then writes
 ``DIR/metrics.json`` (per session and aggregate) and ``DIR/index.html``
-(:mod:`replay.html_report`), and prints a summary. A file that cannot be processed (missing,
+(`replay.html_report`), and prints a summary. A file that cannot be processed (missing,
 not MCAP, no configuration, ...) is reported by name; the others are still processed.
 """
 
@@ -47,7 +47,7 @@ from session.plane import is_plane
 
 #: File stem of the pooled figures of a report (``<stem>_confidence_calibration.png``).
 CALIBRATION_STEM = "all-sessions"
-#: The feature layout of the pinned data sets (:data:`acquisition.fetch.DATASETS`) whose
+#: The feature layout of the pinned data sets (`acquisition.fetch.DATASETS`) whose
 #: vectors have one (datasets/README.md): s4.mat's 34 features are 2 fronto-central
 #: channels x 17 samples, channel-major (its channels' names are not in the file).
 PINNED_FEATURE_LAYOUTS: dict[str, FeatureLayout] = {
@@ -57,7 +57,7 @@ PINNED_FEATURE_LAYOUTS: dict[str, FeatureLayout] = {
 
 def pinned_feature_layout(config: dict[str, Any]) -> FeatureLayout | None:
     """The feature layout of the recording's data set when it is a pinned one with a known
-    layout (:data:`PINNED_FEATURE_LAYOUTS`): the file at the config's ``dataset`` ``path``
+    layout (`PINNED_FEATURE_LAYOUTS`): the file at the config's ``dataset`` ``path``
     has its sha256. None otherwise (no such file, another file, raw epochs)."""
     if config.get("signal") != "features":
         return None

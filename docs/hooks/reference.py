@@ -1,14 +1,14 @@
 """The reference pages' generated parts, rendered at build time so that they cannot drift.
 
-A page holds ``<!-- generated: NAME -->`` where a part goes; :func:`on_page_markdown` (an
+A page holds ``<!-- generated: NAME -->`` where a part goes; `on_page_markdown` (an
 MkDocs hook, ``hooks:`` in mkdocs.yml) puts the part there:
 
 ``cli``
-    every command's ``--help``, from :func:`cfbci.cli.build_parser`;
+    every command's ``--help``, from `cfbci.cli.build_parser`;
 ``learner-settings``, ``continuous-settings``, ``puddle-settings``
-    every field of :class:`calibration_free.config.LearnerConfig`,
-    :class:`calibration_free.continuous_goals.ContinuousConfig` and
-    :class:`calibration_free.puddle_learner.PuddleConfig`: its default (the dataclass's),
+    every field of `calibration_free.config.LearnerConfig`,
+    `calibration_free.continuous_goals.ContinuousConfig` and
+    `calibration_free.puddle_learner.PuddleConfig`: its default (the dataclass's),
     the values it accepts (read from the checks of its ``__post_init__``) and the first
     sentence of its docstring entry;
 ``service-limits``
