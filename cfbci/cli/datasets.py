@@ -21,7 +21,6 @@ from acquisition.fetch import (
     fetch,
     fetched_path,
 )
-from acquisition.loaders import save_features_npz
 from acquisition.speech import (
     DISTRACTOR_WORDS,
     GUIDANCE_WORDS,
@@ -195,6 +194,8 @@ def _run_speech(args: argparse.Namespace, console: Console) -> int:
             "--utterances-per-word must be >= 10 (10-fold cross-validation needs them); "
             f"got {args.utterances_per_word}"
         )
+    from acquisition.loaders import save_features_npz  # scipy: only this command's
+
     parameters = _parameters(args)
     with console.status(f"synthesising {len(words)} words x {args.utterances_per_word}"):
         data, accuracy = speech_dataset(
