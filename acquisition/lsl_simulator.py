@@ -419,8 +419,7 @@ class _Listener:
         settings = simulator.settings
         self.pumps = [Pump(simulator.session, protocol.key(settings.session, kind), kind,
                            self.inbox) for kind in ("move", "event")]
-        self.onsets: list[tuple[int, float]] = []  # (step, marker time) whose move is unknown
-        self.moves: dict[int, dict[str, Any]] = {}
+        self.onsets: list[tuple[int, float]] = []  # (step, marker time) not written yet
         simulator.lag = -simulator.signals.tmin + settings.marker_latency
 
     def listen(self, keep_running: Callable[[], bool]) -> Simulation:
@@ -434,7 +433,11 @@ class _Listener:
         try:
             while keep_running() and not ended:
                 ended = self._take_messages()
-                values, stamps = markers.pull_chunk(timeout=0.0, as_numpy=False)
+                try:
+                    values, stamps = markers.pull_chunk(timeout=0.0, as_numpy=False)
+                except LostError:
+                    log.info("the stimulus program's onset stream ended")
+                    break
                 for value, stamp in zip(values, stamps, strict=True):
                     is_onset, step = parse_onset_marker(value[0], "onset")
                     if is_onset and step is not None:
@@ -452,9 +455,12 @@ class _Listener:
         """Answer the moves that came; whether the session ended."""
         while not self.inbox.empty():
             received = self.inbox.get()
-            message = protocol.decode(received.data, key_expr=received.key_expr)
+            try:
+                message = protocol.decode(received.data, key_expr=received.key_expr)
+            except protocol.ProtocolError as error:
+                log.warning("dropped a message: %s", error)
+                continue
             if message.kind == "move":
-                self.moves[message.fields["step"]] = message.fields
                 self.sim._answer(message.fields)
             elif message.fields["event"] == "session_ended":
                 return True
@@ -464,7 +470,7 @@ class _Listener:
         """Write the epochs of the onsets whose moves are known, or report them late."""
         sim, waiting = self.sim, []
         for step, when in self.onsets:
-            if step not in self.moves:
+            if step not in sim.answers:  # its move has not come yet
                 waiting.append((step, when))
                 continue
             first = int((when - sim.t0) * sim.sfreq) - 1

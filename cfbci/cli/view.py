@@ -77,7 +77,7 @@ def _add_stimulus_options(p: argparse.ArgumentParser) -> None:
                        "(default cfbci-onsets)")
     group.add_argument("--interval", type=float, default=3.0, metavar="SECONDS",
                        help="least time from one onset to the next (default 3)")
-    group.add_argument("--grid", type=int, default=5, help="grid side (default 5)")
+    group.add_argument("--grid", type=int, default=5, metavar="N", help="grid side (default 5)")
     group.add_argument("--no-fixation", action="store_true",
                        help="no fixation cross at the centre of the grid")
     group.add_argument("--target", type=int, metavar="CELL",

@@ -9,10 +9,10 @@ program's onset marker ``onset <step>``. With ``--stimulus``, the view is that p
 * one subject page at a time is *the stimulus page*: it opens a WebSocket of its own,
   ``/stimulus`` (guarded as every request to the view), and claims the role
   (``{"type": "stimulus"}``; a second page is told that another one has it). The server
-  sends it the settings, then pings it continuously; the
-  page answers each ping with its clock (``performance.now()``), and the offset of the
-  page's clock to this machine's LSL clock is estimated from the fastest round trips
-  (``acquisition.clock_sync.ClockSync``, uncertainty kept);
+  sends it the settings, then pings it continuously; the page answers each ping with its
+  clock (``performance.now()``), and the offset of the page's clock to this machine's LSL
+  clock is estimated from the fastest round trips (``acquisition.clock_sync.ClockSync``,
+  uncertainty kept);
 * once the offset is known, the server sends the page each move to show (``show``, with a
   number of its own); the page shows it full screen no sooner than the inter-action
   interval after the last onset, in the frame of a ``requestAnimationFrame`` callback,
