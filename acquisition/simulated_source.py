@@ -56,6 +56,7 @@ from decoding.validation import check_option
 from session.plane import PLANE_FRAMES, PUDDLE_MOVES, plane_settings, puddle_world
 from wire import protocol
 from wire.client import DEFAULT_TIMEOUT, RESEND_INTERVAL, Client
+from wire.prior_upload import file_sha256, upload_priors
 from wire.services import QUERY_TIMEOUT, SERVICES, ask_for_offers, pick_service
 from wire.zenoh_config import peer_config
 
@@ -103,6 +104,10 @@ class SourceSettings:
     pick_service : bool
         Ask the services for their load (:func:`wire.services.ask_for_offers`) and name the
         least loaded in the config's ``service``, so that only it runs the session.
+    prior : tuple of Path
+        Earlier recordings of the user the learner starts from: uploaded into the
+        service's prior store where it lacks them (:mod:`wire.prior_upload`) and named by
+        their SHA-256 in the config's ``prior``.
     """
 
     session: str
@@ -119,6 +124,7 @@ class SourceSettings:
     world: str = "grid"
     class_order: tuple[int, ...] | None = None
     pick_service: bool = False
+    prior: tuple[Path, ...] = ()
 
     def __post_init__(self) -> None:
         check_option("world", self.world, (*WORLDS, *PLANE_FRAMES))
@@ -266,6 +272,8 @@ def replay_session(
         chosen = {"service": _chosen_service(session, sid)} if settings.pick_service else {}
         return {**chosen, **_config_fields(settings, signals)}
 
+    if settings.prior:  # before the config, which names them
+        upload_priors(session, sid, settings.prior, settings.timeout, settings.resend_interval)
     with Client(session, sid, log, settings.timeout, settings.resend_interval) as client:
         user = _user(settings, signals, user_rng, client, on_step)
         client.run(config, user)
@@ -289,7 +297,8 @@ def _config_fields(settings: SourceSettings, signals: _Signals) -> dict[str, Any
     return {
         "seed": settings.seed, **settings.world_fields(), "frame": settings.frame,
         "steps": settings.steps, "learner": settings.learner, "dataset": signals.dataset,
-        **signals.config,
+        **signals.config, **({"prior": [file_sha256(path) for path in settings.prior]}
+                             if settings.prior else {}),
     }
 
 

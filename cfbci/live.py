@@ -22,6 +22,7 @@ import multiprocessing
 import os
 import queue
 import re
+import shutil
 import tempfile
 import time
 from collections.abc import Sequence
@@ -239,6 +240,7 @@ def run_live_session(
                 service.kill()
                 service.join()
     _move_recording(private / f"{settings.session}.mcap", record, overwrite)
+    shutil.rmtree(private / "priors", ignore_errors=True)  # the prior store of --prior
     private.rmdir()
     result = {
         "world": settings.world,

@@ -34,7 +34,7 @@ from calibration_free.prior import (
 )
 from decoding.features import ErrPFeatures
 from replay.recording import read_recording
-from replay.rerun import recorded_signals
+from replay.signals import recorded_signals
 from session.config import config_world
 from session.plane import is_plane
 

@@ -173,6 +173,10 @@ SCHEMAS: dict[str, dict[str, Any]] = {
     "/state": _stamped("cfbci.State", "A state of the session"),
     "/event": _stamped("cfbci.Event", "A session event"),
     "/truth": _stamped("cfbci.Truth", "Ground truth, never shown to the learner"),
+    "/prior": {
+        **_stamped("cfbci.Prior", "A file of the session's prior (replay.recorded_prior)"),
+        "required": ["seq", "t_ns", "sha256", "data"],
+    },
     "/belief": {
         "title": "foxglove.Grid",
         "description": "A 2D grid of data",
@@ -301,6 +305,7 @@ class SessionRecorder:
         self._writer = Writer(self._file, chunk_size=0, compression=CompressionType.NONE)
         self._writer.start(profile="", library="cfbci")
         unused = set(WORLD_TOPICS) - set(world_topics(config))
+        unused |= set() if config.get("prior") else {"/prior"}  # a session with a prior's
         self._channels = {
             topic: self._writer.register_channel(
                 topic, "json", self._writer.register_schema(s["title"], "jsonschema", _to_json(s))

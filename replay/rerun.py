@@ -18,10 +18,13 @@ from typing import Any
 import numpy as np
 
 from calibration_free.config import LearnerConfig
+from calibration_free.prior import Prior
 from replay.damage import Damage
 from replay.extent import usable_part
-from replay.recording import Recording, decode_array, read_recording
-from session.core import Observer, SignalPath, Step
+from replay.recorded_prior import recorded_prior
+from replay.recording import Recording, read_recording
+from replay.signals import recorded_resets, recorded_signals
+from session.core import Observer, Step
 from session.plane import is_plane
 from session.sessions import open_session
 
@@ -94,18 +97,6 @@ class ReplayResult:
 IDENTICAL, DIVERGED, IDENTICAL_SO_FAR = 0, 1, 3
 
 
-def recorded_signals(recording: Recording) -> list[np.ndarray]:
-    """The learner's inputs, float32, from the accepted recorded epochs (raw or features),
-    through the session's :class:`session.core.SignalPath` as the service computed them."""
-    path = SignalPath(recording.config)
-    return [path(decode_array(message)) for message in recording.accepted_epochs()]
-
-
-def recorded_resets(recording: Recording) -> list[bool]:
-    """The ``reset`` flag of every accepted recorded epoch (False where it has none)."""
-    return [bool(message.get("reset", False)) for message in recording.accepted_epochs()]
-
-
 class Rerun:
     """The session of a recorded configuration, stepped as the service steps it, and the
     messages it produced.
@@ -116,7 +107,8 @@ class Rerun:
     Attributes
     ----------
     session : Session
-        Opened from the configuration (:func:`session.sessions.open_session`).
+        Opened from the configuration (:func:`session.sessions.open_session`), with the
+        prior its ``prior`` names (:func:`replay.recorded_prior.recorded_prior`).
     states : list of dict
         The state messages so far (with ``confidence``; outside the plane also the
         decision ``rule`` and ``threshold`` in force), one per move and one at the end.
@@ -124,8 +116,13 @@ class Rerun:
         Texts of the target events so far.
     """
 
-    def __init__(self, config: dict[str, Any], settings: LearnerConfig | None = None) -> None:
-        self.session = open_session(config, settings)
+    def __init__(
+        self,
+        config: dict[str, Any],
+        settings: LearnerConfig | None = None,
+        prior: Prior | None = None,
+    ) -> None:
+        self.session = open_session(config, settings, prior=prior)
         self.steps = config["steps"]
         self.states: list[dict[str, Any]] = []
         self.events: list[str] = []
@@ -173,7 +170,7 @@ def recompute(
         learner as the service had it then (if the re-run is identical). It must not
         change the learner.
     """
-    rerun = Rerun(recording.config)
+    rerun = Rerun(recording.config, prior=recorded_prior(recording))
     inputs = zip(recorded_signals(recording), recorded_resets(recording), strict=True)
     for signal, reset in list(inputs)[: rerun.steps]:
         rerun.observe(signal, on_observe, reset)

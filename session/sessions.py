@@ -66,7 +66,10 @@ def task_learner(
 
 
 def open_session(
-    config: dict[str, Any], settings: LearnerConfig | None = None, decisions: bool = False
+    config: dict[str, Any],
+    settings: LearnerConfig | None = None,
+    decisions: bool = False,
+    prior: Prior | None = None,
 ) -> Session:
     """The session of a config's fields, before its first move.
 
@@ -80,18 +83,25 @@ def open_session(
         worlds only.
     decisions : bool
         Keep the beliefs each move was chosen with (:attr:`session.core.Step.decision`).
+    prior : Prior, optional
+        The prior the config's ``prior`` names (its files read); exactly when the config
+        has one.
 
     Raises
     ------
     ValueError
-        On an unknown world, a grid side out of range or invalid learner settings.
+        On an unknown world, a grid side out of range, invalid learner settings, or a
+        prior given without the config's ``prior`` or missing for it.
     """
+    if bool(config.get("prior")) != (prior is not None):
+        raise ValueError("the config names a prior, but none was given" if prior is None
+                         else "a prior was given, but the config names none")
     if is_plane(config):
         return plane_session(config)
     world = config_world(config)
     if settings is None:
         settings = learner_settings(config["learner"], config["frame"])
-    learner = task_learner(world, settings, session_streams(config["seed"])[2])
+    learner = task_learner(world, settings, session_streams(config["seed"])[2], prior=prior)
     return TaskSession(world, learner, config["seed"], config["steps"], decisions)
 
 

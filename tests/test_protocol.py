@@ -115,6 +115,22 @@ EXAMPLES: dict[str, Message] = {
         "event", "s-01", 1, 3,
         {"event": "session_started", "message": "grid 5, 500 steps", "config_t_ns": 1},
     ),
+    "config_prior": Message(  # version 8: a prior named by its files' SHA-256
+        "config", "lab/s-03", 0, 19,
+        {
+            "seed": 1, "world": "line", "frame": "feedback", "steps": 10, "learner": {},
+            "dataset": {}, "signal": "features", "prior": ["0f" * 32, "a1" * 32],
+        },
+    ),
+    "prior": Message(
+        "prior", "lab/s-03", 2, 20,
+        {"sha256": "0f" * 32, "size": 9, "offset": 6, "data": "AAEC"},
+    ),
+    "event_prior": Message(
+        "event", "lab/s-03", 1, 21,
+        {"event": "prior_received", "message": "9 of 9 bytes", "config_t_ns": None,
+         "prior": "0f" * 32, "received": 9},
+    ),
     "event_unusable_session": Message(
         "event", "_", 0, 3,
         {"event": "error", "message": "session id 'a b' is invalid — é", "config_t_ns": None},
@@ -220,7 +236,7 @@ def framing_cases() -> list[tuple[bytes, str]]:
         (frame(b"[1, 2]"), "header must be a JSON object; got list"),
         (frame(b"[" * 100_000), "header is not valid JSON"),
         (frame({k: v for k, v in header.items() if k != "v"}), "missing field 'v'"),
-        (frame(header | {"v": 2}), "unknown protocol version 2; .* speaks version 7"),
+        (frame(header | {"v": 2}), f"unknown protocol version 2; .* speaks version {VERSION}"),
         (frame(header | {"v": True}), "unknown protocol version true"),
         (frame(header | {"kind": "moves"}), 'unknown kind "moves"'),
         (frame(header | {"kind": ["move"]}), "unknown kind"),

@@ -25,14 +25,14 @@ import numpy as np
 
 from session.vocabulary import DISCRETE_ACTIONS, FRAMES, PLANE_FRAMES, PROBE, PUDDLE_MOVES, WORLDS
 
-VERSION: int = 7
+VERSION: int = 8
 PREFIX: str = "cfbci"
 MAX_BYTES: int = 16 * 2**20
 NO_SESSION: str = "_"  # key segment of the service's events about unusable session ids
 SIGNALS: tuple[str, ...] = ("epochs", "features")
 EVENTS: tuple[str, ...] = (
     "error", "target_reached", "session_started", "session_ended", "session_rejected", "info",
-    "session_pending",
+    "session_pending", "prior_received", "prior_rejected",
 )
 
 #: Every world's action names, in world order then action order (a move's ``action``).
@@ -44,6 +44,7 @@ _NAME = r"[A-Za-z0-9_-]{1,64}"
 #: A session id: one key chunk, or two (``<user>/<name>``: the session in its user's space).
 _SESSION = re.compile(rf"{_NAME}(/{_NAME})?")
 _ONE_CHUNK = re.compile(_NAME)
+_SHA256 = re.compile(r"[0-9a-f]{64}")
 _INT64 = 2**63
 
 
@@ -61,6 +62,10 @@ def _is_float(x: Any) -> bool:
 
 def _list_of(check: Callable[[Any], bool]) -> Callable[[Any], bool]:
     return lambda x: isinstance(x, list) and all(check(item) for item in x)
+
+
+def _is_sha256(x: Any) -> bool:
+    return isinstance(x, str) and _SHA256.fullmatch(x) is not None
 
 
 def _is_point(x: Any) -> bool:
@@ -99,6 +104,11 @@ TYPES: dict[str, tuple[str, Callable[[Any], bool]]] = {
     "name": (
         "1 to 64 characters of A-Z, a-z, 0-9, '_' and '-'",
         lambda x: isinstance(x, str) and _ONE_CHUNK.fullmatch(x) is not None,
+    ),
+    "sha256": ("a SHA-256 digest: 64 characters of 0-9 and a-f", _is_sha256),
+    "sha256[]": (
+        "a non-empty list of distinct SHA-256 digests",
+        lambda x: _list_of(_is_sha256)(x) and 0 < len(x) == len(set(x)),
     ),
 }
 
@@ -210,6 +220,11 @@ SPECS: dict[str, KindSpec] = {
                 "name", "id of the service chosen to run the session (see \"Several "
                 "services\"); absent: every service that hears the config runs it"
             ),
+            "prior": Field(
+                "sha256[]", "earlier recordings of the user the learner starts from, by the "
+                "SHA-256 of their files, each in the user's prior store (see \"Priors\"; "
+                "grid, line and pick-and-place worlds); absent: none"
+            ),
         },
         conditional={
             ("world", "grid"): {
@@ -264,6 +279,20 @@ SPECS: dict[str, KindSpec] = {
         {
             "config_t_ns": Field("count", "the `t_ns` of the config it confirms"),
             "challenge": Field("str", "the `challenge` of the `session_pending` event"),
+        },
+    ),
+    "prior": KindSpec(
+        "source",
+        "A chunk of a prior's upload into the user's prior store (see \"Priors\"); "
+        "answered by a `prior_received` or `prior_rejected` event.",
+        {
+            "sha256": Field("sha256", "SHA-256 of the whole file"),
+            "size": Field("count", "the whole file's size, bytes"),
+            "offset": Field("count", "where the chunk's bytes start in the file"),
+            "data": Field(
+                "str", "the chunk's bytes, base64 (RFC 4648); empty: asks how many bytes "
+                "of the file the service holds"
+            ),
         },
     ),
     "move": KindSpec(
@@ -325,6 +354,13 @@ SPECS: dict[str, KindSpec] = {
         optional={
             "challenge": Field(
                 "str", "`session_pending` only: what the source's `ready` message repeats"
+            ),
+            "prior": Field(
+                "sha256", "`prior_received`, `prior_rejected`: the prior uploaded"
+            ),
+            "received": Field(
+                "count", "`prior_received` only: bytes of the prior the service holds, "
+                "from the start (its size: stored)"
             ),
         },
     ),

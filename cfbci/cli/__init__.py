@@ -4,6 +4,7 @@ arguments.
 - :mod:`cfbci.cli.simulate`: ``simulate``, ``sweep``, ``compare``, ``curves``, ``world check``;
 - :mod:`cfbci.cli.bench`: ``bench ...``;
 - :mod:`cfbci.cli.service`: ``serve``, ``source``, ``session``, ``router``;
+  :mod:`cfbci.cli.priors`: ``priors list|add|delete``;
 - :mod:`cfbci.cli.recordings`: ``recover``, ``replay``, ``report``, ``export``;
 - :mod:`cfbci.cli.lsl`: ``lsl-bridge``, ``lsl-simulator``, ``lsl-check``;
 - :mod:`cfbci.cli.view`: ``view``; :mod:`cfbci.cli.datasets`: ``datasets ...``;
@@ -24,6 +25,7 @@ from cfbci.cli.bench import add_bench_command
 from cfbci.cli.datasets import add_datasets_command
 from cfbci.cli.lsl import add_lsl_commands
 from cfbci.cli.options import add_zenoh_config
+from cfbci.cli.priors import add_priors_command
 from cfbci.cli.recordings import (
     add_export_command,
     add_recover_command,
@@ -66,6 +68,7 @@ def build_parser(chosen: Preset | None = None) -> argparse.ArgumentParser:
     add_serve_command(commands)
     add_source_command(commands)
     add_session_command(commands)
+    add_priors_command(commands)
     add_recover_command(commands)
     add_replay_command(commands)
     add_report_command(commands)

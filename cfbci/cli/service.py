@@ -34,6 +34,12 @@ def add_serve_command(commands: argparse._SubParsersAction) -> None:
     add_zenoh_config(p)
     p.add_argument("--record-dir", type=Path, help="write one <session>.mcap per session here")
     p.add_argument(
+        "--prior-dir", type=Path,
+        help="the prior store: earlier recordings of each user, <dir>/<user>/<sha256>.mcap, "
+        "which configs name and sources upload (default <record-dir>/priors; none without "
+        "--record-dir)",
+    )
+    p.add_argument(
         "--service-id", help="this service's id among several on one network ([A-Za-z0-9_-], "
         "1-64; default <host>-<pid>): sources that --pick-service name it in their config",
     )
@@ -52,6 +58,7 @@ def _run_serve(args: argparse.Namespace, console: Console) -> int:
         args.listen, args.connect, args.record_dir, limits=limits_from_args(args),
         zenoh_config=args.zenoh_config,
         service_id=None if args.service_id is None else check_service_id(args.service_id),
+        prior_dir=args.prior_dir,
     )
     return 0
 
@@ -70,6 +77,7 @@ def add_source_command(commands: argparse._SubParsersAction) -> None:
         help="session id: NAME, or USER/NAME in a user's key space (each 1-64 of A-Za-z0-9_-)",
     )
     add_source_options(p)
+    _add_prior_option(p)
     p.add_argument(
         "--pick-service", action="store_true",
         help="ask the services on the network for their load and name the least loaded one "
@@ -92,7 +100,8 @@ def _run_source(args: argparse.Namespace, console: Console) -> int:
 
     from acquisition.simulated_source import run_source
 
-    settings = replace(source_settings(args, args.session), timeout=args.timeout)
+    settings = replace(source_settings(args, args.session), timeout=args.timeout,
+                       prior=_checked_prior(args))
     try:
         summary = run_source(settings, args.listen, args.connect, args.zenoh_config)
     except (TimeoutError, RuntimeError) as error:  # as replay --publish and lsl-bridge
@@ -117,6 +126,7 @@ def add_session_command(commands: argparse._SubParsersAction) -> None:
         "defaults to the machine's physical memory.",
     )
     add_source_options(p)
+    _add_prior_option(p)
     add_limit_options(p)
     p.add_argument(
         "--record", type=Path, help="MCAP recording to write (default runs/<timestamp>.mcap)"
@@ -148,12 +158,18 @@ def _run_session(args: argparse.Namespace, console: Console) -> int:
     from cfbci.service.admission import check_config
 
     record = args.record or default_recording()
-    settings = source_settings(args, session_id_for(record))
+    settings = replace(source_settings(args, session_id_for(record)), prior=_checked_prior(args))
     limits = limits_from_args(args)
     if limits.max_session_mb == ServiceLimits().max_session_mb:  # the flag's default
         limits = replace(limits, max_session_mb=own_limits().max_session_mb)
     # Before anything starts: the data load, and the service would admit the config.
-    check_config(session_config(settings), limits, ValueError)
+    config = session_config(settings)
+    check_config(config, limits, ValueError)
+    if settings.prior:
+        from cfbci.service.priors import check_space
+        from replay.prior import read_prior
+
+        check_space(read_prior(settings.prior), config)
     start = time.monotonic()
     try:
         result = run_live_session(
@@ -170,6 +186,25 @@ def _run_session(args: argparse.Namespace, console: Console) -> int:
     if args.json:
         write_json(result, args.json)
     return 0
+
+
+def _add_prior_option(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--prior", type=Path, nargs="+", default=[], metavar="FILE.mcap",
+        help="earlier recordings of the user: the learner starts from their signals and the "
+        "labels adopted at their targets (grid, line and pick-and-place worlds); uploaded "
+        "into the service's prior store of the session's user where it lacks them",
+    )
+
+
+def _checked_prior(args: argparse.Namespace) -> tuple[Path, ...]:
+    """The ``--prior`` files, each one a readable prior (else a ``ValueError`` or
+    ``FileNotFoundError`` naming the file and the problem)."""
+    if args.prior:
+        from replay.prior import read_prior
+
+        read_prior(args.prior)
+    return tuple(args.prior)
 
 
 def add_limit_options(parser: argparse.ArgumentParser) -> None:

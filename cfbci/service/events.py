@@ -17,7 +17,7 @@ ERRORS_PER_SECOND = 20
 #: Error and rejection events published per second in all.
 EVENTS_PER_SECOND = 200
 #: foxglove.Log levels of the event kinds.
-_LOG_LEVELS = {"error": 4, "session_rejected": 4, "info": 2}
+_LOG_LEVELS = {"error": 4, "session_rejected": 4, "prior_rejected": 4, "info": 2}
 
 
 class ErrorBudget:
@@ -58,14 +58,17 @@ class Events:
         text: str,
         config_t_ns: int | None = None,
         challenge: str | None = None,
+        extra: dict[str, object] | None = None,
     ) -> None:
         """Publish an event on ``cfbci/<session>/event`` (with the ``challenge`` of a
-        ``session_pending``); record and log it."""
+        ``session_pending``, the ``extra`` fields of an upload's answer); record and log
+        it."""
         fields: dict[str, object] = {"event": event, "message": text, "config_t_ns": config_t_ns}
         if challenge is not None:
             fields["challenge"] = challenge
+        fields |= extra or {}
         message = self._outbox.send("event", session, fields)
-        (log.warning if event in ("error", "session_rejected") else log.info)(
+        (log.warning if _LOG_LEVELS.get(event) == 4 else log.info)(
             "%s: %s", event, text
         )
         recorder = self._recordings.get(session)

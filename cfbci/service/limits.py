@@ -56,6 +56,9 @@ class ServiceLimits:
         Most memory a session may commit by :func:`world_memory_bytes`, MiB.
     rate : int
         Messages accepted per session id per second (config, epoch and truth together).
+    user_prior_mb : float
+        Most MiB of priors one user's prior store may hold, uploads in progress counted
+        by their declared size (:mod:`cfbci.service.priors`).
     """
 
     max_sessions: int = 8
@@ -70,6 +73,7 @@ class ServiceLimits:
     max_epoch_values: int = 262_144
     max_session_mb: float = 512.0
     rate: int = 1000
+    user_prior_mb: float = 256.0
 
     @property
     def max_message_bytes(self) -> int:
@@ -99,6 +103,7 @@ LIMIT_HELP = {
     "max_epoch_values": "most float32 values in an epoch (channels x samples)",
     "max_session_mb": "most memory a session may commit (estimate), MiB",
     "rate": "messages accepted per session per second",
+    "user_prior_mb": "most MiB of priors one user's prior store may hold",
 }
 
 

@@ -1,7 +1,7 @@
 """The service's loop: intake, dispatch, housekeeping, events and rejections.
 
-:class:`PipelineService` subscribes to ``cfbci/**/config``, ``cfbci/**/ready``,
-``cfbci/**/truth`` and ``cfbci/**/epoch`` and keeps one
+:class:`PipelineService` subscribes to ``cfbci/**/config``, ``ready``, ``truth``, ``epoch``
+and ``prior`` (uploads to its :mod:`cfbci.service.priors` store) and keeps one
 :class:`cfbci.service.running.RunningSession` per session id. Messages wait in a
 :class:`wire.intake.Intake` (bounded, one FIFO per running session served round-robin,
 per-session rate limit); the loop never blocks on anything but the intake. A config is
@@ -36,15 +36,11 @@ from cfbci.service.admission import (
 )
 from cfbci.service.events import ErrorBudget, Events
 from cfbci.service.limits import ServiceLimits
+from cfbci.service.priors import PriorStore, default_store
 from cfbci.service.recordings import Recordings
-from cfbci.service.resume import (
-    EndedAtResume,
-    end_again,
-    resume_recorded,
-)
+from cfbci.service.resume import EndedAtResume, end_again, resume_recorded
 from cfbci.service.running import RunningSession
 from session.config import resolved_config
-from session.sessions import open_session
 from wire import protocol
 from wire.intake import Intake, session_of
 from wire.protocol import NO_SESSION, ProtocolError
@@ -88,6 +84,8 @@ class PipelineService:
     service_id : str or None
         This service's id among several (:mod:`wire.services`; default ``<host>-<pid>``):
         it answers the offers query and runs the configs that name it or no service.
+    prior_dir : Path or None
+        The prior store (:mod:`cfbci.service.priors`); default ``<record_dir>/priors``.
 
     Use :meth:`run` to serve until :meth:`stop`; :meth:`handle` processes one message.
     """
@@ -100,10 +98,12 @@ class PipelineService:
         on_end: SessionEndHook | None = None,
         resume: bool = True,
         service_id: str | None = None,
+        prior_dir: Path | None = None,
     ) -> None:
         self.limits = limits or ServiceLimits()
         self.intake = Intake(self.limits.rate, self.limits.max_message_bytes)
         self.recordings = Recordings(record_dir)
+        self.priors = PriorStore(prior_dir or default_store(record_dir), self.limits)
         self.on_end = on_end
         self._outbox = Outbox(session)
         self._sessions: dict[str, RunningSession] = {}
@@ -129,7 +129,7 @@ class PipelineService:
             # declared before epoch, so that a source (re)discovering this service knows the
             # truth subscriber before its epochs are delivered: the truth re-sent with an
             # epoch after a restart is then not lost while the epoch gets through.
-            for kind in ("config", "ready", "truth", "epoch")
+            for kind in ("config", "ready", "truth", "epoch", "prior")
         ]
 
     @property
@@ -177,6 +177,8 @@ class PipelineService:
                 self._on_config(received)
             elif received.tag == "ready":
                 self._on_ready(received)
+            elif received.tag == "prior":
+                self._forget_idle(self.priors.receive(received, self.events.publish))
             else:
                 self._on_epoch(received, (time.monotonic_ns() - received.t_ns) / 1e6)
         except ProtocolError as error:
@@ -269,6 +271,7 @@ class PipelineService:
         limits = self.limits
         check_config(config, limits, reject)
         check_quota(sid, self._sessions, self._pending, limits, reject)
+        self.priors.check(sid, config, reject)
         if len(self._sessions) >= limits.max_sessions:
             raise reject(f"the service runs its maximum of {limits.max_sessions} sessions")
         if len(self._pending) >= PENDING_PER_SESSION * limits.max_sessions:
@@ -330,18 +333,15 @@ class PipelineService:
         # Recorded with every learner setting it runs with (defaults included).
         recorder = self.recordings.open(sid, {"seq": message.seq, "t_ns": message.t_ns, **config})
         session = RunningSession(
-            sid, config, message.t_ns, open_session(config), recorder, self._outbox,
-            self.events.publish, time.monotonic_ns(),
+            sid, config, message.t_ns, self.priors.open(sid, config, recorder), recorder,
+            self._outbox, self.events.publish, time.monotonic_ns(),
         )
         self._sessions[sid] = session
         self._ended_at_resume.pop(sid, None)  # the id is reused: its old end is over
         self.intake.open(sid)
         self.events.publish(
-            sid,
-            "session_started",
-            f"session {sid!r}: {config['steps']} steps, {session.world_text()}, "
-            f"{config['frame']} frame, {config['signal']}",
-            message.t_ns,
+            sid, "session_started", f"session {sid!r}: {config['steps']} steps, "
+            f"{session.world_text()}, {config['frame']} frame, {config['signal']}", message.t_ns,
         )
         session.start()
 
@@ -401,6 +401,10 @@ class PipelineService:
                 self._end(running, running.step - 1)
         elif self._errors.allows(session):
             self.events.publish(session, "error", str(error))
+        self._forget_idle(session)
+
+    def _forget_idle(self, session: str) -> None:
+        """Forget an idle id's publishers (and numbering, if it never ran a session here)."""
         if session not in self._sessions and session not in self._pending:
             never_ran = session != NO_SESSION and self.recordings.get(session) is None
             self._outbox.forget(session, numbering=never_ran)

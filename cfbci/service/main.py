@@ -28,6 +28,7 @@ def serve(
     zenoh_config: Path | None = None,
     resume: bool = True,
     service_id: str | None = None,
+    prior_dir: Path | None = None,
 ) -> None:
     """Run a :class:`PipelineService` until SIGINT or SIGTERM, then shut down cleanly.
 
@@ -51,13 +52,16 @@ def serve(
         Resume the unfinished sessions recorded in ``record_dir``.
     service_id : str or None
         See :class:`PipelineService`.
+    prior_dir : Path or None
+        The prior store (:mod:`cfbci.service.priors`); default ``<record_dir>/priors``.
     """
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
     keep_freed_memory()
     config = peer_config(listen, connect, zenoh_config)
     with zenoh.open(config) as session:
         service = PipelineService(
-            session, record_dir, limits, on_end=on_end, resume=resume, service_id=service_id
+            session, record_dir, limits, on_end=on_end, resume=resume, service_id=service_id,
+            prior_dir=prior_dir,
         )
         for signum in (signal.SIGINT, signal.SIGTERM):
             signal.signal(signum, lambda *_: service.stop())

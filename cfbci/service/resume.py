@@ -21,6 +21,7 @@ import numpy as np
 
 from cfbci.service.recordings import is_recording_name
 from cfbci.service.running import EventSink, RunningSession
+from replay.recorded_prior import recorded_prior
 from replay.recording import Recording, SessionRecorder, decode_array, read_recording
 from replay.rerun import (
     STATE_MESSAGE_FIELDS,
@@ -75,7 +76,8 @@ def unfinished(recording: Recording) -> bool:
 
 
 def rerun_recording(recording: Recording) -> tuple[dict[str, Any], Rerun]:
-    """The resolved config of a recording and its session re-run over the recorded epochs.
+    """The resolved config of a recording and its session re-run over the recorded epochs
+(with the prior the recording holds).
 
     A recording of an older version may hold only the settings its source sent: it
     resumes (as it replays) with today's defaults for the others.
@@ -88,7 +90,7 @@ def rerun_recording(recording: Recording) -> tuple[dict[str, Any], Rerun]:
     config = resolved_config(
         {k: v for k, v in recording.config.items() if k not in ("seq", "t_ns")}
     )
-    rerun = Rerun(config)
+    rerun = Rerun(config, prior=recorded_prior(recording))
     inputs = zip(recorded_signals(recording), recorded_resets(recording), strict=True)
     for signal, reset in list(inputs)[: rerun.steps]:
         rerun.observe(signal, reset=reset)

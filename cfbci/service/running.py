@@ -19,6 +19,7 @@ from typing import Any
 import numpy as np
 
 from cfbci.service.admission import Rejection, check_memory
+from cfbci.service.priors import check_features
 from cfbci.service.recordings import record_beliefs
 from replay.recording import SessionRecorder
 from session.config import world_text
@@ -172,7 +173,7 @@ class RunningSession:
         ------
         ProtocolError
             As :meth:`signal`, for a duplicate or late ``seq``, and a :class:`Rejection`
-            over the memory limit.
+            over the memory limit or for a prior of another feature size.
         """
         if self.last_epoch == (message.fields["step"], message.seq, message.t_ns):
             self.answer_again()
@@ -186,10 +187,11 @@ class RunningSession:
         if problem is not None:
             self.event(self.id, "info", problem)
         if self.shape is None:
-            check_memory(
-                self.config, signal.shape[0], limits,
-                lambda problem: Rejection(problem, self.id, message.seq, self.config_t_ns),
-            )
+            def reject(problem: str) -> Rejection:
+                return Rejection(problem, self.id, message.seq, self.config_t_ns)
+
+            check_memory(self.config, signal.shape[0], limits, reject)
+            check_features(self.core, signal.shape[0], reject)
         return self.take(message, signal, received_ns, queued_ms)
 
     def take(
