@@ -8,7 +8,8 @@ program's onset marker ``onset <step>``. With ``--stimulus``, the view is that p
   every move to the event loop (`Stimulus.take_move`);
 * one subject page at a time is *the stimulus page*: it opens a WebSocket of its own,
   ``/stimulus`` (guarded as every request to the view), and claims the role
-  (``{"type": "stimulus"}``; a second page is told that another one has it). The server
+  (``{"type": "stimulus"}``; a second page is told that another one has it, and gets the
+  role when the first one leaves). The server
   sends it the settings, then pings it continuously; the page answers each ping with its
   clock (``performance.now()``), and the offset of the page's clock to this machine's LSL
   clock is estimated from the fastest round trips (``acquisition.clock_sync.ClockSync``,
@@ -163,6 +164,7 @@ class Stimulus:
         self.loop: asyncio.AbstractEventLoop | None = None
         self.outlet = marker_outlet(settings.onsets, f"cfbci-stimulus-{settings.onsets}")
         self.page: Page | None = None
+        self.waiting: list[Page] = []  # pages refused the role, in order: the next ones
         self.clock = ClockSync()
         self.pings: dict[int, float] = {}  # ping id -> LSL clock when it was sent
         self.ping_id = 0
@@ -249,6 +251,8 @@ class Stimulus:
     def _claim(self, page: Page) -> None:
         if self.page is not None and self.page is not page:
             page.push(json.dumps({"type": "stimulus", "refused": "another page is the stimulus"}))
+            if page not in self.waiting:
+                self.waiting.append(page)
             return
         self.page, self.clock, self.pings = page, ClockSync(), {}
         page.push(json.dumps({"type": "stimulus", "settings": self.settings.for_page()}))
@@ -256,8 +260,10 @@ class Stimulus:
         self.pinger = asyncio.ensure_future(self._ping(page))
 
     def leave(self, page: Page) -> None:
-        """A page disconnected: if it was the stimulus page, the next one to claim the role
-        shows the move again."""
+        """A page disconnected: if it was the stimulus page, the role goes to the page
+        refused it first (or to the next one to claim it), which shows the move again."""
+        if page in self.waiting:
+            self.waiting.remove(page)
         if page is not self.page:
             return
         log.warning("the stimulus page disconnected")
@@ -265,6 +271,8 @@ class Stimulus:
         if self.pinger is not None:
             self.pinger.cancel()
             self.pinger = None
+        if self.waiting:
+            self._claim(self.waiting.pop(0))
 
     async def _ping(self, page: Page) -> None:
         while True:
