@@ -270,10 +270,13 @@ def replay_session(
 
     def config() -> dict[str, Any]:
         chosen = {"service": _chosen_service(session, sid)} if settings.pick_service else {}
-        return {**chosen, **_config_fields(settings, signals)}
+        named = {"prior": prior} if prior else {}
+        return {**chosen, **_config_fields(settings, signals), **named}
 
-    if settings.prior:  # before the config, which names them
-        upload_priors(session, sid, settings.prior, settings.timeout, settings.resend_interval)
+    # Uploaded before the config, which names them by the digests of the bytes uploaded.
+    prior = upload_priors(
+        session, sid, settings.prior, settings.timeout, settings.resend_interval
+    ) if settings.prior else []
     with Client(session, sid, log, settings.timeout, settings.resend_interval) as client:
         user = _user(settings, signals, user_rng, client, on_step)
         client.run(config, user)

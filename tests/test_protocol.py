@@ -215,6 +215,7 @@ BAD_VALUES = {
     "str": 3,
     "str[]": ["Fz", 1], "float[]": [1.0, "2"], "object": [], "shape": [0], "session": "a b",
     "name": "a/b", "state": [0.5, 0.5, 0.5], "point[]": [[0.1, 0.2], [0.3]],
+    "sha256": "0F" * 32, "sha256[]": ["0f" * 32, "0f" * 32],
 }  # fmt: skip
 
 
