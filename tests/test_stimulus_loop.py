@@ -100,7 +100,7 @@ def test_the_subject_page_is_the_stimulus_of_a_whole_session(tmp_path: Path, bro
         )
         _page(browser, STALL)
         simulator = _start(tmp_path, "simulator", "lsl-simulator", *common, "--onsets",
-                           names["onsets"], "--marker-latency", "0.5",
+                           names["onsets"], "--marker-latency", "1",
                            "--written", str(tmp_path / "written.npz"))
         running.callback(_stop, simulator)
         bridge = _start(tmp_path, "bridge", "lsl-bridge", *common, "--markers",
