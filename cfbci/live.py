@@ -41,6 +41,7 @@ from rich.text import Text
 from acquisition.simulated_source import SourceSettings, SourceSummary, run_source
 from calibration_free.puddle import puddle_tasks
 from calibration_free.world import GridWorld, World
+from cfbci.outputs import place, refuse_existing
 from cfbci.service import serve
 from cfbci.service.limits import ServiceLimits
 from session.plane import PLANE_FRAMES
@@ -210,8 +211,7 @@ def run_live_session(
     context = multiprocessing.get_context("spawn")
     service_endpoints = list(listen) or [free_tcp_endpoint()]
     display_endpoint = free_tcp_endpoint()
-    if os.path.lexists(record) and not overwrite:
-        raise FileExistsError(f"{record} exists (--overwrite replaces it)")
+    refuse_existing(record, overwrite)
     record.parent.mkdir(parents=True, exist_ok=True)
     private = Path(tempfile.mkdtemp(prefix=".cfbci-session-", dir=record.parent))
     # The display listens before the others start, so they reach it at once and it misses
@@ -256,18 +256,14 @@ def run_live_session(
 
 
 def _move_recording(written: Path, record: Path, overwrite: bool) -> None:
-    """Move the service's recording to ``record``: replacing it (a link is replaced, never
-    written through) if ``overwrite``, else only if no file took that name meanwhile."""
-    if overwrite:
-        os.replace(written, record)
-        return
+    """Move the service's recording to ``record`` (see `cfbci.outputs.place`); kept where
+    it is if ``record`` appeared during the session."""
     try:
-        os.link(written, record)  # fails if ``record`` exists: nothing is replaced
+        place(written, record, overwrite)
     except FileExistsError:
         raise FileExistsError(
             f"{record} appeared during the session; the recording is kept as {written}"
         ) from None
-    written.unlink()
 
 
 @dataclass

@@ -97,7 +97,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         limit_blas_threads(args.blas_threads)
         return args.run(args, console)
-    except (ValueError, FileNotFoundError) as error:
+    except (ValueError, FileNotFoundError, FileExistsError, IsADirectoryError,
+            NotADirectoryError) as error:  # an output that exists: see cfbci.outputs
         # soft_wrap: a long path is never broken across lines (it can be copied)
         Console(stderr=True).print(f"[bold red]error:[/] {error}", soft_wrap=True)
         return 2

@@ -14,6 +14,7 @@ from rich.console import Console
 from cfbci.cli.options import add_endpoints, add_zenoh_config, parse_settings
 from cfbci.cli.simulate import add_scheduler_options
 from cfbci.offline.parallel import Scheduler
+from cfbci.outputs import new_file, new_folder
 from cfbci.recordings.export import FORMATS, damage_lines, export_fif
 from replay.recording import read_recording
 
@@ -34,7 +35,16 @@ def add_recover_command(commands: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--out", type=Path, help="the clean copy to write (default <stem>.recovered.mcap)"
     )
+    _add_overwrite(p, "the clean copy")
     p.set_defaults(run=_run_recover)
+
+
+def _add_overwrite(p: argparse.ArgumentParser, what: str) -> None:
+    p.add_argument(
+        "--overwrite", action="store_true",
+        help=f"replace an existing {what} (a link is replaced, never written through); "
+        "without it, an existing one is an error and nothing is written",
+    )
 
 
 def _print_damage(recording: Any, console: Console, limit: int = 10) -> None:
@@ -55,7 +65,8 @@ def _run_recover(args: argparse.Namespace, console: Console) -> int:
         raise ValueError(f"--out {out} is the input file; give another path")
     # a ValueError naming the file if it is not MCAP
     recording = read_recording(source, salvage=True)
-    n_messages = recover(source, out)
+    with new_file(out, args.overwrite) as written:
+        n_messages = recover(source, written)
     console.print(f"recovered {n_messages} messages of session {recording.session!r} into {out}",
                   soft_wrap=True, markup=False)
     if recording.truncated:
@@ -257,7 +268,11 @@ def add_report_command(commands: argparse._SubParsersAction) -> None:
         "(records dropped; a truncated file alone is 0).",
     )
     p.add_argument("files", type=Path, nargs="+", metavar="FILE", help="recordings (.mcap)")
-    p.add_argument("--out", type=Path, required=True, metavar="DIR", help="output directory")
+    p.add_argument(
+        "--out", type=Path, required=True, metavar="DIR",
+        help="output folder: new, or empty (one holding files needs --overwrite)",
+    )
+    _add_overwrite(p, "report's files in DIR")
     add_scheduler_options(p)
     p.set_defaults(run=_run_report)
 
@@ -269,7 +284,8 @@ def _run_report(args: argparse.Namespace, console: Console) -> int:
         for source in args.files:
             _refuse_overwriting(source, args.out / name)
     scheduler = Scheduler.from_options(args.scheduler, args.jobs)
-    reports = run_report(args.files, args.out, scheduler=scheduler, console=console)
+    with new_folder(args.out, args.overwrite) as staging:
+        reports = run_report(args.files, staging, scheduler=scheduler, console=console)
     print_summary(reports, console)
     errors = [r.error for r in reports if r.error]
     for error in errors:
@@ -296,12 +312,15 @@ def add_export_command(commands: argparse._SubParsersAction) -> None:
     p.add_argument("file", type=Path, help="the recording (.mcap)")
     p.add_argument("--format", choices=FORMATS, default="fif", help="output format (fif)")
     p.add_argument("--out", type=Path, help="output file (default <stem>-epo.fif beside FILE)")
+    _add_overwrite(p, "output file")
     p.set_defaults(run=_run_export)
 
 
 def _run_export(args: argparse.Namespace, console: Console) -> int:
     out = args.out or args.file.with_name(f"{args.file.stem}-epo.fif")
-    epochs = export_fif(args.file, out)
+    _refuse_overwriting(args.file, out)
+    with new_file(out, args.overwrite) as written:
+        epochs = export_fif(args.file, written)
     console.print(
         f"exported {len(epochs.labels)} epochs ({len(epochs.ch_names)} channels, "
         f"{epochs.epochs.shape[2]} samples at {epochs.sfreq:g} Hz from {epochs.tmin:g} s) "
