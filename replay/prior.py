@@ -1,19 +1,19 @@
-"""Earlier sessions' recordings as a prior (:mod:`calibration_free.prior`).
+"""Earlier sessions' recordings as a prior (`calibration_free.prior`).
 
 A recording (docs/protocol.md, "Recordings") holds what the learner saw and did: the
 session's config, every accepted epoch (``/epoch``, and the learner's input on
 ``/features``), every move (``/move``: state, action, whether it declared a target) and
 every state (``/state``: the best task the move was chosen under). From them
-:func:`read_prior_session` takes the learner's signals (as the re-run computes them,
-:func:`replay.rerun.recorded_signals`) and the labels the learner adopted at its declared
-targets (:func:`calibration_free.prior.adopted_labels`: every declared target's segment
+`read_prior_session` takes the learner's signals (as the re-run computes them,
+`replay.rerun.recorded_signals`) and the labels the learner adopted at its declared
+targets (`calibration_free.prior.adopted_labels`: every declared target's segment
 under the task it declared, the segment before the first target and the open last one
 unlabelled). It never reads ``/truth``: a lab has no truth of its users' targets.
 
-The feature space of a recording (:func:`recording_space`): the size of its feature
+The feature space of a recording (`recording_space`): the size of its feature
 vectors, its frame and classes, and, for a session of raw epochs, their sampling frequency,
 first sample time and channels and the feature extractor's settings
-(:class:`decoding.features.ErrPFeatures`).
+(`decoding.features.ErrPFeatures`).
 """
 
 from __future__ import annotations
@@ -52,7 +52,7 @@ def epochs_space(
 ) -> FeatureSpace:
     """The feature space of features extracted from raw epochs of ``sfreq`` Hz starting
     at ``tmin`` s on channels ``ch_names`` by today's
-    :class:`~decoding.features.ErrPFeatures` (its settings recorded in the space)."""
+    `decoding.features.ErrPFeatures` (its settings recorded in the space)."""
     extractor = ErrPFeatures(sfreq, tmin, list(ch_names)).get_params()
     settings = tuple(
         (name, tuple(value) if isinstance(value, list | tuple) else value)
@@ -130,12 +130,12 @@ def read_prior(
     weight: float = 1.0,
 ) -> Prior:
     """A prior of one or more recordings of a user, the most recent (by the recordings'
-    start) weighing most (:class:`~calibration_free.prior.Prior`).
+    start) weighing most (`calibration_free.prior.Prior`).
 
     Raises
     ------
     FileNotFoundError, ValueError
-        As :func:`read_prior_session`, and on recordings of different feature spaces
+        As `read_prior_session`, and on recordings of different feature spaces
         (naming the files and what differs).
     """
     if not paths:

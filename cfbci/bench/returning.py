@@ -1,5 +1,5 @@
 """``cfbci bench returning``: a returning user's second session, from scratch and from the
-recording of the first (:mod:`calibration_free.prior`).
+recording of the first (`calibration_free.prior`).
 
 **Days.** Day 1 and day 2 are two disjoint halves of the data, stratified by label:
 
@@ -8,36 +8,36 @@ recording of the first (:mod:`calibration_free.prior`).
   ``--split order``, the first and second halves of each class in the file's (recording)
   order, the same for every user;
 * synthetic ErrP data (``--synthetic errp``): two draws of the same synthetic subject, day
-  ``d``'s epochs (600 per class, :func:`acquisition.synthetic.generate_errp_epochs` at
+  ``d``'s epochs (600 per class, `acquisition.synthetic.generate_errp_epochs` at
   ``--synthetic-accuracy``) from ``SeedSequence([u, d])``. Subjects differ in the latency of
   their outcome responses: subject ``u``'s are delayed by a draw of N(0, 40 ms) (clipped to
-  +-100 ms; :data:`SUBJECT_LATENCY_SD`) from ``SeedSequence([u, 0])``
-  (:class:`acquisition.synthetic.ResponseDrift`). A day-to-day drift ``D`` (``--drift``,
+  +-100 ms; `SUBJECT_LATENCY_SD`) from ``SeedSequence([u, 0])``
+  (`acquisition.synthetic.ResponseDrift`). A day-to-day drift ``D`` (``--drift``,
   default 0.2) makes the drift arm's day 2 ``100 D`` ms later and ``1 - D`` times the
   amplitude.
 
 **Sessions.** User ``u`` (``--first-seed`` to ``--first-seed + --seeds - 1``) has a day-1
-session of seed ``u`` on day 1, recorded in the service's layout (:class:`DayOneTape`:
+session of seed ``u`` on day 1, recorded in the service's layout (`DayOneTape`:
 ``/config``, ``/epoch``, ``/features``, ``/move``, ``/state`` with ``/belief``, ``/event``;
 synthetic epochs raw, as the live source sends them, dataset signals as feature vectors; no
 ``/truth``), then day-2 sessions on day 2 of seed ``u + DAY2_SEED_OFFSET`` (day 1's seed
 would give day 2 the same start and first target), one per arm:
 
 * ``scratch``: no prior;
-* ``prior``: the day-1 recording of the same user, read by :func:`replay.prior.read_prior`;
+* ``prior``: the day-1 recording of the same user, read by `replay.prior.read_prior`;
 * ``complemented``: that prior with its labels reversed (labels adopted wrongly);
 * synthetic data only: ``other_subject``, the day-1 recording of the next user (the last
   user's: the first's), and ``drift``: day 2 drifted, with the day-1 prior;
   ``drift_scratch``, from scratch on that drifted day 2, is the drift arm's reference;
   on request (``--arms``), ``population``: the other users' day-1 recordings as one weak
-  prior (:func:`population_prior`).
+  prior (`population_prior`).
 
 **Figures.** Per arm, the ``summary`` of ``cfbci simulate --json``
-(:func:`cfbci.offline.simulation.summarise`), and: ``paired``, the per-seed differences against the
+(`cfbci.offline.simulation.summarise`), and: ``paired``, the per-seed differences against the
 arm's reference (``scratch``; ``drift_scratch`` for ``drift``) of the first target's step (a
 session without a target counts ``steps + 1``), the correct and the wrong targets, each
 with its mean and 95 % t-interval and its median; ``fallbacks``, the prior check's decisions
-(:class:`calibration_free.prior.PriorCheck`): sessions that fell back and at which steps
+(`calibration_free.prior.PriorCheck`): sessions that fell back and at which steps
 (step 0: refused by the power premise), sessions that trusted the prior and when, sessions
 still testing at the end. On a small dataset (``s4.mat``: 900 signals a day) one epoch
 recurs several times in a 500-step session, and its copies (in today's signals and in the
@@ -120,7 +120,7 @@ class ReturningData:
         return ARMS if self.path is not None else ARMS + SYNTHETIC_ARMS
 
     def chosen_arms(self, names: list[str] | None) -> tuple[str, ...]:
-        """The arms ``names`` (default :attr:`arms`) with their references, in order.
+        """The arms ``names`` (default `arms`) with their references, in order.
 
         Raises
         ------
@@ -224,8 +224,8 @@ def simulation_prior(paths: list[Path], data: DataSpec, frame: str) -> Prior:
 
 class DayOneTape:
     """Records a simulated session to an MCAP file as the service records a live one
-    (:mod:`cfbci.service.running`): config, then per step the epoch and its features, the
-    move, the state with the belief, and the target events; a :func:`run_session`
+    (`cfbci.service.running`): config, then per step the epoch and its features, the
+    move, the state with the belief, and the target events; a `run_session`
     ``on_move`` hook.
 
     Parameters
@@ -306,7 +306,7 @@ def recorded_config(
 
 @dataclass(frozen=True)
 class DayJob:
-    """One session of the bench (a job of :func:`cfbci.offline.parallel.run_parallel`).
+    """One session of the bench (a job of `cfbci.offline.parallel.run_parallel`).
 
     Attributes
     ----------
@@ -319,7 +319,7 @@ class DayJob:
         "day1": where the user's day 1 is recorded; an arm with a prior: the recordings it
         is read from; else none.
     prior_weight : float
-        The prior's weight (:attr:`calibration_free.prior.Prior.weight`).
+        The prior's weight (`calibration_free.prior.Prior.weight`).
     """
 
     data: ReturningData
@@ -332,7 +332,7 @@ class DayJob:
 
 def run_day(job: DayJob) -> tuple[SessionResult, dict[str, Any] | None]:
     """Run one session of the bench: its result and the prior check's decision
-    (:func:`decision_of`)."""
+    (`decision_of`)."""
     config = SessionConfig(steps=job.steps, learner=LearnerConfig())
     if job.arm == "day1":
         signals = job.data.day(job.user, 1)
@@ -380,7 +380,7 @@ def decision_of(learner: Any) -> dict[str, Any] | None:
 
 
 def paired(results: list[SessionResult], reference: list[SessionResult]) -> dict[str, Any]:
-    """Per-seed differences (arm minus reference) of :data:`PAIRED`, each with its mean,
+    """Per-seed differences (arm minus reference) of `PAIRED`, each with its mean,
     95 % t-interval and median."""
     out: dict[str, Any] = {}
     for key in PAIRED:
@@ -402,7 +402,7 @@ def paired(results: list[SessionResult], reference: list[SessionResult]) -> dict
 
 
 def fallbacks(decisions: list[dict[str, Any]]) -> dict[str, Any]:
-    """The prior check's decisions over an arm's sessions (:func:`decision_of`)."""
+    """The prior check's decisions over an arm's sessions (`decision_of`)."""
     by = {outcome: sorted(d["step"] for d in decisions if d["outcome"] == outcome)
           for outcome in ("fallen back", "trusted")}
     return {
@@ -421,7 +421,7 @@ def bench_returning(
     prior_weight: float = 1.0,
 ) -> dict[str, Any]:
     """Run the day-1 sessions (recorded to ``directory``), then the day-2 sessions of
-    ``arms`` (default :meth:`ReturningData.chosen_arms`'s); the JSON report (module
+    ``arms`` (default `ReturningData.chosen_arms`'s); the JSON report (module
     docstring)."""
     arms = arms or data.chosen_arms(None)
     recordings = {user: str(directory / f"day1-{user}.mcap") for user in users}
