@@ -113,7 +113,8 @@ def check_recorded(recording: Recording, recorded: list[tuple[str, int, Any]]) -
     """Every recorded message, in order per topic, with its log time; arrays bit-exact."""
     assert recording.session == "s01"
     assert recording.config == CONFIG
-    assert set(recording.messages) == set(SCHEMAS) - {"/ranking", "/particles", "/position"}
+    assert set(recording.messages) == set(SCHEMAS) - {"/ranking", "/particles", "/position",
+                                                      "/prior"}  # a session with a prior's
     [(_, config)] = recording.messages["/config"]
     assert config == {"session": "s01", "config": CONFIG}
     counts = Counter(["/config", *(topic for topic, _, _ in recorded)])
@@ -250,7 +251,8 @@ def test_a_world_without_a_grid_layout_records_a_ranking_instead(tmp_path: Path)
         with pytest.raises(ValueError, match="unknown topic '/belief'"):
             recorder.record("/belief", {}, T0)
     recording = read_recording(path)
-    assert set(recording.messages) == set(SCHEMAS) - {"/belief", "/particles", "/position"}
+    assert set(recording.messages) == set(SCHEMAS) - {"/belief", "/particles", "/position",
+                                                      "/prior"}
     [(log_time, ranking)] = recording.messages["/ranking"]
     assert log_time == T0 and schema_errors(ranking, SCHEMAS["/ranking"]) == []
     expected = sorted(range(world.n_tasks), key=lambda t: (-confidence[t], t))[:RANKED]
