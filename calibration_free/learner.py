@@ -307,6 +307,12 @@ class TaskLearner:
         """
         self._pending_target = self._check_state(task)
 
+    def withdraw_declaration(self) -> None:
+        """Forget the target the last proposal declared: the next observation counts no
+        target, whatever its action (a caller that performs another learner's proposal
+        instead, `calibration_free.prior.ReturningLearner`). Draws nothing."""
+        self._pending_target = None
+
     def _explore(self, state: int, beliefs: Beliefs) -> int:
         # The random warm-up waits for decoders to train; a prior's are trained already.
         if self.n_signals < self.config.warmup_steps and not self.prior_adopted:

@@ -244,23 +244,27 @@ class PriorCheck:
     where it is negative: a prior leading to tasks whose errors carry less power loses.
 
     While the check is undecided, the informed learner acts while ``D >= declare``; below,
-    the blank learner acts when it is confident (its target, as from scratch), when
-    ``D < 0``, or when its best task is not the informed learner's; the informed learner
-    acts (and may declare its target) only when the blank learner's best task is its own:
-    corroborated by today's signals alone. By default (``declare`` infinite) every target of
-    the informed learner is corroborated so until the prior is trusted: on synthetic tuning
-    subjects (balanced accuracy 0.65), ``D`` stayed within a few nats for the user's own
-    prior and for another subject's alike, and another subject's prior, allowed to declare
-    at ``D >= 1``, declared ten wrong targets in a session. (A declaration withheld while the
-    informed learner kept acting left the blank learner on the informed one's path, learning
-    nothing that would corroborate it: the blank learner acts, and explores, instead.) The
-    prior is
+    the blank learner acts when it is confident (its target, as from scratch) or ``D < 0``,
+    else the informed one, whose target is then declared only if today's signals alone
+    corroborate it (`ReturningLearner.corroborated`: the blank learner's posterior of that
+    task at least ``corroboration`` times its best task's), else withheld (the blank
+    learner's proposal is made instead). The prior is
 
     * abandoned once ``D <= -refute``: the blank learner acts from then on;
     * trusted for good once ``D >= trust``: the blank learner is dropped;
-    * with a ``horizon`` (default none: the check runs to the end of the session, both
-      learners observing every signal), after ``horizon`` signals still undecided, trusted
-      if ``D >= 0``, else abandoned.
+    * with a ``horizon``, after ``horizon`` signals still undecided, trusted if ``D >= 0``,
+      else abandoned.
+
+    The defaults (measured on synthetic tuning subjects, docs/decisions/0025): ``declare``,
+    ``trust`` infinite and no horizon, so that every target the informed learner declares
+    is corroborated, to the session's end (both learners observe every signal). At balanced
+    accuracy 0.65, ``D`` stayed within a few nats for the user's own prior and another
+    subject's alike: another subject's prior allowed to declare at ``D >= 1`` declared ten
+    wrong targets in a session, and priors trusted at ``D >= 5`` or ``10`` (or at a horizon
+    of 150 signals with ``D >= 0``) cost wrong targets once the blank learner was gone.
+    A corroboration by the blank learner's best task alone (``corroboration`` 1) deadlocked
+    Gaussian sessions without the power prior, where the blank learner cannot break the
+    tie between a task and its mirror and the informed learner can.
 
     In the feedback frame with the power prior, the prior's own labels are checked against
     the ErrP power premise first (`power_premise`): a prior whose error-labelled
@@ -275,12 +279,15 @@ class PriorCheck:
         Nats.
     horizon : int or None
         Signals after which the check decides; None: never before ``refute`` or ``trust``.
+    corroboration : float
+        In (0, 1].
     """
 
     refute: float = 3.0
     declare: float = math.inf
-    trust: float = 10.0
+    trust: float = math.inf
     horizon: int | None = None
+    corroboration: float = 0.5
 
 
 @dataclass
@@ -365,10 +372,7 @@ class ReturningLearner:
             return learner
         if self.statistic >= self.check.declare:
             return informed
-        if self.statistic < 0 or blank.beliefs().confident:
-            return blank
-        corroborated = blank.beliefs().best_task == informed.beliefs().best_task
-        return informed if corroborated else blank
+        return blank if self.statistic < 0 or blank.beliefs().confident else informed
 
     @property
     def statistic(self) -> float:
@@ -377,11 +381,31 @@ class ReturningLearner:
         return statistics[-1] if statistics else 0.0
 
     def propose(self, state: int) -> Proposal:
-        """The acting learner's proposal (`PriorCheck`)."""
+        """The acting learner's proposal; while the check is undecided, a declaring
+        proposal of the informed learner that ``D`` does not allow nor the blank learner
+        corroborates is withdrawn and the blank learner's made instead (`PriorCheck`)."""
         acting = self.acting
         proposal = acting.propose(state)
+        if proposal.declares_target and acting is self.informed and self.blank is not None:
+            if self.statistic < self.check.declare and not self.corroborated:
+                acting.withdraw_declaration()
+                acting, proposal = self.blank, self.blank.propose(state)
         self._declared = acting.beliefs().best_task if proposal.declares_target else None
         return proposal
+
+    @property
+    def corroborated(self) -> bool:
+        """Whether today's signals alone back the informed learner's best task: ``D >= 0``
+        and the blank learner's posterior of that task at least ``corroboration`` times
+        its best task's (ties between a task and its mirror, which the blank learner may
+        not break without the power prior, corroborate either)."""
+        informed, blank = self.informed, self.blank
+        if informed is None or blank is None:
+            return False
+        scores = blank.beliefs().scores
+        task = informed.beliefs().best_task
+        return self.statistic >= 0 and bool(
+            scores[task] >= scores.max() + np.log(self.check.corroboration))
 
     def observe(self, state: int, action: int, signal: np.ndarray) -> None:
         """Every learner observes the signal (following a target another one declared);
