@@ -133,7 +133,9 @@ class _MoveReader(threading.Thread):
     """Reads the bridge's move stream (resolving it by name, again when lost) and hands
     every marker's text to ``deliver`` until ``stop`` is set."""
 
-    def __init__(self, name: str, deliver: Any, stop: threading.Event) -> None:
+    def __init__(
+        self, name: str, deliver: Callable[[str], None], stop: threading.Event
+    ) -> None:
         super().__init__(name="stimulus-moves", daemon=True)
         self.stream, self.deliver, self.stop = name, deliver, stop
 
@@ -210,10 +212,15 @@ class Stimulus:
     def take_move(self, text: str) -> None:
         """A move marker of the bridge: the move to show now (a newer move, or the same one
         asked for again, replaces the one shown)."""
+        cells = self.settings.grid**2
         try:
             move = parse_move_marker(text)
+            for state in (move["from_state"], move["to_state"]):
+                if not (isinstance(state, int) and 0 <= state < cells):
+                    raise ValueError(f"state {state!r} is no cell of the {self.settings.grid}"
+                                     f"x{self.settings.grid} grid (is --grid the bridge's?)")
         except ValueError as error:
-            log.warning("move stream %r: %s; ignored", self.settings.moves, error)
+            log.error("move stream %r: %s; not shown", self.settings.moves, error)
             return
         log.info("move of step %d (repeat %d)", move["step"], move["repeat"])
         self.move, self.shown = move, False
