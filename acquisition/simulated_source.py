@@ -1,15 +1,15 @@
 """The simulated source: a simulated user answering the live service's moves over Zenoh.
 
-It plays the part of :func:`cfbci.offline.simulation.run_session`'s user against the pipeline
+It plays the part of `cfbci.offline.simulation.run_session`'s user against the pipeline
 service (docs/protocol.md): it publishes the session's ``config``, waits for
 ``session_started``, then answers every ``move`` with the ``epoch`` of that step and the
 step's ``truth``, until ``session_ended``. The loop (re-sending, sequence numbers, the
 events that start and end the session, the timeout) is every client's,
-:class:`wire.client.Client`; this module is the user's side: the signals and the answers.
+`wire.client.Client`; this module is the user's side: the signals and the answers.
 
-The random streams are those of the simulation (:func:`calibration_free.streams.session_streams`):
+The random streams are those of the simulation (`calibration_free.streams.session_streams`):
 the data stream makes the synthetic epochs, the user stream drives
-:class:`acquisition.user.SimulatedUser` with the same draws in the same order (the answer
+`acquisition.user.SimulatedUser` with the same draws in the same order (the answer
 to a move, then a new target if the move declared one), and the service derives the
 learner's stream and the start state from the same seed, in the same world (the
 config's ``world``). A live session therefore makes the decisions of ``cfbci simulate
@@ -22,10 +22,10 @@ dataset files (and recordings of feature vectors) and synthetic Gaussian signals
 their float32 feature vectors (``signal`` "features").
 
 In the worlds of the plane the source is the environment and its teacher: the continuous
-world's :class:`acquisition.cardinal_teacher.CardinalTeacher` answers each probe point; the
-puddle world's :class:`acquisition.mixed_teacher.MixedTeacher` (its task drawn first from
-the user stream, as :func:`cfbci.offline.puddle.run_puddle_session` draws it) answers each move
-``(from_state, action)`` with a signal of :func:`acquisition.mixed_teacher.gaussian_signals`
+world's `acquisition.cardinal_teacher.CardinalTeacher` answers each probe point; the
+puddle world's `acquisition.mixed_teacher.MixedTeacher` (its task drawn first from
+the user stream, as `cfbci.offline.puddle.run_puddle_session` draws it) answers each move
+``(from_state, action)`` with a signal of `acquisition.mixed_teacher.gaussian_signals`
 (the data stream's, as offline) and, since it knows its task, says ``reset`` on the epoch
 when the move's ``to_state`` is in the task's goal cell: the service then restarts the
 agent.
@@ -86,14 +86,14 @@ class SourceSettings:
     interval : float
         Seconds between receiving a move and answering it (the user's reaction).
     user_error_rate : float
-        Probability that the user's label is wrong (see :class:`SimulatedUser`).
+        Probability that the user's label is wrong (see `SimulatedUser`).
     timeout : float
         Seconds the service may keep the source waiting before it gives up (``cfbci
         source --timeout``; a failure guard).
     resend_interval : float
         Seconds between two sendings of the unanswered config or epoch.
     world : {"grid", "line", "pick-and-place", "continuous", "puddle"}
-        The world (:func:`calibration_free.worlds.make_world`; "continuous": the plane of
+        The world (`calibration_free.worlds.make_world`; "continuous": the plane of
         goal points, frame "cardinal", ``learner`` the ``ContinuousConfig`` settings;
         "puddle": frame "mixed", ``learner`` the ``PuddleConfig`` settings, whose
         ``mixing`` the teacher takes too, and the signals the puddle world's own: ``data``
@@ -102,11 +102,11 @@ class SourceSettings:
         Continuous world: the dataset class of each direction (default: class k for
         direction k); sent in the config's ``dataset``.
     pick_service : bool
-        Ask the services for their load (:func:`wire.services.ask_for_offers`) and name the
+        Ask the services for their load (`wire.services.ask_for_offers`) and name the
         least loaded in the config's ``service``, so that only it runs the session.
     prior : tuple of Path
         Earlier recordings of the user the learner starts from: uploaded into the
-        service's prior store where it lacks them (:mod:`wire.prior_upload`) and named by
+        service's prior store where it lacks them (`wire.prior_upload`) and named by
         their SHA-256 in the config's ``prior``.
     """
 
@@ -159,7 +159,7 @@ class SourceSummary:
     correct_targets, wrong_targets : int
         Declared targets that were (not) the user's target.
     records : list of StepRecord
-        Every step as :func:`cfbci.offline.simulation.run_session` traces it (``confident`` and
+        Every step as `cfbci.offline.simulation.run_session` traces it (``confident`` and
         ``best_task`` from the ``state`` that accompanied the move).
     latency_ns : list of int
         Round trip of each epoch but the last, in step order: from the epoch of step k
@@ -232,7 +232,7 @@ def run_source(
     zenoh_config: Path | None = None,
 ) -> SourceSummary:
     """Open a Zenoh peer (or what ``zenoh_config``, a Zenoh JSON5 file merged over the
-    defaults, says) and run one session (see :func:`replay_session`)."""
+    defaults, says) and run one session (see `replay_session`)."""
     with zenoh.open(peer_config(listen, connect, zenoh_config)) as session:
         return replay_session(session, settings)
 
@@ -243,7 +243,7 @@ def replay_session(
     on_step: Callable[[StepRecord], None] | None = None,
 ) -> SourceSummary:
     """Run one session against the service reachable through ``session`` (the loop:
-    :class:`wire.client.Client`; the user's answers: this module).
+    `wire.client.Client`; the user's answers: this module).
 
     Parameters
     ----------
@@ -306,7 +306,7 @@ def _config_fields(settings: SourceSettings, signals: _Signals) -> dict[str, Any
 
 
 def _chosen_service(session: zenoh.Session, sid: str) -> str:
-    """The least loaded service's id (:mod:`wire.services`)."""
+    """The least loaded service's id (`wire.services`)."""
     offers = ask_for_offers(session)
     if not offers:
         raise TimeoutError(f"session {sid!r}: no service answered the offers query on "
@@ -356,9 +356,9 @@ UserT = TypeVar("UserT", SimulatedUser, CardinalTeacher, MixedTeacher)
 
 
 class _User(Generic[UserT]):
-    """The source's side of one session (a :class:`wire.client.Answerer`): its user (or
+    """The source's side of one session (a `wire.client.Answerer`): its user (or
     teacher) answers each move with an epoch and the step's truth; it keeps the score and
-    the records. A world's user says how it answers (:meth:`_answer`)."""
+    the records. A world's user says how it answers (`_answer`)."""
 
     def __init__(
         self,
@@ -417,7 +417,7 @@ class _User(Generic[UserT]):
 
 
 class _WorldUser(_User[SimulatedUser]):
-    """The grid's, the line's and pick-and-place's source: a :class:`SimulatedUser` answers
+    """The grid's, the line's and pick-and-place's source: a `SimulatedUser` answers
     each move by its label for the move's action in its ``from_state``; a target declared
     is judged against the user's target, which then changes."""
 
@@ -445,7 +445,7 @@ class _WorldUser(_User[SimulatedUser]):
 
 
 class _ContinuousUser(_User[CardinalTeacher]):
-    """The continuous world's source: a :class:`CardinalTeacher` answers each probe point
+    """The continuous world's source: a `CardinalTeacher` answers each probe point
     (the move's ``to_state``) with a signal of its direction's class; the truth holds its
     goal point and the direction (``label``)."""
 
@@ -460,7 +460,7 @@ class _ContinuousUser(_User[CardinalTeacher]):
 
 
 class _PuddleUser(_User[MixedTeacher]):
-    """The puddle world's source: a :class:`MixedTeacher` answers each move (its
+    """The puddle world's source: a `MixedTeacher` answers each move (its
     ``from_state`` and ``action``) with a signal of its label's class, and says ``reset``
     on the epoch when the move's ``to_state`` is in its task's goal cell (see the module
     docstring); the truth holds the task and the label. A reset step's record has the event

@@ -120,7 +120,7 @@ class Progress:
         self._targets = {step: t for step, t in self._targets.items() if step >= self.step}
 
     def render(self) -> Group:
-        """Step, score and the world (:meth:`_grid_rows` or :meth:`_ranked_rows`)."""
+        """Step, score and the world (`_grid_rows` or `_ranked_rows`)."""
         best = float(self.confidence[self.best_task]) if len(self.confidence) else 0.0
         head = Text(
             f"step {self.step}/{self.steps}   targets correct {self.correct} wrong "
@@ -132,7 +132,7 @@ class Progress:
         return Group(head, *self._ranked_rows())
 
     def _ranked_rows(self) -> list[Text]:
-        """The agent's state, then the :data:`LISTED` most confident tasks (``T``: the
+        """The agent's state, then the `LISTED` most confident tasks (``T``: the
         user's target), best first."""
         world = self.world
         rows = [Text(f"agent: {world.state_name(self.agent)}")]
@@ -188,7 +188,7 @@ def run_live_session(
         Zenoh JSON5 configuration merged over the defaults, for the service, the source
         and the display alike (the endpoints stay the ones above).
     limits : ServiceLimits, optional
-        The embedded service's limits (default :func:`own_limits`).
+        The embedded service's limits (default `own_limits`).
     overwrite : bool
         Replace ``record`` if it exists (else an existing ``record`` is kept: the
         recording stays in a folder beside it and the error says where).

@@ -3,9 +3,9 @@
 A config with a ``prior`` (protocol version 8) names earlier recordings by the SHA-256 of
 their files. The service records each file whole when the session starts, as one
 ``/prior`` message ``{"seq", "t_ns", "sha256", "data"}`` (``data``: the file's bytes,
-base64), in the config's order (:func:`record_prior`). :func:`recorded_prior` reads the
+base64), in the config's order (`record_prior`). `recorded_prior` reads the
 prior back from them, checking every digest, exactly as the service read it from its
-store (:func:`replay.prior.read_prior`), so that ``cfbci replay`` and a resumed service
+store (`replay.prior.read_prior`), so that ``cfbci replay`` and a resumed service
 re-run the session as it ran. A recording of version 7 or older has no ``prior``.
 """
 

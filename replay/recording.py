@@ -1,15 +1,15 @@
 """Session recordings: one MCAP file per live session, readable after the writer is killed.
 
-A :class:`SessionRecorder` writes every message as its own uncompressed MCAP chunk (JSON
+A `SessionRecorder` writes every message as its own uncompressed MCAP chunk (JSON
 message encoding, a JSON Schema per channel), followed by the chunk's message index, and
-flushes it to the OS before :meth:`~SessionRecorder.record` returns. A closed recording
+flushes it to the OS before `record` returns. A closed recording
 therefore has a chunk index for every message in its summary, which indexed readers need
 (``@mcap/core``'s ``McapIndexedReader``, on which Foxglove builds, reads no message of a
 file without chunks), and a killed writer loses at most the message it was writing: it
-leaves a file without summary, index or footer. :func:`read_recording` reads any recording,
+leaves a file without summary, index or footer. `read_recording` reads any recording,
 closed or cut, in one linear pass of the mcap library's ``StreamReader`` that stops at the
 first incomplete record (an indexed reader needs the footer and summary a killed writer
-never wrote), and :func:`recover` rewrites what it reads as a clean, indexed MCAP file.
+never wrote), and `recover` rewrites what it reads as a clean, indexed MCAP file.
 Flushing does not ``fsync``: what a killed process had flushed is safe, but a power cut may
 lose what the OS had not yet written to the disk.
 
@@ -24,11 +24,11 @@ record and a ChunkIndex in the summary: +11.6 % on a 300-step synthetic session,
 1,567 bytes a message), about 140 us more per message to write and about 500 bytes of
 writer memory per message until the file is closed (the chunk indexes).
 
-Topics are the keys of :data:`SCHEMAS`. The belief over tasks goes, with every state, to
+Topics are the keys of `SCHEMAS`. The belief over tasks goes, with every state, to
 ``/belief`` in a grid world: a ``foxglove.Grid`` whose cell ``s = row * n + col`` is the
-state of :class:`calibration_free.world.GridWorld` (Foxglove draws row 0 at y = 0); a world
+state of `calibration_free.world.GridWorld` (Foxglove draws row 0 at y = 0); a world
 without a grid layout (line, pick-and-place) has no ``/belief`` channel but ``/ranking``
-(JSON): the :data:`RANKED` most confident tasks with their state names, best first.
+(JSON): the `RANKED` most confident tasks with their state names, best first.
 ``/log`` is a ``foxglove.Log``, so Foxglove Studio shows it and the grid. The continuous
 world's particles go, with every state, to ``/particles``: a ``foxglove.PointCloud`` (frame
 ``plane``, the unit square at z = 0) of one point per particle, float32 fields ``x``, ``y``
@@ -245,7 +245,7 @@ def belief_topic(config: dict[str, Any]) -> str:
 
 
 def world_topics(config: dict[str, Any]) -> tuple[str, ...]:
-    """The :data:`WORLD_TOPICS` a recording of this configuration has."""
+    """The `WORLD_TOPICS` a recording of this configuration has."""
     return (belief_topic(config), *(("/position",) if config.get("world") == "puddle" else ()))
 
 
@@ -285,7 +285,7 @@ class SessionRecorder:
 
     Use as a context manager; leaving it writes the summary and index and closes the file.
     The session name and configuration are written at once, as the first message (on
-    ``/config``, logged at the wall-clock time) and as the metadata :data:`CONFIG_METADATA`.
+    ``/config``, logged at the wall-clock time) and as the metadata `CONFIG_METADATA`.
 
     Parameters
     ----------
@@ -339,7 +339,7 @@ class SessionRecorder:
         Parameters
         ----------
         topic : str
-            One of :data:`SCHEMAS`.
+            One of `SCHEMAS`.
         message : dict
             JSON-serialisable (no NaN or infinity); must hold the schema's required fields
             (``seq`` and ``t_ns`` on the session topics).
@@ -387,7 +387,7 @@ class SessionRecorder:
 
     def record_belief(self, confidence: np.ndarray, world: World, log_time_ns: int) -> None:
         """Record the belief over tasks: on ``/belief`` as a ``foxglove.Grid`` in a grid
-        world, else on ``/ranking`` (:meth:`record_ranking`).
+        world, else on ``/ranking`` (`record_ranking`).
 
         Parameters
         ----------
@@ -462,7 +462,7 @@ class SessionRecorder:
         self.record("/particles", _plane_points(packed, "confidence", log_time_ns), log_time_ns)
 
     def record_ranking(self, confidence: np.ndarray, world: World, log_time_ns: int) -> None:
-        """Record the :data:`RANKED` most confident tasks on ``/ranking``, best first (ties
+        """Record the `RANKED` most confident tasks on ``/ranking``, best first (ties
         in task order), each with its state and the state's name."""
         order = np.argsort(-np.asarray(confidence, dtype=np.float64), kind="stable")[:RANKED]
         tasks = [
@@ -483,7 +483,7 @@ class SessionRecorder:
         Parameters
         ----------
         level : int
-            1 debug, 2 info, 3 warning, 4 error, 5 fatal (:data:`LOG_LEVELS`).
+            1 debug, 2 info, 3 warning, 4 error, 5 fatal (`LOG_LEVELS`).
         message : str
             The text.
         log_time_ns : int
@@ -505,7 +505,7 @@ class SessionRecorder:
 
 @dataclass
 class Recording:
-    """What :func:`read_recording` found in a recording.
+    """What `read_recording` found in a recording.
 
     Attributes
     ----------
@@ -526,7 +526,7 @@ class Recording:
     path : str
         The file it was read from.
     damage : tuple of Damage
-        Damaged regions (:class:`replay.damage.Damage`), in file order; read with
+        Damaged regions (`replay.damage.Damage`), in file order; read with
         ``salvage=True``, the messages around them are kept.
     offsets : dict of str to list of int
         Per topic, the byte offset of the chunk holding each message (the order of
@@ -585,7 +585,7 @@ class Recording:
 @dataclass
 class _Read:
     """The records a recording yields: header, schemas, channels, metadata and messages
-    (``(offset, record, topic)``), from :func:`_read`."""
+    (``(offset, record, topic)``), from `_read`."""
 
     scan: Scan
     header: Header
@@ -597,7 +597,7 @@ class _Read:
 
 
 def _read(path: Path, salvage: bool) -> _Read:
-    """Scan a recording (:func:`replay.damage.scan_mcap`); without ``salvage``, damage
+    """Scan a recording (`replay.damage.scan_mcap`); without ``salvage``, damage
     before the summary is a ``ValueError``. Messages whose channel no intact record defines
     (the first chunk damaged) take their channel from an intact summary, else are dropped."""
     if not path.exists():
@@ -666,10 +666,10 @@ def read_recording(path: str | os.PathLike[str], *, salvage: bool = False) -> Re
     Parameters
     ----------
     path : str or PathLike
-        An MCAP file written by :class:`SessionRecorder` (or :func:`recover`).
+        An MCAP file written by `SessionRecorder` (or `recover`).
     salvage : bool, default False
         Also read a damaged file: every intact record around the damaged regions (see
-        :mod:`replay.damage`), which ``damage`` and ``warning`` then name. Without it, a
+        `replay.damage`), which ``damage`` and ``warning`` then name. Without it, a
         damaged record before the summary is an error (a damaged summary, which no message
         is read from, is only said in ``damage`` and ``warning``).
 
@@ -745,7 +745,7 @@ def recover(src: str | os.PathLike[str], dst: str | os.PathLike[str]) -> int:
 
     Same header, schemas, channels, metadata and messages (data, log and publish times;
     messages in file order): every intact record of ``src``, around damaged regions too
-    (:mod:`replay.damage`). ``dst`` is chunked (uncompressed), with chunk and message
+    (`replay.damage`). ``dst`` is chunked (uncompressed), with chunk and message
     indexes and a summary, so any MCAP reader can seek in it. ``src`` is only read.
 
     Parameters
@@ -796,7 +796,7 @@ def recover(src: str | os.PathLike[str], dst: str | os.PathLike[str]) -> int:
 
 
 def _lost_config(read: _Read, channel_ids: dict[int, int]) -> tuple[int, bytes, int] | None:
-    """The ``/config`` message rebuilt from the :data:`CONFIG_METADATA` record when the
+    """The ``/config`` message rebuilt from the `CONFIG_METADATA` record when the
     chunk holding it is lost (the recorder writes both with the same content): its new
     channel id, data and log time (that of the first message read); None if not lost."""
     if any(topic == "/config" for _, _, topic in read.messages) or not read.metadata:

@@ -74,8 +74,8 @@ class ReplayResult:
 
     @property
     def status(self) -> int:
-        """The exit status of ``cfbci replay``: :data:`IDENTICAL` (0), :data:`DIVERGED`
-        (1) or :data:`IDENTICAL_SO_FAR` (3)."""
+        """The exit status of ``cfbci replay``: `IDENTICAL` (0), `DIVERGED`
+        (1) or `IDENTICAL_SO_FAR` (3)."""
         if self.divergence is not None:
             return DIVERGED
         return IDENTICAL if self.complete else IDENTICAL_SO_FAR
@@ -101,14 +101,14 @@ class Rerun:
     """The session of a recorded configuration, stepped as the service steps it, and the
     messages it produced.
 
-    Built, it has chosen the move of step 1; each :meth:`observe` takes the epoch of the
+    Built, it has chosen the move of step 1; each `observe` takes the epoch of the
     last move's step and chooses the next move (none after the session's last step).
 
     Attributes
     ----------
     session : Session
-        Opened from the configuration (:func:`session.sessions.open_session`), with the
-        prior its ``prior`` names (:func:`replay.recorded_prior.recorded_prior`).
+        Opened from the configuration (`session.sessions.open_session`), with the
+        prior its ``prior`` names (`replay.recorded_prior.recorded_prior`).
     states : list of dict
         The state messages so far (with ``confidence``; outside the plane also the
         decision ``rule`` and ``threshold`` in force), one per move and one at the end.
@@ -181,7 +181,7 @@ def replay_check(path: str | Path) -> ReplayResult:
     """Re-run the learner over a recording and compare (see the module docstring).
 
     A cut or damaged file (read with ``salvage``) is compared as far as its steps go
-    (:func:`replay.extent.usable_part`; :func:`first_divergence` on a file not complete).
+    (`replay.extent.usable_part`; `first_divergence` on a file not complete).
     """
     recording = read_recording(path, salvage=True)
     if not recording.config:
@@ -209,7 +209,7 @@ def replay_check(path: str | Path) -> ReplayResult:
 
 @dataclass(frozen=True)
 class Compared:
-    """How much of a recording :func:`first_divergence` compares: moves, states and target
+    """How much of a recording `first_divergence` compares: moves, states and target
     events (recomputed ones beyond these are not in the file), the steps whose messages
     are all compared, and notes on what is not."""
 
@@ -223,7 +223,7 @@ class Compared:
 def compared_extent(
     recording: Recording, moves: list[dict], states: list[dict], events: list[str]
 ) -> Compared:
-    """What of :func:`recompute`'s output a recording is compared with.
+    """What of `recompute`'s output a recording is compared with.
 
     A complete recording (closed, intact): all of it, a different count being a
     divergence. A cut or damaged one (its usable part): the re-run observed its ``K``
@@ -272,11 +272,11 @@ def _recorded(recording: Recording) -> tuple[list[dict], list[dict], list[str]]:
 def first_divergence(
     recording: Recording, moves: list[dict], states: list[dict], events: list[str]
 ) -> Divergence | None:
-    """The first difference between a recording and :func:`recompute`'s output, or None.
+    """The first difference between a recording and `recompute`'s output, or None.
 
     Moves first, then states, then target events; a different count is a divergence. Of
     a recording not complete (cut or damaged: its usable part), only what
-    :func:`compared_extent` says is compared.
+    `compared_extent` says is compared.
     """
     extent = compared_extent(recording, moves, states, events)
     moves, states, events = moves[:extent.moves], states[:extent.states], events[:extent.events]
@@ -288,9 +288,9 @@ def first_divergence(
 
 
 def replay_verdict(recording: Recording) -> tuple[bool | None, str | None]:
-    """Whether :func:`recompute` reproduces the recording, and the first divergence's
+    """Whether `recompute` reproduces the recording, and the first divergence's
     description; ``(None, why)`` if the re-run failed. A recording not complete is
-    compared as far as its steps go (:func:`first_divergence`)."""
+    compared as far as its steps go (`first_divergence`)."""
     try:
         divergence = first_divergence(recording, *recompute(recording))
     except (ValueError, KeyError, TypeError) as error:

@@ -1,6 +1,6 @@
 """The learner's inputs of a recording: its accepted epochs' signals and ``reset`` flags,
-as the service computed them (shared by the re-run, :mod:`replay.rerun`, and the reader
-of priors, :mod:`replay.prior`)."""
+as the service computed them (shared by the re-run, `replay.rerun`, and the reader
+of priors, `replay.prior`)."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ from session.core import SignalPath
 
 def recorded_signals(recording: Recording) -> list[np.ndarray]:
     """The learner's inputs, float32, from the accepted recorded epochs (raw or features),
-    through the session's :class:`session.core.SignalPath` as the service computed them."""
+    through the session's `session.core.SignalPath` as the service computed them."""
     path = SignalPath(recording.config)
     return [path(decode_array(message)) for message in recording.accepted_epochs()]
 

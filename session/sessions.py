@@ -1,10 +1,10 @@
-"""A session from a config: :func:`open_session`, the one way a session is built.
+"""A session from a config: `open_session`, the one way a session is built.
 
 The config is a ``config`` message's fields (docs/protocol.md), as the service receives
 them and a recording holds them, its ``learner`` object complete
-(:func:`session.config.resolved_config`). Offline callers that hold the objects already
+(`session.config.resolved_config`). Offline callers that hold the objects already
 (a simulated user's target for the calibrated baseline) build their learner with
-:func:`task_learner` and a :class:`session.tasks.TaskSession` around it.
+`task_learner` and a `session.tasks.TaskSession` around it.
 """
 
 from __future__ import annotations
@@ -34,7 +34,7 @@ def task_learner(
 ) -> TaskLearner | ReturningLearner:
     """The calibration-free learner of ``world``, or the calibrated baseline; with a
     prior, the calibration-free learner started from it and checked against the blank
-    learner (:class:`calibration_free.prior.ReturningLearner`).
+    learner (`calibration_free.prior.ReturningLearner`).
 
     Parameters
     ----------
@@ -47,7 +47,7 @@ def task_learner(
         calibrated on that many actions (its only calibration input, given here and
         nowhere else); None for the calibration-free learner.
     prior : Prior, optional
-        Earlier sessions of the user (:mod:`calibration_free.prior`), given here and nowhere
+        Earlier sessions of the user (`calibration_free.prior`), given here and nowhere
         else; not with the calibrated baseline.
 
     Raises
@@ -82,7 +82,7 @@ def open_session(
         other settings); the session's streams are the config's all the same. Discrete
         worlds only.
     decisions : bool
-        Keep the beliefs each move was chosen with (:attr:`session.core.Step.decision`).
+        Keep the beliefs each move was chosen with (`session.core.Step.decision`).
     prior : Prior, optional
         The prior the config's ``prior`` names (its files read); exactly when the config
         has one.

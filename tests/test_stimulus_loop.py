@@ -106,7 +106,7 @@ class _Hider(BaseHTTPRequestHandler):
 
 @contextmanager
 def _hiding_server(browser: Any) -> Iterator[str]:
-    """A :class:`_Hider` on a free loopback port for ``browser``: its address."""
+    """A `_Hider` on a free loopback port for ``browser``: its address."""
     address = browser.capabilities["goog:chromeOptions"]["debuggerAddress"]
     handler = type("Hider", (_Hider,), {"devtools": address})
     server = ThreadingHTTPServer(("127.0.0.1", 0), handler)

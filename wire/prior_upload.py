@@ -1,9 +1,9 @@
 """A source's upload of a prior into the service's prior store (docs/protocol.md, "Priors").
 
-A config names its prior by the SHA-256 of each file (:func:`file_sha256`); the service
-reads the files from the prior store of the session's user. :func:`upload_priors` puts
+A config names its prior by the SHA-256 of each file (`file_sha256`); the service
+reads the files from the prior store of the session's user. `upload_priors` puts
 them there first: for each file, a ``prior`` message without data asks how many bytes the
-service holds (all of them: nothing to send), then chunks of :data:`CHUNK_BYTES` follow,
+service holds (all of them: nothing to send), then chunks of `CHUNK_BYTES` follow,
 each sent once the service has answered the previous one with a ``prior_received`` event
 (re-sent unchanged until then, as a config or an epoch is). A ``prior_rejected`` event
 ends the upload with the service's reason.
