@@ -64,6 +64,7 @@ from acquisition.lsl_streams import (
     StreamMeta,
     as_float32,
     eeg_stream_meta,
+    let_consumers_leave,
     marker_outlet,
     marker_stream_shift,
     move_marker,
@@ -330,6 +331,9 @@ def bridge_session(
         bridge = _Bridge(settings, meta, (first, last), shift / meta.sfreq, eeg, markers,
                          moves, client, summary)
         client.run(config, bridge, keep_running)
+    for stream in (eeg, markers):  # before their outlets close: no broken stream
+        stream.inlet.close_stream()
+    let_consumers_leave(moves)
     return summary
 
 

@@ -64,6 +64,7 @@ from acquisition.lsl_bridge import DEFAULT_MOVES, on_this_host
 from acquisition.lsl_epochs import nearest_sample
 from acquisition.lsl_streams import (
     eeg_outlet,
+    let_consumers_leave,
     marker_outlet,
     parse_move_marker,
     parse_onset_marker,
@@ -314,9 +315,11 @@ class _Simulator:
         self.eeg: pylsl.StreamOutlet | None = self._open_eeg()
         self.markers = marker_outlet(settings.markers, f"cfbci-sim-{settings.session}-markers")
         moves = resolve_inlet(settings.moves, settings.timeout, keep_running=keep_running)
+        events: queue.SimpleQueue[Received] = queue.SimpleQueue()
+        pump = Pump(self.session, protocol.key(settings.session, "event"), "event", events)
         self._start()
         try:
-            while keep_running():
+            while keep_running() and not _ended(events):
                 try:
                     values, _ = moves.pull_chunk(timeout=0.0, as_numpy=False)
                 except LostError:
@@ -327,6 +330,9 @@ class _Simulator:
                 self._stream()
                 self._wait_for_chunk()
         finally:
+            moves.close_stream()  # before the bridge's outlet closes: no broken stream
+            let_consumers_leave(*(o for o in (self.eeg, self.markers) if o is not None))
+            pump.close()
             self.outbox.close()
         return Simulation(self.written, self.t0, self.targets)
 
@@ -407,6 +413,20 @@ class _Simulator:
             log.info("EEG outlet open again")
         if self.eeg is not None and len(indices):
             self.eeg.push_chunk(block, list(self.t0 + indices / self.sfreq))
+
+
+def _ended(events: queue.SimpleQueue[Received]) -> bool:
+    """Whether a ``session_ended`` event came (other events and bad bytes are skipped)."""
+    while not events.empty():
+        received = events.get()
+        try:
+            message = protocol.decode(received.data, key_expr=received.key_expr)
+        except protocol.ProtocolError as error:
+            log.warning("dropped a message: %s", error)
+            continue
+        if message.fields["event"] == "session_ended":
+            return True
+    return False
 
 
 class _Listener:

@@ -188,6 +188,19 @@ def marker_stream_shift(info: pylsl.StreamInfo) -> int:
     )
 
 
+#: Seconds a program keeps its outlets open after a session's end, for their consumers to
+#: close their inlets first (a stream closed under an inlet makes liblsl print "Stream
+#: transmission broke off" there, as for a real fault).
+END_GRACE = 2.0
+
+
+def let_consumers_leave(*outlets: pylsl.StreamOutlet, grace: float = END_GRACE) -> None:
+    """Return when no outlet has a consumer left, or after ``grace`` seconds."""
+    deadline = time.monotonic() + grace
+    while any(o.have_consumers() for o in outlets) and time.monotonic() < deadline:
+        time.sleep(0.01)
+
+
 def move_marker(move: dict[str, Any], repeat: int) -> str:
     """The move stream's marker of a service ``move`` (its fields) and its repeat count."""
     return json.dumps({key: move[key] for key in MOVE_MARKER_KEYS[:-1]} | {"repeat": repeat})
