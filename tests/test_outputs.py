@@ -112,3 +112,10 @@ def test_a_report_folder_that_is_a_link_or_a_file_is_refused(
     status, out = run(["report", str(recording), "--out", str(tmp_path / "file")], capsys)
     assert status == 2 and "is a file; give a folder" in out, out
     assert list(real.iterdir()) == []
+
+
+def test_what_the_readme_and_docs_write_in_a_clone_is_ignored_by_git() -> None:
+    """Was: ``report/`` (the tour's report) and ``lsl_api.cfg`` (the LSL pages' loopback
+    configuration) showed as untracked files after following the docs."""
+    ignored = set((Path(__file__).resolve().parents[1] / ".gitignore").read_text().split())
+    assert {"runs/", "report/", "lsl_api.cfg", "*.mcap", "site/"} <= ignored
