@@ -27,6 +27,7 @@ import numpy as np
 import pytest
 import zenoh
 from live import SPAWN, TIMEOUT, rewrite, service_process
+from test_resume import run_with_a_kill
 
 from acquisition.gaussian import generate_gaussian_features
 from acquisition.simulated_source import (
@@ -124,6 +125,25 @@ def test_a_session_with_a_prior_equals_its_simulation_and_replays_identically(
     capsys.readouterr()
     assert main(["replay", str(altered)]) == 2
     assert "recorded copy of prior" in capsys.readouterr().err
+
+
+def test_a_killed_service_resumes_a_session_with_a_prior(
+    record_dir: Path, tmp_path: Path
+) -> None:
+    """Killed with SIGKILL mid-session and started again, the service re-runs the session
+    with the prior its recording holds, and goes on as if never killed."""
+    day_one = record_dir / "lab" / "day1.mcap"
+    settings = SourceSettings("lab/resumed", seed=DAY_TWO_SEED, steps=STEPS, grid=GRID,
+                              timeout=TIMEOUT, resend_interval=0.2, prior=(day_one,))
+    summary = run_with_a_kill(settings, tmp_path, STEPS)
+    assert summary.records == simulated(DAY_TWO_SEED, day_one)
+    path = tmp_path / "lab" / "resumed.mcap"
+    recording = read_recording(path)  # rewritten in place at the resumption, then closed
+    assert not recording.truncated
+    assert [m["step"] for _, m in recording.messages["/move"]] == list(range(1, STEPS + 1))
+    assert [m["sha256"] for _, m in recording.messages["/prior"]] == [file_sha256(day_one)]
+    assert any("resumed at step" in m["message"] for _, m in recording.messages["/event"])
+    assert main(["replay", str(path)]) == 0
 
 
 class Listener:
