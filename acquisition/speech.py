@@ -120,12 +120,12 @@ def espeak_executable() -> str:
 
     Raises
     ------
-    RuntimeError
+    FileNotFoundError
         If espeak-ng is not installed, with the command that installs it.
     """
     path = shutil.which("espeak-ng")
     if path is None:
-        raise RuntimeError(
+        raise FileNotFoundError(
             "espeak-ng is not installed: the speech dataset is synthesised with it "
             "(Debian: apt-get install espeak-ng)"
         )

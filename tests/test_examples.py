@@ -20,6 +20,7 @@ from pathlib import Path
 
 import pytest
 from mcap.reader import make_reader
+from system_deps import require
 
 from acquisition.fetch import DATASETS
 
@@ -80,6 +81,9 @@ def test_page_examples_run(page: Path, tmp_path: Path, reader_environment) -> No
     missing = set().union(*(b.datasets for b in blocks)) - available
     if missing:
         pytest.skip(f"needs the real data set(s) {sorted(missing)}, absent here")
+    for block in blocks:  # Debian's programs a block needs: skip, or fail under CI
+        for program, package in block.needs:
+            require(program, package)
     with PageRun(tmp_path, environment, REPOSITORY) as run:
         for block in blocks:
             run.run(block)

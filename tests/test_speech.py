@@ -75,11 +75,17 @@ def test_the_command_writes_a_guidance_dataset_the_loaders_read(tmp_path: Path) 
 
 
 def test_a_missing_espeak_ng_is_named_with_its_install_command(
-    monkeypatch: pytest.MonkeyPatch,
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path, capsys: pytest.CaptureFixture[str],
 ) -> None:
+    """One line and exit 2 from the command (was: a RuntimeError's traceback)."""
     monkeypatch.setenv("PATH", "")
-    with pytest.raises(RuntimeError, match="apt-get install espeak-ng"):
+    with pytest.raises(FileNotFoundError, match="apt-get install espeak-ng"):
         espeak_executable()
+    out = tmp_path / "speech.npz"
+    assert main(["datasets", "speech", "--utterances-per-word", "10", "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "error: espeak-ng is not installed" in err and "Traceback" not in err
+    assert not out.exists()
 
 
 @pytest.mark.usefixtures("espeak")

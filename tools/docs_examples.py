@@ -64,7 +64,7 @@ DATASET_USE = re.compile(r"cfbci datasets (?:path|fetch) ([a-z0-9_-]+)")
 _FENCE = re.compile(r"^(?P<indent>[ \t]*)(?P<fence>`{3,}|~{3,})\s*(?P<info>[^`\n]*)$")
 _MARKER = re.compile(r"^\s*<!--\s*example:\s*(?P<body>.*?)\s*-->\s*$")
 _DIRECTIVES = ("skip:", "same-as:", "test:", "replace:", "background", "ready:", "expect:",
-               "timeout:")
+               "timeout:", "needs:")
 
 
 class ExampleError(AssertionError):
@@ -87,6 +87,7 @@ class Block:
     ready: str | None = None
     expect: list[str] = field(default_factory=list)
     timeout: float = DEFAULT_TIMEOUT
+    needs: list[tuple[str, str]] = field(default_factory=list)  #: (program, Debian package)
 
     @property
     def kind(self) -> str | None:
@@ -106,7 +107,7 @@ class Block:
     def signature(self) -> tuple:
         """What must be equal for a block to be "the same" as another page's."""
         return (self.language, self.code, self.variants, self.replacements, self.background,
-                self.ready, self.expect, self.timeout)
+                self.ready, self.expect, self.timeout, self.needs)
 
     @property
     def datasets(self) -> set[str]:
@@ -195,6 +196,12 @@ def _apply_marker(block: Block, body: str, where: str) -> None:
         block.ready = value
     elif directive == "expect:":
         block.expect.append(value)
+    elif directive == "needs:":
+        words = value.split()
+        if len(words) not in (1, 2):
+            raise ExampleError(f"{where}: 'needs:' takes a program and, if its Debian package "
+                               "is named otherwise, the package: 'needs: openssl'")
+        block.needs.append((words[0], words[-1]))
     else:
         try:
             block.timeout = float(value)
