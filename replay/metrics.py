@@ -463,7 +463,11 @@ def _rerun(recording: Recording, n_classes: int) -> _Rerun:
         # The self-estimate's exact definition, against the true labels (unknown ones
         # weigh 0); and what the next move's state requires of a target.
         beliefs = learner.beliefs()
-        accuracy.append(learner.balanced_accuracy(beliefs.best_task, one_hot[:step]))
+        truth = one_hot[:step]
+        prior = learner.history.n_signals - step  # a prior's signals come first, their
+        if prior > 0:  # truth unknown: they weigh 0
+            truth = np.vstack([np.zeros((prior, n_classes)), truth])
+        accuracy.append(learner.balanced_accuracy(beliefs.best_task, truth))
         required.append(beliefs.required)
 
     try:

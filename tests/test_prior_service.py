@@ -116,6 +116,13 @@ def test_a_session_with_a_prior_equals_its_simulation_and_replays_identically(
     assert result.divergence is None and result.complete
     assert result.moves == STEPS
     assert main(["replay", str(alone)]) == 0
+    # Its report re-runs it with the prior too (the decoders' accuracy on today's signals).
+    assert main(["report", str(alone), "--out", str(tmp_path / "report")]) == 0
+    metrics = json.loads((tmp_path / "report" / "metrics.json").read_text())
+    assert metrics["errors"] == []
+    (session,) = metrics["sessions"]
+    assert session["replay_identical"] is True
+    assert session["final_accuracy_truth"] is not None
     # A recording whose copy of the prior is altered is refused, saying so.
     data = bytearray(day_one.read_bytes())
     data[len(data) // 2] ^= 1
