@@ -15,19 +15,15 @@
 * the **truth** of every step (the user's target and the epoch's label) on Zenoh, as the
   replay source publishes it, so that the service's recording has ``/truth``.
 
-**Listening** (``onsets``: the name of a stimulus program's marker stream, such as
-``cfbci view --stimulus``'s): the simulator makes no onsets. It takes the moves from the
-service (Zenoh), where the user answers them, and the onsets from the stimulus program's
-``onset <step>`` markers: each epoch is written around the sample the bridge will cut it
-around, the sample nearest the marker's timestamp
-(``acquisition.lsl_epochs.nearest_sample`` on the stream's own float64 sample stamps;
-a marker stream of another machine is first mapped to this one's clock with its
-``time_correction()``, one of this machine is taken as it is, as the bridge does). A
-marker arrives after its timestamp, and the epoch starts ``|tmin|`` before it, so the EEG
-runs behind real time: a sample stamped ``t`` is pushed at ``t + |tmin| +
-marker_latency``. A marker that arrives more than ``marker_latency`` after its timestamp
-finds the epoch's first samples already sent: it is reported (``Simulation.late``) and
-nothing is written. The simulator ends at the service's ``session_ended``.
+**Listening** (``onsets``: a stimulus program's marker stream, e.g. ``cfbci view
+--stimulus``'s): no onsets of its own; the moves come from the service (Zenoh), the onsets
+from the ``onset <step>`` markers, each epoch written around the sample the bridge cuts it
+around (``acquisition.lsl_epochs.nearest_sample`` on the same float64 sample stamps; a
+marker stream of this machine taken as it is, another's mapped with ``time_correction()``,
+as the bridge does). A marker arrives after its timestamp and the epoch starts ``|tmin|``
+before it, so a sample stamped ``t`` is pushed at ``t + |tmin| + marker_latency``; a marker
+later than ``marker_latency`` finds the epoch's first samples sent: it is reported
+(``Simulation.late``) and nothing is written.
 
 The user is :class:`acquisition.user.SimulatedUser` with the random streams of
 :func:`calibration_free.streams.session_streams`, and synthetic epochs come from the data
@@ -137,8 +133,7 @@ class SimulatorSettings:
     onsets : str or None
         Listen to this marker stream's onsets instead of making them (see the module).
     marker_latency : float
-        Listening: how late after its timestamp an onset marker may arrive, s; the EEG
-        runs ``|tmin| + marker_latency`` behind real time.
+        Listening: how late an onset marker may arrive, s (the EEG's lag beyond |tmin|).
     """
 
     session: str
@@ -252,7 +247,7 @@ class Simulation:
     targets : list of (int, bool)
         Every declared target: its step and whether it was the user's target.
     late : list of (int, float)
-        Listening: the onset markers that came too late to be written: step, s late.
+        Listening: step and lateness (s) of the onsets that came too late to be written.
     """
 
     written: list[Written]
@@ -415,18 +410,21 @@ class _Simulator:
             self.eeg.push_chunk(block, list(self.t0 + indices / self.sfreq))
 
 
-def _ended(events: queue.SimpleQueue[Received]) -> bool:
-    """Whether a ``session_ended`` event came (other events and bad bytes are skipped)."""
-    while not events.empty():
-        received = events.get()
+def _decoded(inbox: queue.SimpleQueue[Received]) -> list[protocol.Message]:
+    """The messages that came (bad bytes dropped with a line)."""
+    messages = []
+    while not inbox.empty():
+        received = inbox.get()
         try:
-            message = protocol.decode(received.data, key_expr=received.key_expr)
+            messages.append(protocol.decode(received.data, key_expr=received.key_expr))
         except protocol.ProtocolError as error:
             log.warning("dropped a message: %s", error)
-            continue
-        if message.fields["event"] == "session_ended":
-            return True
-    return False
+    return messages
+
+
+def _ended(events: queue.SimpleQueue[Received]) -> bool:
+    """Whether a ``session_ended`` event came (other events are skipped)."""
+    return any(m.fields["event"] == "session_ended" for m in _decoded(events))
 
 
 class _Listener:
@@ -435,24 +433,24 @@ class _Listener:
 
     def __init__(self, simulator: _Simulator) -> None:
         self.sim = simulator
-        self.inbox: queue.SimpleQueue[Received] = queue.SimpleQueue()
         settings = simulator.settings
-        self.pumps = [Pump(simulator.session, protocol.key(settings.session, kind), kind,
-                           self.inbox) for kind in ("move", "event")]
+        self.inboxes: dict[str, queue.SimpleQueue[Received]] = {"move": queue.SimpleQueue(),
+                                                                 "event": queue.SimpleQueue()}
+        self.pumps = [Pump(simulator.session, protocol.key(settings.session, kind), kind, inbox)
+                      for kind, inbox in self.inboxes.items()]
         self.onsets: list[tuple[int, float]] = []  # (step, marker time) not written yet
         simulator.lag = -simulator.signals.tmin + settings.marker_latency
 
     def listen(self, keep_running: Callable[[], bool]) -> Simulation:
         sim, settings = self.sim, self.sim.settings
         sim.eeg = sim._open_eeg()
-        assert settings.onsets is not None
-        markers = resolve_inlet(settings.onsets, settings.timeout, keep_running=keep_running)
+        markers = resolve_inlet(str(settings.onsets), settings.timeout, keep_running=keep_running)
         offset = 0.0 if on_this_host(markers) else markers.time_correction(timeout=5.0)
         sim._start()
-        ended = False
         try:
-            while keep_running() and not ended:
-                ended = self._take_messages()
+            while keep_running() and not _ended(self.inboxes["event"]):
+                for move in _decoded(self.inboxes["move"]):
+                    sim._answer(move.fields)
                 try:
                     values, stamps = markers.pull_chunk(timeout=0.0, as_numpy=False)
                 except LostError:
@@ -466,25 +464,12 @@ class _Listener:
                 sim._stream()
                 sim._wait_for_chunk()
         finally:
+            markers.close_stream()  # before the stimulus program's outlet closes
+            let_consumers_leave(sim.eeg)
             for pump in self.pumps:
                 pump.close()
             sim.outbox.close()
         return Simulation(sim.written, sim.t0, sim.targets, sim.late)
-
-    def _take_messages(self) -> bool:
-        """Answer the moves that came; whether the session ended."""
-        while not self.inbox.empty():
-            received = self.inbox.get()
-            try:
-                message = protocol.decode(received.data, key_expr=received.key_expr)
-            except protocol.ProtocolError as error:
-                log.warning("dropped a message: %s", error)
-                continue
-            if message.kind == "move":
-                self.sim._answer(message.fields)
-            elif message.fields["event"] == "session_ended":
-                return True
-        return False
 
     def _write(self) -> None:
         """Write the epochs of the onsets whose moves are known, or report them late."""
@@ -497,10 +482,9 @@ class _Listener:
             stamps = sim.t0 + np.arange(first, first + 3) / sim.sfreq  # as pushed
             onset = first + nearest_sample(stamps, when)
             if onset + sim.first < sim.next:
-                late = pylsl.local_clock() - when
-                log.warning("onset of step %d came %.3f s after its time: its epoch's first "
-                            "samples are sent already; nothing written", step, late)
-                sim.late.append((step, late))
+                sim.late.append((step, late := pylsl.local_clock() - when))
+                log.warning("onset of step %d came %.3f s late: its epoch's first samples "
+                            "are sent already; nothing written", step, late)
                 continue
             repeat = sum(w.step == step for w in sim.written)
             written = Written(step, repeat, onset, onset + sim.first,

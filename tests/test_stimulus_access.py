@@ -1,9 +1,10 @@
 """The stimulus socket of ``cfbci view --stimulus`` (``/stimulus``), over real HTTP: guarded
 as every request to the view, one page at a time the stimulus (the role passed on to the
 page refused first when it leaves), pinged for its clock; a view without ``--stimulus``
-has no such socket; bad stimulus options are refused with a message. The view runs as the real command (tests/test_view_security.py's harness), its
-LSL on the loopback (an ``lsl_api.cfg`` of the test's own); this process calls no liblsl
-function. The whole loop in a browser is tests/test_stimulus_loop.py."""
+has no such socket; bad stimulus options are refused with a message. The view runs as the
+real command (tests/test_view_security.py's harness), its LSL on the loopback (an
+``lsl_api.cfg`` of the test's own); this process calls no liblsl function. The whole loop
+in a browser is tests/test_stimulus_loop.py."""
 
 from __future__ import annotations
 
