@@ -27,6 +27,14 @@ import numpy as np
 import pytest
 import zenoh
 from live import SPAWN, TIMEOUT, rewrite, service_process
+from system_deps import require
+from test_access_control import (
+    Deployment,
+    cfbci,
+    deployment,  # noqa: F401  (the fixture)
+    router,
+    service,
+)
 from test_resume import run_with_a_kill
 
 from acquisition.gaussian import generate_gaussian_features
@@ -312,3 +320,43 @@ def test_a_bad_prior_file_is_refused_before_anything_starts(
                  str(record)]) == 2
     assert f"{missing}: no such file" in capsys.readouterr().err
     assert not record.parent.exists()
+
+
+def test_behind_the_router_a_user_uploads_and_uses_only_its_own_priors(
+    deployment: Deployment,  # noqa: F811  (the fixture)
+) -> None:
+    """With the shipped policy (deploy/router.json5): ``lab`` uploads its day 1 and runs
+    day 2 with it; ``lab-x`` cannot upload into ``lab``'s key space (the router drops it:
+    shown by an upload of its own, answered after, while the forged one left no trace in
+    the store) and cannot use ``lab``'s prior."""
+    require("openssl", "openssl")
+    grid = ("--grid", str(GRID))
+    with router(deployment), service(deployment) as records:
+        day_one = cfbci(deployment, *deployment.source_args(
+            "lab", "lab/day1", "--steps", str(STEPS), "--seed", str(DAY_ONE_SEED), *grid))
+        assert day_one.returncode == 0, day_one.stderr
+        day_two = cfbci(deployment, *deployment.source_args(
+            "lab", "lab/day2", "--steps", "10", *grid, "--prior",
+            str(records / "lab" / "day1.mcap")))
+        assert day_two.returncode == 0, day_two.stderr
+        (sha256,) = read_recording(records / "lab" / "day2.mcap").config["prior"]
+        store = records / "priors"
+        assert sorted(p.name for p in store.iterdir()) == ["lab"]
+        assert (store / "lab" / f"{sha256}.mcap").is_file()
+        with zenoh.open(deployment.client_config("lab-x")) as session:
+            forged = hashlib.sha256(b"forged").hexdigest()
+            outbox = Outbox(session)
+            outbox.send("prior", "lab/forged", {"sha256": forged, "size": 6, "offset": 0,
+                                                "data": ""})
+            outbox.close()
+            own = Listener(session, "lab-x/probe")
+            try:
+                probe = hashlib.sha256(b"probe").hexdigest()
+                answer = own.answer({"sha256": probe, "size": 5, "offset": 0, "data": ""})
+            finally:
+                own.close()
+            assert answer["event"] == "prior_received" and answer["received"] == 0
+            assert (store / "lab-x" / f"{probe}.part").exists()  # what an upload leaves
+            assert sorted(p.name for p in (store / "lab").iterdir()) == [f"{sha256}.mcap"]
+            message = rejection(session, "lab-x/s1", config_of(1, [sha256]))
+            assert f"prior {sha256[:12]} is not in user 'lab-x''s prior store" in message
