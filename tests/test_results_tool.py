@@ -217,3 +217,22 @@ def test_json_names_follow_their_paths(tmp_path: Path) -> None:
                                              Path("grid-5.json"): {}}, "")
     assert set(outputs.names) == {"report_metrics", "grid_5"}
     assert json.dumps(results.Data(a=1)) == '{"a": 1}'
+
+
+def test_a_failing_page_is_left_and_the_others_regenerated(tmp_path: Path, monkeypatch,
+                                                           capsys) -> None:
+    """``make results`` goes on past a page whose commands fail (hours of other pages are
+    not lost), leaves that page as it was, names it, and exits 1."""
+    _reader_environment(monkeypatch, tmp_path / "data")
+    region = ("<!-- results: page r -->\n<!-- template\n| {answer.value} |\n-->\n| old |\n"
+              "<!-- /results -->\n")
+    broken = tmp_path / "broken.md"
+    broken.write_text(f"```sh\ncfbci simulate --steps many\n```\n\n{region}")
+    fine = tmp_path / "fine.md"
+    fine.write_text("```python\nimport json\njson.dump({'value': 42}, open('answer.json', 'w'))\n"
+                    f"```\n\n{region}")
+    before = broken.read_text()
+    assert results.main([str(broken), str(fine)]) == 1
+    assert broken.read_text() == before
+    assert "| 42 |" in fine.read_text() and "| old |" not in fine.read_text()
+    assert "FAILED, left as it was: " + str(broken) in capsys.readouterr().err

@@ -453,14 +453,20 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     targets = args.pages or [str(p) for p in sorted(RESULTS.glob("*.md"))]
     skipped: list[str] = []
+    failed: list[str] = []
     with tempfile.TemporaryDirectory(prefix="cfbci-results-") as scratch:
-        for target in targets:
+        for target in targets:  # a page that fails is left as it was; the others go on
             page, _, only = target.partition("#")
-            skipped += regenerate_page(Path(page).resolve(), only or None, Path(scratch),
-                                       args.test_sized)
+            try:
+                skipped += regenerate_page(Path(page).resolve(), only or None, Path(scratch),
+                                           args.test_sized)
+            except (ValueError, AssertionError, OSError, subprocess.CalledProcessError) as error:
+                failed.append(f"{target}: {error}")  # ResultsError, ExampleError among them
     for name in skipped:
         print(f"not regenerated: {name}")
-    return 0
+    for failure in failed:
+        print(f"FAILED, left as it was: {failure}", file=sys.stderr)
+    return 1 if failed else 0
 
 
 if __name__ == "__main__":
