@@ -81,8 +81,8 @@ def _first_targets(report: dict[str, Any]) -> list[float]:
     return [s["first_target_step"] or steps + 1 for s in report["sessions"]]
 
 
-def _first_target_iqr(report: dict[str, Any]) -> str:
-    median, q1, q3 = _quantiles(_first_targets(report))
+def _iqr(values: list[float]) -> str:
+    median, q1, q3 = _quantiles(list(values))
     return f"{median:g} ({q1:g}-{q3:g})"
 
 
@@ -93,7 +93,7 @@ def _correct_range(report: dict[str, Any]) -> str:
 
 #: The ``simulate`` kind's columns: header -> the cell, from ``cfbci simulate --json``.
 SIMULATE_COLUMNS: dict[str, Callable[[dict[str, Any]], str]] = {
-    "median first target (IQR)": _first_target_iqr,
+    "median first target (IQR)": lambda r: _iqr(_first_targets(r)),
     "median first target": lambda r: f"{r['summary']['median_first_target_step']:g}",
     "mean correct (range)": _correct_range,
     "mean correct": lambda r: f"{r['summary']['mean_correct_targets']:.2f}",
@@ -103,11 +103,6 @@ SIMULATE_COLUMNS: dict[str, Callable[[dict[str, Any]], str]] = {
     "runs with a target": lambda r: str(r["summary"]["sessions_with_a_target"]),
     "median first confident": lambda r: f"{r['summary']['median_first_confident_step']:g}",
 }
-
-
-def _iqr(values: list[float]) -> str:
-    median, q1, q3 = _quantiles(list(values))
-    return f"{median:g} ({q1:g}-{q3:g})"
 
 
 def _grab(pattern: str, text: str) -> str:
