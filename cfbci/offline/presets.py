@@ -75,7 +75,7 @@ PRESETS: dict[str, Preset] = {
              "planner": "random"},
             {"decoder": "student_t", "student_t_counts": "total", **_THESIS_SHRINKAGE,
              "eps": 0.01, "warmup_steps": 12},
-            dataset="move_finger.mat (../shared/datasets/finger-moves/)",
+            dataset='"$(cfbci datasets path finger)" (after `cfbci datasets fetch finger`)',
         ),
         Preset(
             "world-properties",
