@@ -103,3 +103,19 @@ def test_bad_stimulus_options_are_refused_with_a_message(
     )
     assert result.returncode != 0
     assert message in result.stderr and "Traceback" not in result.stderr
+
+
+@pytest.mark.parametrize(("options", "message"), [
+    (["--onsets", "m", "--drop", "2:0:5"], "do not go with --onsets"),
+    (["--onsets", "m", "--marker-latency", "0"], "--marker-latency must be positive; got 0.0"),
+])
+def test_bad_listening_options_are_refused_with_a_message(
+    options: list[str], message: str, tmp_path: Path
+) -> None:
+    result = subprocess.run(
+        [sys.executable, "-m", "cfbci.cli", "lsl-simulator", "--session", "s", "--connect",
+         "tcp/127.0.0.1:1", *options], capture_output=True, text=True, timeout=TIMEOUT,
+        cwd=tmp_path,
+    )
+    assert result.returncode != 0
+    assert message in result.stderr and "Traceback" not in result.stderr
