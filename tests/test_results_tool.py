@@ -23,7 +23,7 @@ REPOSITORY = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPOSITORY / "tools"))
 
 import results  # noqa: E402
-from docs_examples import page_blocks  # noqa: E402
+from docs_examples import ExampleError, page_blocks  # noqa: E402
 
 #: The results pages (the index lists them and holds no figure of its own).
 PAGES = [p for p in sorted(results.RESULTS.glob("*.md")) if p.name != "index.md"]
@@ -236,3 +236,41 @@ def test_a_failing_page_is_left_and_the_others_regenerated(tmp_path: Path, monke
     assert broken.read_text() == before
     assert "| 42 |" in fine.read_text() and "| old |" not in fine.read_text()
     assert "FAILED, left as it was: " + str(broken) in capsys.readouterr().err
+
+
+def test_a_region_alone_runs_only_the_blocks_above_it(tmp_path: Path, monkeypatch) -> None:
+    """``PAGE#ID`` of a region marked ``blocks: above`` runs only the blocks between the
+    region before it and itself (a failing block elsewhere on the page is not run)."""
+    _reader_environment(monkeypatch, tmp_path / "data")
+    page = tmp_path / "page.md"
+    page.write_text("""\
+```sh
+exit 1  # a long bench, not needed here
+```
+
+<!-- results: page first -->
+<!-- template
+| {missing} |
+-->
+<!-- /results -->
+
+```python
+import json
+json.dump({"value": 7}, open("seven.json", "w"))
+```
+
+<!-- results: page second -->
+<!-- template
+blocks: above
+| {seven.value} |
+-->
+| old |
+<!-- /results -->
+""")
+    scratch = tmp_path / "scratch"
+    scratch.mkdir()
+    results.regenerate_page(page, "second", scratch)
+    text = page.read_text()
+    assert "| 7 |" in text and "| old |" not in text and "| {missing} |" in text
+    with pytest.raises(ExampleError, match="exit status 1"):
+        results.regenerate_page(page, None, scratch)  # the whole page runs every block

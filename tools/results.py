@@ -14,7 +14,9 @@ rendered page::
     would (``tools/docs_examples.py``), once per page; then the region's template, the HTML
     comment ``<!-- template ... -->`` at its top, is rendered from the JSON files and the
     output the blocks left (``{EXPRESSION:FORMAT}`` fields, ``let:``, ``for:`` and
-    ``figure:`` lines), and replaces the rest of the region.
+    ``figure:`` lines), and replaces the rest of the region. Regenerated alone (``PAGE#ID``),
+    a region whose template has the line ``blocks: above`` runs only the blocks between the
+    region before it and itself.
 ``simulate``
     a table with a ``command`` column: every row's command runs with ``--json`` and the cells
     of the columns in ``SIMULATE_COLUMNS`` are rewritten from its report; the other cells are
@@ -252,10 +254,13 @@ class PageOutputs:
                 for path, data in self.files.items()}
 
 
-def run_page_blocks(page: Path, scratch: Path, test_sized: bool) -> PageOutputs:
+def run_page_blocks(page: Path, scratch: Path, test_sized: bool,
+                    between: tuple[int, int] | None = None) -> PageOutputs:
     """Run the page's runnable blocks in order in a scratch folder, full size unless
-    ``test_sized``; what they left."""
-    blocks = [b for b in page_blocks(page) if b.runs_here]
+    ``test_sized`` (only those whose fence is on a line ``between`` the two, if given);
+    what they left."""
+    blocks = [b for b in page_blocks(page) if b.runs_here
+              and (between is None or between[0] < b.line < between[1])]
     if not blocks:
         raise ResultsError(f"{page}: a 'page' region, but the page has no runnable block")
     if not test_sized:
@@ -349,6 +354,8 @@ def regenerate_page_region(page: Path, body: str, outputs: PageOutputs, where: s
         raise ResultsError(f"{where}: a 'page' region starts with <!-- template ... -->")
     lines = []
     for line in match["template"].splitlines():
+        if line.strip() == "blocks: above":
+            continue
         if line.startswith("figure:"):
             source, _, target = line.removeprefix("figure:").strip().partition(" ")
             if not (outputs.folder / source).is_file():
@@ -423,9 +430,14 @@ def regenerate_page(page: Path, only: str | None, scratch: Path,
             return match[0]
         print(f"== {name}", flush=True)
         if match["kind"] == "page":
-            if not outputs:
-                outputs.append(run_page_blocks(page, scratch, test_sized))
-            body = regenerate_page_region(page, match["body"], outputs[0], name, test_sized)
+            template = TEMPLATE.match(match["body"])
+            if only and template and "\nblocks: above\n" in f"\n{template['template']}\n":
+                ran = run_page_blocks(page, scratch, test_sized, _above(text, match))
+            else:
+                if not outputs:
+                    outputs.append(run_page_blocks(page, scratch, test_sized))
+                ran = outputs[0]
+            body = regenerate_page_region(page, match["body"], ran, name, test_sized)
         else:
             body = regenerate(match["body"], match["kind"], scratch, test_sized)
         return f"<!-- results: {match['kind']} {match['id']} -->\n{body}<!-- /results -->\n"
@@ -434,6 +446,13 @@ def regenerate_page(page: Path, only: str | None, scratch: Path,
         raise ValueError(f"{page}: no results region {only!r}")
     page.write_text(REGION.sub(region, text))
     return skipped
+
+
+def _above(text: str, region: re.Match[str]) -> tuple[int, int]:
+    """The lines between the region before ``region`` (or the page's start) and it."""
+    before = [m for m in REGION.finditer(text) if m.end() <= region.start()]
+    start = text.count("\n", 0, before[-1].end()) + 1 if before else 0
+    return start, text.count("\n", 0, region.start()) + 1
 
 
 #: The kinds of region this script regenerates.
