@@ -404,3 +404,29 @@ def test_the_generators_drift() -> None:
     ratio = np.ptp(wave(late)) / np.ptp(wave(plain))
     assert 0.4 < ratio < 0.65
     assert "drift amplitude x0.5, latency +40 ms" in late.source
+
+
+def test_the_informed_learner_declares_only_corroborated_targets(
+    day_one: Path, tmp_path: Path
+) -> None:
+    """While the prior is tested, every target the informed learner declares is one the
+    blank learner's posterior corroborates (at least half its best task's), with the user's
+    own prior and with another user's; the informed learner does declare some."""
+    other = tmp_path / "other.mcap"
+    record_day(other, seed=3, steps=160, data=another_user(1))
+    config = SessionConfig(steps=150, grid=5, learner=LearnerConfig(**SMALL))
+    informed_declarations = 0
+    for path in (day_one, other):
+        seen: list[bool] = []  # corroborated, at each declaration of the informed learner
+
+        def check(session, step, seen=seen) -> None:
+            learner = session.learner
+            if step.move is None or not step.move["target_reached"]:
+                return
+            if learner.blank is not None and learner.acting is learner.informed:
+                seen.append(learner.corroborated)
+
+        run_session(11, replace(config, prior=read_prior([path])), gaussian(4), on_move=check)
+        assert all(seen)
+        informed_declarations += len(seen)
+    assert informed_declarations > 0
