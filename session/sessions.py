@@ -105,8 +105,13 @@ def open_session(
     return TaskSession(world, learner, config["seed"], config["steps"], decisions)
 
 
-def open_loop(config: dict[str, Any], settings: LearnerConfig) -> OpenLoop:
+def open_loop(
+    config: dict[str, Any], settings: LearnerConfig, prior: Prior | None = None
+) -> OpenLoop:
     """The open-loop re-analysis of a recorded discrete-world config under ``settings``
-    (the learner on the session's own learner stream)."""
-    learner = task_learner(config_world(config), settings, session_streams(config["seed"])[2])
+    (the learner on the session's own learner stream, started from the session's
+    ``prior`` if it had one)."""
+    learner = task_learner(
+        config_world(config), settings, session_streams(config["seed"])[2], prior=prior
+    )
     return OpenLoop(learner)

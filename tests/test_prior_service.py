@@ -124,6 +124,11 @@ def test_a_session_with_a_prior_equals_its_simulation_and_replays_identically(
     assert result.divergence is None and result.complete
     assert result.moves == STEPS
     assert main(["replay", str(alone)]) == 0
+    # Re-scored open loop, its own settings start from its prior and give its beliefs.
+    rescored = tmp_path / "rescored.json"
+    assert main(["replay", str(alone), "--option", "beta=0.95", "--json", str(rescored)]) == 0
+    own = json.loads(rescored.read_text())["settings"][0]
+    assert own["name"] == "own settings" and own["identical_to_recording"] is True
     # Its report re-runs it with the prior too (the decoders' accuracy on today's signals).
     assert main(["report", str(alone), "--out", str(tmp_path / "report")]) == 0
     metrics = json.loads((tmp_path / "report" / "metrics.json").read_text())

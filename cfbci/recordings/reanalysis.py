@@ -45,6 +45,8 @@ from typing import Any
 import numpy as np
 
 from calibration_free.config import LearnerConfig
+from calibration_free.prior import Prior
+from replay.recorded_prior import recorded_prior
 from replay.recording import Recording, read_recording
 from replay.rerun import recorded_signals
 from session.config import config_world, learner_settings
@@ -102,6 +104,8 @@ class RecordedHistory:
         The user's target of every step (``/truth``), None where no truth was recorded.
     recorded : Trajectory
         The recorded ``/state`` messages (at most ``n_steps + 1``).
+    prior : Prior or None
+        The prior the session started from (its recording's ``/prior``), or None.
     """
 
     config: dict[str, Any]
@@ -111,6 +115,7 @@ class RecordedHistory:
     signals: list[np.ndarray]
     targets: list[int | None]
     recorded: Trajectory
+    prior: Prior | None = None
 
     @property
     def n_steps(self) -> int:
@@ -302,6 +307,7 @@ def recorded_history(recording: Recording, where: str = "") -> RecordedHistory:
         signals=recorded_signals(recording)[:n_steps],
         targets=[truth.get(k) for k in range(1, n_steps + 1)],
         recorded=recorded,
+        prior=recorded_prior(recording),
     )
 
 
@@ -311,7 +317,7 @@ def rescore(history: RecordedHistory, settings: LearnerConfig) -> Trajectory:
     The learner observes every recorded step in order and follows the recorded
     declarations (see the module docstring); it never proposes an action.
     """
-    loop = open_loop(history.config, settings)
+    loop = open_loop(history.config, settings, history.prior)
     confidence, best, confident = [], [], []
 
     def keep() -> None:
