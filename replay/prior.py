@@ -38,6 +38,11 @@ from replay.signals import recorded_signals
 from session.config import config_world
 from session.plane import is_plane
 
+
+class NoLabelledSignals(ValueError):
+    """A recording that gives a prior nothing: it declared fewer than two targets."""
+
+
 #: The extractor's parameters that describe the epochs rather than the features.
 _EPOCH_PARAMETERS = ("sfreq", "tmin", "ch_names")
 
@@ -115,7 +120,7 @@ def read_prior_session(path: str | os.PathLike[str]) -> tuple[PriorSession, Feat
             declared[index] = best_task[index]
     indices, labels = adopted_labels(frame, moves, declared)
     if len(indices) == 0:
-        raise ValueError(
+        raise NoLabelledSignals(
             f"{path}: no labelled signal: a prior takes the segments between a session's "
             f"first and last declared targets, and this one declared {len(declared)}"
         )

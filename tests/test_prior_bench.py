@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 
 from acquisition.loaders import save_features_npz
-from cfbci.bench.returning import ReturningData
+from cfbci.bench.returning import DayJob, ReturningData, fallbacks, run_day
 from cfbci.cli import main
-from replay.prior import read_prior
+from replay.prior import NoLabelledSignals, read_prior
 from replay.rerun import replay_check
 
 
@@ -54,7 +54,7 @@ def test_the_report(bench: tuple[dict, Path]) -> None:
     assert "paired" not in scratch and scratch["fallbacks"]["sessions"] == 0
     assert complemented["fallbacks"] == {
         "sessions": 2, "fell_back": 2, "fell_back_at": [0, 0], "trusted": 0, "trusted_at": [],
-        "testing": 0, "refused_by_power_premise": 2,
+        "testing": 0, "no_prior": 0, "refused_by_power_premise": 2,
     }
     paired = complemented["paired"]["first_target_step"]
     assert paired["differences"] == [0, 0] and paired["interval_95"] == [0.0, 0.0]
@@ -87,3 +87,17 @@ def test_synthetic_days_and_dataset_halves(tmp_path: Path) -> None:
         assert [np.bincount(h.labels).tolist() for h in halves] == [[8, 2], [8, 2]]
     order = ReturningData(path, split="order").day(3, 1)
     assert order.features[:, 0].tolist() == [0, 2, 4, 6, 8, 10, 12, 14, 32, 34]
+
+
+def test_a_day_one_without_two_targets_gives_no_prior(tmp_path: Path) -> None:
+    """A day 1 too short to declare two targets labels nothing: day 2's arm with its prior
+    runs from scratch, session for session, and says so."""
+    data, day1 = ReturningData(), str(tmp_path / "day1.mcap")
+    first, _ = run_day(DayJob(data, 100, "day1", 12, (day1,)))
+    assert first.correct_targets + first.wrong_targets < 2
+    with pytest.raises(NoLabelledSignals, match="no labelled signal"):
+        read_prior([day1])
+    result, decision = run_day(DayJob(data, 100, "prior", 12, (day1,)))
+    assert decision == {"outcome": "no prior", "step": None, "premise": None}
+    assert (result, None) == run_day(DayJob(data, 100, "scratch", 12))
+    assert fallbacks([decision])["no_prior"] == 1

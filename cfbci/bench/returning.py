@@ -39,10 +39,11 @@ session without a target counts ``steps + 1``), the correct and the wrong target
 with its mean and 95 % t-interval and its median; ``fallbacks``, the prior check's decisions
 (`calibration_free.prior.PriorCheck`): sessions that fell back and at which steps
 (step 0: refused by the power premise), sessions that trusted the prior and when, sessions
-still testing at the end. On a small dataset (``s4.mat``: 900 signals a day) one epoch
-recurs several times in a 500-step session, and its copies (in today's signals and in the
-prior) can fall on both sides of the learner's cross-validation: the figures compare arms,
-they are not absolute performance.
+still testing at the end, and sessions whose day 1 gave no prior (``no_prior``: it declared
+fewer than two targets; day 2 runs from scratch). On a small dataset (``s4.mat``: 900
+signals a day) one epoch recurs several times in a 500-step session, and its copies (in
+today's signals and in the prior) can fall on both sides of the learner's cross-validation:
+the figures compare arms, they are not absolute performance.
 """
 
 from __future__ import annotations
@@ -67,7 +68,7 @@ from calibration_free.prior import FeatureSpace, Prior, ReturningLearner
 from cfbci.offline.parallel import Scheduler, run_parallel
 from cfbci.offline.simulation import SessionConfig, SessionResult, run_session, summarise
 from cfbci.service.recordings import record_beliefs
-from replay.prior import epochs_space, read_prior
+from replay.prior import NoLabelledSignals, epochs_space, read_prior
 from replay.recording import SessionRecorder
 from session.core import Step
 from session.tasks import TaskSession
@@ -342,18 +343,24 @@ def run_day(job: DayJob) -> tuple[SessionResult, dict[str, Any] | None]:
             result = run_session(job.user, config, as_features(signals), on_move=tape)
         return result, None
     signals = job.data.day(job.user, 2, drifted=job.arm in ("drift", "drift_scratch"))
+    empty = None  # a day 1 that declared fewer than two targets gives no prior
     if job.recordings:
-        prior = (population_prior(job.recordings, job.user, job.prior_weight)
-                 if job.arm == "population" else read_prior(job.recordings,
-                                                            weight=job.prior_weight))
-        prior.check_space(data_space(signals, config.learner.frame))
-        config = replace(config, prior=prior.complemented() if job.arm == "complemented" else prior)
+        try:
+            prior = (population_prior(job.recordings, job.user, job.prior_weight)
+                     if job.arm == "population" else read_prior(job.recordings,
+                                                                weight=job.prior_weight))
+        except NoLabelledSignals:
+            empty = {"outcome": "no prior", "step": None, "premise": None}
+        else:
+            prior.check_space(data_space(signals, config.learner.frame))
+            config = replace(
+                config, prior=prior.complemented() if job.arm == "complemented" else prior)
     learners: list[Any] = []
     result = run_session(
         job.user + DAY2_SEED_OFFSET, config, as_features(signals),
         on_move=lambda session, _: learners.append(session.learner) if not learners else None,
     )
-    return result, decision_of(learners[0])
+    return result, empty or decision_of(learners[0])
 
 
 def population_prior(paths: tuple[str, ...], user: int, weight: float = 1.0) -> Prior:
@@ -410,6 +417,7 @@ def fallbacks(decisions: list[dict[str, Any]]) -> dict[str, Any]:
         "fell_back": len(by["fallen back"]), "fell_back_at": by["fallen back"],
         "trusted": len(by["trusted"]), "trusted_at": by["trusted"],
         "testing": sum(d["outcome"] == "testing" for d in decisions),
+        "no_prior": sum(d["outcome"] == "no prior" for d in decisions),
         "refused_by_power_premise": sum(d["step"] == 0 for d in decisions
                                         if d["outcome"] == "fallen back"),
     }

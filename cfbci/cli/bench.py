@@ -370,6 +370,7 @@ def print_returning(report: dict[str, Any], console: Console) -> None:
                 f"prior trusted {falls['trusted']}/{falls['sessions']} (steps "
                 f"{falls['trusted_at']}), fell back {falls['fell_back']} (steps "
                 f"{falls['fell_back_at']}; 0: the power premise), testing {falls['testing']}"
+                + (f", no prior {falls['no_prior']}" if falls["no_prior"] else "")
             )
         console.print(f"{arm}: " + ", ".join(parts), soft_wrap=True, highlight=False)
     console.print(
