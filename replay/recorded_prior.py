@@ -32,8 +32,9 @@ def record_prior(recorder: SessionRecorder, files: dict[str, bytes]) -> None:
         recorder.record("/prior", message, t_ns)
 
 
-def recorded_prior(recording: Recording) -> Prior | None:
-    """The prior a recorded session started from (None for a session without one).
+def prior_files(recording: Recording) -> dict[str, bytes]:
+    """The files of the prior a recorded session started from, by digest in the config's
+    order (none for a session without one).
 
     Raises
     ------
@@ -41,21 +42,33 @@ def recorded_prior(recording: Recording) -> Prior | None:
         When the recording names a prior it holds no intact copy of (the digest of a
         missing file, or of one whose bytes have another SHA-256).
     """
-    hashes = recording.config.get("prior")
-    if not hashes:
-        return None
     held = {m["sha256"]: m["data"] for _, m in recording.messages.get("/prior", [])}
+    files = {}
+    for sha256 in recording.config.get("prior") or []:
+        if sha256 not in held:
+            raise ValueError(f"{recording.path}: the session's prior {sha256[:12]} is not in "
+                             "the recording (no /prior message holds it)")
+        files[sha256] = base64.b64decode(held[sha256])
+        if hashlib.sha256(files[sha256]).hexdigest() != sha256:
+            raise ValueError(f"{recording.path}: the recorded copy of prior {sha256[:12]} "
+                             "has another SHA-256: damaged")
+    return files
+
+
+def recorded_prior(recording: Recording) -> Prior | None:
+    """The prior a recorded session started from (None for a session without one), read
+    from its files (:func:`prior_files`) as the service read them from its store.
+
+    Raises
+    ------
+    ValueError
+        As :func:`prior_files`.
+    """
+    files = prior_files(recording)
+    if not files:
+        return None
     with tempfile.TemporaryDirectory(prefix="cfbci-prior-") as folder:
-        paths = []
-        for sha256 in hashes:
-            if sha256 not in held:
-                raise ValueError(f"{recording.path}: the session's prior {sha256[:12]} is "
-                                 "not in the recording (no /prior message holds it)")
-            data = base64.b64decode(held[sha256])
-            if hashlib.sha256(data).hexdigest() != sha256:
-                raise ValueError(f"{recording.path}: the recorded copy of prior "
-                                 f"{sha256[:12]} has another SHA-256: damaged")
-            path = Path(folder) / f"{sha256}.mcap"
+        paths = [Path(folder) / f"{sha256}.mcap" for sha256 in files]
+        for path, data in zip(paths, files.values(), strict=True):
             path.write_bytes(data)
-            paths.append(path)
         return read_prior(paths)

@@ -50,6 +50,7 @@ from calibration_free.streams import StepRecord
 from cfbci.bench.returning import DayOneTape, recorded_config, simulation_prior
 from cfbci.cli import main
 from cfbci.offline.simulation import SessionConfig, run_session
+from cfbci.recordings.publish import publish_recording
 from cfbci.service import serve
 from cfbci.service.limits import ServiceLimits
 from cfbci.service.process import spawned
@@ -281,6 +282,10 @@ def test_a_wrong_missing_oversized_or_mismatched_prior_is_refused(
         # The service goes on: a session with the user's prior runs.
         settings = SourceSettings("lab/after", seed=2, steps=5, grid=GRID, prior=(day_one,))
         assert run_source(settings, [], [endpoint]).steps == 5
+        # Published again (`cfbci replay --publish`), with the prior its recording holds.
+        again = publish_recording(session, tmp_path / "records" / "lab" / "after.mcap",
+                                  session_id="lab/after-again")
+        assert again.moves_divergence is None and again.states_divergence is None
         # Deleted, the prior is gone from the store, and a config naming it is refused.
         capsys.readouterr()
         assert main(["priors", "list", "--prior-dir", str(store), "--user", "lab"]) == 0

@@ -57,6 +57,18 @@ def upload_priors(
     RuntimeError
         When the service refuses a file (``prior_rejected``: its message).
     """
+    files = [(str(path), path.read_bytes()) for path in paths]
+    return upload_contents(session, sid, files, timeout, resend_interval)
+
+
+def upload_contents(
+    session: zenoh.Session,
+    sid: str,
+    files: Sequence[tuple[str, bytes]],
+    timeout: float,
+    resend_interval: float,
+) -> list[str]:
+    """:func:`upload_priors` of files' contents, each with the name messages give it."""
     inbox: queue.SimpleQueue[Received] = queue.SimpleQueue()
     pump = Pump(session, protocol.key(sid, "event"), "event", inbox)
     outbox = Outbox(session)
@@ -64,22 +76,22 @@ def upload_priors(
         if not wait_for_subscribers(outbox.publisher(protocol.key(sid, "prior")), timeout):
             raise TimeoutError(f"no service subscribed to {protocol.key(sid, 'prior')} within "
                                f"{timeout:g} s")
-        return [_upload(path, sid, inbox, Resender(outbox, resend_interval), timeout)
-                for path in paths]
+        return [_upload(name, data, sid, inbox, Resender(outbox, resend_interval), timeout)
+                for name, data in files]
     finally:
         pump.close()
         outbox.close()
 
 
 def _upload(
-    path: Path,
+    path: str,
+    data: bytes,
     sid: str,
     inbox: queue.SimpleQueue[Received],
     resender: Resender,
     timeout: float,
 ) -> str:
     """Upload one file (see the module docstring); its digest."""
-    data = path.read_bytes()
     sha256 = hashlib.sha256(data).hexdigest()
 
     def send(offset: int, ask: bool = False) -> None:

@@ -46,6 +46,7 @@ import numpy as np
 import zenoh
 from rich.console import Console
 
+from replay.recorded_prior import prior_files
 from replay.recording import Recording, decode_array, read_recording
 from replay.rerun import (
     STATE_FIELDS,
@@ -57,6 +58,7 @@ from replay.rerun import (
 from session.plane import is_plane
 from wire import protocol
 from wire.client import DEFAULT_TIMEOUT, RESEND_INTERVAL, Client
+from wire.prior_upload import upload_contents
 from wire.zenoh_config import peer_config
 
 log = logging.getLogger("cfbci.recordings.publish")
@@ -296,13 +298,19 @@ def publish_recording(
         If no service subscribes to the config, or the service keeps us waiting.
     RuntimeError
         If the service rejects the session (a ``session_rejected`` event answering its
-        config); ``error`` events about single messages are only logged.
+        config) or the files of its prior, which are uploaded first (the recording's
+        ``/prior``); ``error`` events about single messages are only logged.
     """
     if not isinstance(recording, Recording):
         recording = read_recording(recording)
     published = _prepare(recording, recording.path)
     sid = session_id or default_session_id(recording)
     check_speed(speed)
+    files = prior_files(recording)  # uploaded again, for the service's store of sid's user
+    if files:
+        names = [f"{recording.path} /prior {sha256[:12]}" for sha256 in files]
+        upload_contents(session, sid, list(zip(names, files.values(), strict=True)), timeout,
+                        resend_interval)
     with Client(session, sid, log, timeout, resend_interval) as client:  # checks the id
         publisher = _Publisher(client, published, speed)
         client.run(published.config, publisher)
