@@ -164,9 +164,10 @@ def test_a_cut_file_with_garbage_after_it_is_no_traceback(
         status, out, _ = run(["replay", str(path)], capsys)
         assert status == 3 and "identical as far as the file goes" in out, out
         assert "truncated at byte" in out or "damaged" in out
-        status, out, _ = run(["recover", str(path), "--out", str(tmp_path / "r.mcap")], capsys)
+        clean = tmp_path / f"recovered-{at}.mcap"
+        status, out, _ = run(["recover", str(path), "--out", str(clean)], capsys)
         assert status in (0, 3) and "recovered" in out
-        assert read_recording(tmp_path / "r.mcap").complete
+        assert read_recording(clean).complete
         assert digest(path) == before
     done = subprocess.run([sys.executable, "-m", "cfbci.cli", "replay", str(path)],
                           capture_output=True, text=True, cwd=ROOT, timeout=120)
