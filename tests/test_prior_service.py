@@ -324,11 +324,19 @@ def test_cfbci_session_with_a_prior(record_dir: Path, tmp_path: Path) -> None:
 def test_a_bad_prior_file_is_refused_before_anything_starts(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
+    """`cfbci session --prior`: a missing file, or a prior of another feature space than
+    the session's, is refused with exit status 2 before any process starts."""
     record = tmp_path / "runs" / "s.mcap"
     missing = tmp_path / "nothing.mcap"
     assert main(["session", "--steps", "5", "--prior", str(missing), "--record",
                  str(record)]) == 2
     assert f"{missing}: no such file" in capsys.readouterr().err
+    features = tmp_path / "features.mcap"
+    gaussian_day(features, dims=2)
+    assert main(["session", "--steps", "5", "--prior", str(features), "--record",
+                 str(record)]) == 2
+    err = capsys.readouterr().err
+    assert "another feature space" in err and "sfreq: None vs 256.0" in err
     assert not record.parent.exists()
 
 
