@@ -163,7 +163,9 @@ class BridgeSummary:
     session : str
     epochs : list of dict
         Every published epoch: ``step``, ``onset`` (its onset sample's timestamp, s),
-        ``repeat`` (how often its move had been sent again).
+        ``repeat`` (how often its move had been sent again), ``arrived`` (when its
+        window's last sample arrived, s of the monotonic clock: ``pylsl.local_clock``'s on
+        Linux).
     gaps : list of Gap
         Discontinuities of the EEG, in order.
     refused : list of dict
@@ -438,7 +440,8 @@ class _Bridge:
         self.summary.latency_ns.append(time.monotonic_ns() - epoch.last_arrival_ns)
         self.summary.age_s.append(pylsl.local_clock() - epoch.last_time - self.eeg.offset)
         self.summary.epochs.append(
-            {"step": awaited.step, "onset": epoch.onset_time, "repeat": awaited.repeat}
+            {"step": awaited.step, "onset": epoch.onset_time, "repeat": awaited.repeat,
+             "arrived": epoch.last_arrival_ns / 1e9}
         )
         self.awaited = None
 

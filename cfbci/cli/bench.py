@@ -71,6 +71,7 @@ def add_bench_command(commands: argparse._SubParsersAction) -> None:
     latency.set_defaults(run=_run_bench_latency)
     add_soak_parser(which)
     add_flood_parser(which)
+    add_timing_parser(which)
     fuzz = which.add_parser(
         "fuzz-recordings",
         help="damaged recordings (bit flips, cuts, garbage) through replay, report, recover "
@@ -280,6 +281,56 @@ def _run_flood(args: Any, console: Console) -> int:
         for report in reports.values()
     )
     return 0 if ok else 1
+
+
+def add_timing_parser(which: argparse._SubParsersAction) -> None:
+    """Register ``cfbci bench timing``."""
+    p = which.add_parser(
+        "timing",
+        help="the stimulus page's onsets against Chromium's own trace clock, and the loop's "
+        "latency to the frame",
+        description="One session of the lab loop on loopback (serve, lsl-bridge, lsl-simulator "
+        "--onsets, view --stimulus with its subject page in headless Chromium): each onset "
+        "marker's LSL timestamp against the time of the same frame in a trace of Chromium's "
+        "(CLOCK_MONOTONIC, pylsl's clock), its drift, the refresh rate, the invalid onsets "
+        "and the latency from an epoch's last sample at the bridge to the frame showing the "
+        "next move (cfbci/bench/timing.py). Needs chromium, chromium-driver and selenium.",
+    )
+    p.add_argument("--onsets", type=int, default=200, help="steps of the session (default 200)")
+    p.add_argument("--interval", type=float, default=0.25,
+                   help="the page's inter-action interval, s (default 0.25)")
+    p.add_argument("--seed", type=int, default=0, help="session seed (default 0)")
+    p.add_argument("--skew-ms", type=float, default=0.0,
+                   help="a deliberate error: the page answers the clock's round trips this "
+                   "many ms early, so every marker is that late against the trace (a check "
+                   "that the reference is independent; default 0)")
+    p.add_argument("--json", type=Path, help="write the figures as JSON")
+    p.set_defaults(run=_run_bench_timing)
+
+
+def _run_bench_timing(args: argparse.Namespace, console: Console) -> int:
+    from cfbci.bench.timing import bench_timing, missing
+
+    needs = missing()
+    if needs is not None:
+        Console(stderr=True).print(f"error: {needs}", soft_wrap=True, highlight=False)
+        return 2
+    report, basis = bench_timing(args.onsets, args.interval, args.seed, args.skew_ms)
+    error, latency = report["onset_error_ms"], report["move_to_frame_ms"]
+    console.print(
+        f"{report['steps']} steps, {basis['onsets']} valid onsets, "
+        f"{report['invalid_onsets']} invalid; refresh {report['refresh_hz']:.1f} Hz\n"
+        f"onset error against Chromium's trace: median {error['median']:.3f} ms, p99 "
+        f"{error['p99']:.3f} ms, max {error['max']:.3f} ms (signed mean "
+        f"{basis['mean_error_ms']:+.3f} ms); drift {report['drift_ms_per_hour']:+.2f} ms/h\n"
+        f"move to frame: median {latency['median']:.1f} ms, p99 {latency['p99']:.1f} ms "
+        f"(over {basis['latencies']} steps)\n"
+        f"pylsl.local_clock() - CLOCK_MONOTONIC: at most {basis['clock_difference_ms']:.4f} ms",
+        highlight=False, soft_wrap=True,
+    )
+    if args.json:
+        args.json.write_text(json.dumps(report, indent=2) + "\n")
+    return 0
 
 
 def add_returning_parser(which: argparse._SubParsersAction) -> None:

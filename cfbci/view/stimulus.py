@@ -148,8 +148,10 @@ class _MoveReader(threading.Thread):
             log.info("reading the move stream %r", self.stream)
             try:
                 while not self.stop.is_set():
-                    values, _ = inlet.pull_chunk(timeout=0.05, as_numpy=False)
-                    for value in values:
+                    # One sample at a time: a chunk's pull waits its whole timeout for
+                    # more samples after the first, and a move would wait with it.
+                    value, _ = inlet.pull_sample(timeout=0.05)
+                    if value is not None:
                         self.deliver(value[0])
             except LostError:
                 log.warning("the move stream %r was lost; resolving it again", self.stream)

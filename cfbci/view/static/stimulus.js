@@ -9,8 +9,8 @@
 // before that frame nor the one after it may exceed `frame_tolerance` periods (a dropped
 // frame); otherwise the onset is reported invalid and the server sends the move again.
 // Each show is marked in the page's performance timeline: performance.mark("onset <step>")
-// in the frame that shows it (with the frame's timestamp in its detail), for a trace of
-// Chromium's to be compared with the LSL markers.
+// in the frame that shows it, at the frame's timestamp (its startTime), for a trace of
+// Chromium's to be compared with the LSL markers (cfbci bench timing).
 
 const cfbciStimulus = (() => {
   const SVG = "http://www.w3.org/2000/svg";
@@ -149,7 +149,7 @@ const cfbciStimulus = (() => {
         const declared = move.action === "goal";
         const bumped = !declared && move.to_state === move.from_state;
         scene.draw(move.to_state, bumped ? move.action : null, declared);
-        performance.mark(`onset ${move.step}`, {detail: {frame_ms: t, repeat: move.repeat}});
+        performance.mark(`onset ${move.step}`, {startTime: t, detail: {repeat: move.repeat}});
         checking = {...pending, frame: t, before: interval,
                     hidden: document.visibilityState !== "visible"};
         hidden = false;
