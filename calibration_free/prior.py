@@ -551,10 +551,11 @@ def adopted_labels(
 def power_premise(signals: np.ndarray, labels: np.ndarray, weights: np.ndarray) -> float:
     """How far a prior's feedback labels agree with the ErrP power premise (errors carry
     more power): the power prior's log-power evidence
-    (`calibration_free.power_prior.LogPowerEvidence`) of the prior's labels, each
-    signal's label weights times its weight: positive where its error-labelled signals
-    carry more power than its correct ones, negative where less (labels adopted wrongly),
-    in nats.
+    (`calibration_free.power_prior.LogPowerEvidence`) of the prior's labels, every sum
+    weighted by the signals' weights (copies of an epoch sharing its weight count as that
+    epoch once): positive where its error-labelled signals carry more power than its
+    correct ones, negative where less (labels adopted wrongly), in nats; 0 where a class
+    has no weight or the powers do not vary.
 
     Parameters
     ----------
@@ -563,7 +564,15 @@ def power_premise(signals: np.ndarray, labels: np.ndarray, weights: np.ndarray) 
         Correct and error weights.
     weights : ndarray, shape (n,)
     """
-    evidence = LogPowerEvidence(1, 2)
-    for signal, label, weight in zip(np.asarray(signals, float), labels, weights, strict=True):
-        evidence.add(weight * label[None], float(signal @ signal))
-    return float(evidence.scores()[0])
+    x = np.asarray(signals, dtype=float)
+    z = np.log(np.maximum(np.einsum("ij,ij->i", x, x), np.finfo(float).tiny))
+    w = np.asarray(weights, dtype=float)
+    by_class = w[:, None] * np.asarray(labels, dtype=float)
+    counts, sums = by_class.sum(axis=0), by_class.T @ z
+    n, total = w.sum(), w @ z
+    scatter = w @ (z * z) - total * total / n
+    if not scatter > 0 or np.any(counts <= 0):
+        return 0.0
+    means = sums / counts
+    within = np.clip(scatter - (sums @ means - total * total / n), scatter * 1e-12, scatter)
+    return float(np.sign(means[1] - means[0]) * 0.5 * n * np.log(scatter / within))

@@ -430,3 +430,15 @@ def test_the_informed_learner_declares_only_corroborated_targets(
         assert all(seen)
         informed_declarations += len(seen)
     assert informed_declarations > 0
+
+
+def test_the_power_premise_counts_copies_by_their_weights() -> None:
+    """Copies of an epoch sharing its weight (a small data set's recurring epochs) give
+    the premise of the distinct epochs: every part of the statistic is weighted alike."""
+    data = features_from_epochs(generate_errp_epochs(150, 150, accuracy=0.7, seed=5))
+    signals, labels = data.features.astype(np.float32), np.eye(2)[data.labels]
+    once = power_premise(signals, labels, np.ones(len(labels)))
+    twice = power_premise(np.concatenate([signals, signals]), np.concatenate([labels, labels]),
+                          np.full(2 * len(labels), 0.5))
+    assert once > 5
+    assert twice == pytest.approx(once, rel=1e-9)
