@@ -321,6 +321,30 @@ def test_cfbci_session_with_a_prior(record_dir: Path, tmp_path: Path) -> None:
     assert sorted(p.name for p in record.parent.iterdir()) == ["day2.mcap"]
 
 
+def test_priors_add_copies_a_users_recording_into_its_store(
+    record_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """`cfbci priors add`: a recording copied into a user's folder under its SHA-256 (the
+    digest printed, which a config names); a file that is no prior is refused, saying why,
+    and nothing is copied."""
+    day_one, store = record_dir / "lab" / "day1.mcap", tmp_path / "priors"
+    capsys.readouterr()
+    assert main(["priors", "add", "--prior-dir", str(store), "--user", "lab",
+                 str(day_one)]) == 0
+    sha256 = file_sha256(day_one)
+    assert capsys.readouterr().out.startswith(sha256)
+    assert (store / "lab" / f"{sha256}.mcap").read_bytes() == day_one.read_bytes()
+    other = tmp_path / "not-a-recording.mcap"
+    other.write_bytes(b"no mcap")
+    assert main(["priors", "add", "--prior-dir", str(store), "--user", "lab-x",
+                 str(other)]) == 2
+    assert str(other) in capsys.readouterr().err
+    assert main(["priors", "add", "--prior-dir", str(store), "--user", "a/b",
+                 str(day_one)]) == 2
+    assert "user 'a/b' is not a name" in capsys.readouterr().err
+    assert sorted(p.name for p in store.iterdir()) == ["lab"]
+
+
 def test_a_bad_prior_file_is_refused_before_anything_starts(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
