@@ -43,6 +43,9 @@ onset marker that arrives more than ``late_marker`` seconds after its own timest
 reported (and used if its window is whole); one that names another step, precedes the
 move or comes when no move awaits an onset is reported and ignored. A stream that is lost
 is resolved again by name (a restarted source is found with its new uid).
+
+Photodiode. With ``photodiode`` the onset is a photodiode channel's crossing paired with
+the marker, the channel kept out of the epochs (the rule: ``acquisition.photodiode``).
 """
 
 from __future__ import annotations
@@ -52,6 +55,7 @@ import socket
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -71,8 +75,10 @@ from acquisition.lsl_streams import (
     parse_onset_marker,
     resolve_inlet,
 )
+from acquisition.photodiode import Photodiode, PhotodiodeRule
 from wire import protocol
-from wire.client import Client
+from wire.client import RESEND_INTERVAL, Client
+from wire.prior_upload import upload_priors
 from wire.zenoh_config import peer_config
 
 log = logging.getLogger("cfbci.lsl_bridge")
@@ -121,6 +127,10 @@ class BridgeSettings:
     timeout : float
         Seconds to find a stream, or that the service or the stimulus program may keep the
         bridge waiting, before giving up.
+    photodiode : PhotodiodeRule or None
+        Take the onsets from this photodiode channel (``acquisition.photodiode``).
+    prior : tuple of Path
+        Earlier recordings of the user the learner starts from (``cfbci source --prior``).
     """
 
     session: str
@@ -141,6 +151,8 @@ class BridgeSettings:
     buffer_seconds: float = DEFAULT_BUFFER_SECONDS
     late_marker: float = 0.5
     timeout: float = 30.0
+    photodiode: PhotodiodeRule | None = None
+    prior: tuple[Path, ...] = ()
 
     def window(self, sfreq: float) -> tuple[int, int]:
         """First and last sample of an epoch relative to its onset sample."""
@@ -165,7 +177,7 @@ class BridgeSummary:
         Every published epoch: ``step``, ``onset`` (its onset sample's timestamp, s),
         ``repeat`` (how often its move had been sent again), ``arrived`` (when its
         window's last sample arrived, s of the monotonic clock: ``pylsl.local_clock``'s on
-        Linux).
+        Linux); with a photodiode, ``marker`` (the marker's time in the EEG's clock, s).
     gaps : list of Gap
         Discontinuities of the EEG, in order.
     refused : list of dict
@@ -298,7 +310,7 @@ def bridge_session(
         bridge waiting for ``settings.timeout`` s.
     RuntimeError
         If the service rejects the session (a ``session_rejected`` event answering its
-        config); ``error`` events about single messages are only logged.
+        config) or a prior's upload; ``error`` events about single messages are logged.
     ValueError
         If the EEG stream's metadata do not describe EEG (see
         :func:`acquisition.lsl_streams.eeg_stream_meta`) or the marker stream does not
@@ -308,6 +320,8 @@ def bridge_session(
     eeg = _Input(settings.eeg, settings, summary, keep_running)
     meta = eeg_stream_meta(eeg.inlet.info())
     first, last = settings.window(meta.sfreq)
+    photodiode = settings.photodiode and settings.photodiode.bind(list(meta.ch_names), meta.sfreq)
+    names = photodiode.eeg_names(list(meta.ch_names)) if photodiode else list(meta.ch_names)
     markers = _Input(settings.markers, settings, summary, keep_running)
     shift = settings.marker_shift
     if shift is None:
@@ -327,11 +341,14 @@ def bridge_session(
         "dataset": {"description": f"LSL streams {settings.eeg!r} (EEG) and "
                                    f"{settings.markers!r} (markers)"},
         "signal": "epochs", "sfreq": meta.sfreq, "tmin": first / meta.sfreq,
-        "ch_names": list(meta.ch_names),
+        "ch_names": names,
     }
+    if settings.prior:  # uploaded first: the config names the bytes uploaded
+        config["prior"] = upload_priors(session, settings.session, settings.prior,
+                                        settings.timeout, RESEND_INTERVAL)
     with Client(session, settings.session, log, settings.timeout) as client:
         bridge = _Bridge(settings, meta, (first, last), shift / meta.sfreq, eeg, markers,
-                         moves, client, summary)
+                         moves, client, summary, photodiode or None, names)
         client.run(config, bridge, keep_running)
     for stream in (eeg, markers):  # before their outlets close: no broken stream
         stream.inlet.close_stream()
@@ -346,12 +363,13 @@ class _Bridge:
     def __init__(
         self, settings: BridgeSettings, meta: StreamMeta, window: tuple[int, int],
         marker_shift: float, eeg: _Input, markers: _Input, moves: pylsl.StreamOutlet,
-        client: Client, summary: BridgeSummary,
+        client: Client, summary: BridgeSummary, photodiode: Photodiode | None,
+        names: list[str],
     ) -> None:
         self.settings, self.meta, self.window = settings, meta, window
         self.marker_shift = marker_shift  # s added to every marker timestamp
         self.eeg, self.markers, self.moves, self.client = eeg, markers, moves, client
-        self.summary = summary
+        self.summary, self.photodiode, self.names = summary, photodiode, names
         self.buffer = SampleBuffer(len(meta.ch_names), meta.sfreq, settings.buffer_seconds,
                                    settings.gap_tolerance)
         self.times = np.arange(window[0], window[1] + 1) / meta.sfreq
@@ -421,7 +439,9 @@ class _Bridge:
 
     def _try_cut(self, awaited: _Awaited) -> None:
         assert awaited.onset is not None
-        result = self.buffer.cut(awaited.onset, *self.window)
+        onset = awaited.onset if self.photodiode is None else self.photodiode.locate(
+            self.buffer, awaited.onset)
+        result = onset if not isinstance(onset, float) else self.buffer.cut(onset, *self.window)
         if result is None:
             return
         if isinstance(result, Refusal):
@@ -434,14 +454,16 @@ class _Bridge:
         self._publish(awaited, result)
 
     def _publish(self, awaited: _Awaited, epoch: Epoch) -> None:
-        data = apply_baseline(epoch.data, self.times, self.settings.baseline)
-        fields = {"step": awaited.step, "signal": "epochs", "ch_names": list(self.meta.ch_names)}
+        data = epoch.data if self.photodiode is None else self.photodiode.strip(epoch.data)
+        data = apply_baseline(data, self.times, self.settings.baseline)
+        fields = {"step": awaited.step, "signal": "epochs", "ch_names": self.names}
         self.client.send_epoch(fields, data)
         self.summary.latency_ns.append(time.monotonic_ns() - epoch.last_arrival_ns)
         self.summary.age_s.append(pylsl.local_clock() - epoch.last_time - self.eeg.offset)
         self.summary.epochs.append(
             {"step": awaited.step, "onset": epoch.onset_time, "repeat": awaited.repeat,
              "arrived": epoch.last_arrival_ns / 1e9}
+            | ({"marker": awaited.onset} if self.photodiode else {})
         )
         self.awaited = None
 

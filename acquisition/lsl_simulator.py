@@ -33,6 +33,8 @@ A move sent again (``repeat`` > 0, the bridge could not cut its epoch) is answer
 the same epoch, and its truth is not sent again.
 
 Between epochs the signal is a simple continuous background (:class:`Background`).
+With ``photodiode`` (s), a display's delay: every epoch's onset sample is that delay after
+its marker's, and a photodiode channel (``acquisition.photodiode``) pulses from it.
 For tests, :class:`Drop` leaves samples of an epoch out of the stream (a gap in the
 timestamps) and ``restart_after`` closes the EEG outlet for ``outage`` seconds and opens
 it again (the stream vanishes and comes back with a new uid).
@@ -67,6 +69,7 @@ from acquisition.lsl_streams import (
     resolve_inlet,
 )
 from acquisition.lsl_written import check_recording as check_recording  # for older imports
+from acquisition.photodiode import PHOTODIODE_CHANNEL, PULSE_SECONDS, pulse_column
 from acquisition.sources import DataSpec, synthetic_epochs
 from acquisition.user import SimulatedUser
 from calibration_free.streams import session_streams
@@ -134,6 +137,8 @@ class SimulatorSettings:
         Listen to this marker stream's onsets instead of making them (see the module).
     marker_latency : float
         Listening: how late an onset marker may arrive, s (the EEG's lag beyond |tmin|).
+    photodiode : float or None
+        A display's delay, s: a photodiode channel pulses that long after each marker.
     """
 
     session: str
@@ -153,6 +158,7 @@ class SimulatorSettings:
     timeout: float = 30.0
     onsets: str | None = None
     marker_latency: float = 0.3
+    photodiode: float | None = None
 
 
 @dataclass
@@ -274,6 +280,7 @@ class _Simulator:
         self.sfreq = self.signals.sfreq
         self.first = round(self.signals.tmin * self.sfreq)
         self.delay = round(settings.onset_delay * self.sfreq)
+        self.display = round((settings.photodiode or 0.0) * self.sfreq)  # samples
         if self.delay + self.first < CHUNK:
             raise ValueError(
                 f"--onset-delay {settings.onset_delay:g} s is too short: the epoch starts "
@@ -300,7 +307,8 @@ class _Simulator:
         self.session = session
 
     def _open_eeg(self) -> pylsl.StreamOutlet:
-        return eeg_outlet(self.settings.eeg, self.signals.ch_names, self.sfreq,
+        pd = [PHOTODIODE_CHANNEL] if self.settings.photodiode is not None else []
+        return eeg_outlet(self.settings.eeg, [*self.signals.ch_names, *pd], self.sfreq,
                           f"cfbci-sim-{self.settings.session}-eeg")
 
     def run(self, keep_running: Callable[[], bool]) -> Simulation:
@@ -358,12 +366,12 @@ class _Simulator:
     def _on_move(self, move: dict[str, Any]) -> None:
         self._answer(move)
         step = move["step"]
-        onset = self.next + self.delay
+        onset = self.next + self.delay + self.display  # the marker's sample: display before
         epoch = self.signals.epochs[self.answers[step]]
         first_time = move["repeat"] == 0
         late = sum(s for k, s in self.settings.late_markers if k == step and first_time)
         written = Written(step, move["repeat"], onset, onset + self.first, epoch,
-                          onset + round(late * self.sfreq))
+                          onset - self.display + round(late * self.sfreq))
         for drop in self.settings.drops:
             if drop.step == step and first_time:
                 written.dropped.append((onset + drop.offset, drop.count))
@@ -384,10 +392,13 @@ class _Simulator:
             block[inside] = written.epoch[:, indices[inside] - written.start].T
             for first, count in written.dropped:
                 keep &= (indices < first) | (indices >= first + count)
+        if self.settings.photodiode is not None:
+            block = np.hstack([block, pulse_column(indices, [w.onset for w in self.pending],
+                                                   round(PULSE_SECONDS * self.sfreq))])
         self._push(block[keep], indices[keep])
         for written in [w for w in self.marks if w.marked < due]:
             self.markers.push_sample([f"onset {written.step}"],
-                                     self.t0 + written.onset / self.sfreq)
+                                     self.t0 + (written.onset - self.display) / self.sfreq)
             self.marks.remove(written)
         finished = [w for w in self.pending if w.stop <= due]
         self.pending = [w for w in self.pending if w.stop > due]
@@ -480,7 +491,7 @@ class _Listener:
                 continue
             first = int((when - sim.t0) * sim.sfreq) - 1
             stamps = sim.t0 + np.arange(first, first + 3) / sim.sfreq  # as pushed
-            onset = first + nearest_sample(stamps, when)
+            onset = first + nearest_sample(stamps, when) + sim.display
             if onset + sim.first < sim.next:
                 sim.late.append((step, late := pylsl.local_clock() - when))
                 log.warning("onset of step %d came %.3f s late: its epoch's first samples "

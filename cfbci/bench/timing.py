@@ -28,8 +28,8 @@ Chromium itself, which does not share that estimate. So
   time of the frame that first shows move k + 1, minus the deliberate wait: the page shows
   a move no sooner than the interval after the last show, so the latency runs from the
   later of that arrival and the end of that wait. Steps after which the page redraws the
-  agent before showing the next move (a new start, a bump into a wall, a declaration,
-  a move shown again) wait a whole interval from the move's arrival at the page, which
+  agent before showing the next move (a new start, a bump into a wall, a declaration)
+  wait a whole interval from the move's arrival at the page, which
   the trace does not see: they are left out;
 * ``steps``: epochs the bridge published.
 
@@ -57,6 +57,7 @@ from typing import Any
 import numpy as np
 
 from acquisition.lsl_streams import loopback_config
+from replay.recording import read_recording
 from wire.zenoh_config import free_tcp_endpoint
 
 #: Debian's programs the bench drives, and the packages that install them.
@@ -109,15 +110,15 @@ def check_clock(reads: int = 100) -> float:
     return worst
 
 
-class _Streams(threading.Thread):
-    """Reads the onset markers and the moves from LSL until ``stop`` is set: (marker,
-    timestamp) pairs and the moves' texts."""
+class _Markers(threading.Thread):
+    """Reads the onset markers from LSL until ``stop`` is set: (marker, timestamp) pairs.
+    (Not the bridge's moves: an inlet of the bench's could let the bridge send the first
+    move before the view reads the stream.)"""
 
-    def __init__(self, onsets: str, moves: str) -> None:
-        super().__init__(name="bench-timing-streams", daemon=True)
-        self.names = (onsets, moves)
+    def __init__(self, onsets: str) -> None:
+        super().__init__(name="bench-timing-markers", daemon=True)
+        self.name = onsets
         self.markers: list[tuple[str, float]] = []
-        self.moves: list[str] = []
         self.stop = threading.Event()
         self.ready = threading.Event()
 
@@ -126,16 +127,14 @@ class _Streams(threading.Thread):
 
         from acquisition.lsl_streams import resolve_inlet
 
-        onsets, moves = (resolve_inlet(name, TIMEOUT) for name in self.names)
+        onsets = resolve_inlet(self.name, TIMEOUT)
         self.ready.set()
-        try:  # the bridge's move stream ends with the session, the view's onsets with it
+        try:
             while not self.stop.is_set():
                 value, stamp = onsets.pull_sample(timeout=0.02)
                 if value is not None:
                     self.markers.append((value[0], stamp))
-                self.moves.extend(v[0] for v in moves.pull_chunk(timeout=0.0,
-                                                                 as_numpy=False)[0])
-        except LostError:
+        except LostError:  # the view ended
             pass
         values, stamps = onsets.pull_chunk(timeout=0.0, as_numpy=False)
         self.markers.extend((value[0], stamp) for value, stamp in zip(values, stamps,
@@ -290,8 +289,8 @@ def run_session(steps: int, interval: float, seed: int, skew_ms: float,
     -------
     dict
         ``marks`` (step, trace time s), ``markers`` (text, LSL timestamp s), ``moves``
-        (move markers' texts), ``onsets`` (the view's onset log), ``bridge`` (its report),
-        ``interval`` (s).
+        and ``epochs`` (the recording's), ``onsets`` (the view's onset log), ``bridge``
+        (its report), ``interval`` (s).
     """
     from selenium.webdriver.support.ui import WebDriverWait
 
@@ -310,13 +309,13 @@ def run_session(steps: int, interval: float, seed: int, skew_ms: float,
         browser.get(address)
         WebDriverWait(browser, TIMEOUT).until(lambda b: b.execute_script(
             "return document.getElementById('view').dataset.stimulus") == "on")
-        streams = _Streams(run.names["onsets"], run.names["moves"])
+        streams = _Markers(run.names["onsets"])
         streams.start()
+        if not streams.ready.wait(TIMEOUT):
+            raise RuntimeError("the view's onset stream was not found")
         simulator, bridge = run.clients()
         running.callback(_stop, simulator)
         running.callback(_stop, bridge)
-        if not streams.ready.wait(TIMEOUT):
-            raise RuntimeError("the onset and move streams were not found")
         try:
             bridge.wait(steps * (interval + 10.0) + TIMEOUT)
         finally:
@@ -324,10 +323,13 @@ def run_session(steps: int, interval: float, seed: int, skew_ms: float,
             streams.join(TIMEOUT)
         if bridge.returncode != 0:
             raise RuntimeError(f"the bridge failed (status {bridge.returncode}). "
-                               f"{run.log('bridge')}\n{run.log('simulator')}")
+                               f"{run.log('bridge')}\n{run.log('simulator')}\n{run.log('view')}")
         marks = tracer.finish()
     onsets = [json.loads(line) for line in (folder / "onsets.jsonl").read_text().splitlines()]
-    return {"marks": marks, "markers": streams.markers, "moves": streams.moves,
+    recording = read_recording(folder / f"{run.name}.mcap").messages
+    return {"marks": marks, "markers": streams.markers,
+            "moves": [m for _, m in recording["/move"]],
+            "epochs": [m for _, m in recording["/epoch"]],
             "onsets": onsets, "bridge": json.loads((folder / "bridge.json").read_text()),
             "interval": interval}
 
@@ -342,7 +344,7 @@ def _continuing(previous: dict[str, Any], move: dict[str, Any]) -> bool:
     """Whether the page shows ``move`` straight after ``previous`` (no redraw of the agent:
     ``previous`` left it plainly in the cell ``move`` starts from)."""
     plain = previous["action"] != "goal" and previous["to_state"] != previous["from_state"]
-    return plain and move["repeat"] == 0 and move["from_state"] == previous["to_state"]
+    return plain and move["from_state"] == previous["to_state"]
 
 
 def figures(raw: dict[str, Any]) -> tuple[dict[str, Any], dict[str, Any]]:
@@ -354,8 +356,6 @@ def figures(raw: dict[str, Any]) -> tuple[dict[str, Any], dict[str, Any]]:
     RuntimeError
         If a valid onset marker has no mark of its step in the trace.
     """
-    from acquisition.lsl_streams import parse_move_marker
-
     marks: dict[int, list[float]] = {}
     for step, when in raw["marks"]:
         marks.setdefault(step, []).append(when)
@@ -374,17 +374,18 @@ def figures(raw: dict[str, Any]) -> tuple[dict[str, Any], dict[str, Any]]:
     error_ms = np.asarray(errors) * 1e3
     hours = (np.asarray(times) - (times[0] if times else 0.0)) / 3600
     drift = float(np.polyfit(hours, error_ms, 1)[0]) if len(set(times)) > 1 else float("nan")
-    moves: dict[int, dict[str, Any]] = {}
-    for text in raw["moves"]:
-        move = parse_move_marker(text)
-        moves.setdefault(move["step"], move)  # the first time each step's move was sent
+    moves = {move["step"]: move for move in raw["moves"]}
     arrived = {e["step"]: e["arrived"] for e in raw["bridge"]["epochs"]}
-    latency = [
-        min(marks[step + 1]) - max(arrived[step], max(marks[step]) + raw["interval"])
-        for step in sorted(arrived)
-        if step + 1 in marks and step in marks and step in moves and step + 1 in moves
-        and _continuing(moves[step], moves[step + 1])
-    ]
+    measured = [step for step in sorted(arrived)
+                if step + 1 in marks and step in marks and step in moves and step + 1 in moves
+                and _continuing(moves[step], moves[step + 1])]
+    latency = [min(marks[step + 1]) - max(arrived[step], max(marks[step]) + raw["interval"])
+               for step in measured]
+    # Its parts, from the recording's times (monotonic clock): the epoch's arrival at the
+    # service to the next move's, and that move to the frame.
+    received = {m["step"]: m["t_ns"] / 1e9 for m in raw["epochs"]}
+    service = [moves[step + 1]["t_ns"] / 1e9 - received[step] for step in measured]
+    delivery = [min(marks[step + 1]) - moves[step + 1]["t_ns"] / 1e9 for step in measured]
     periods = [o["period_ms"] for o in raw["onsets"] if o.get("period_ms")]
     return ({
         "onset_error_ms": _stats(np.abs(error_ms), ("median", "p99", "max")),
@@ -394,6 +395,8 @@ def figures(raw: dict[str, Any]) -> tuple[dict[str, Any], dict[str, Any]]:
         "move_to_frame_ms": _stats(np.asarray(latency) * 1e3, ("median", "p99")),
         "steps": len(raw["bridge"]["epochs"]),
     }, {"onsets": len(errors), "latencies": len(latency),
+        "service_ms": _stats(np.asarray(service) * 1e3, ("median", "p99")),
+        "move_to_frame_from_service_ms": _stats(np.asarray(delivery) * 1e3, ("median", "p99")),
         "mean_error_ms": float(error_ms.mean()) if len(error_ms) else float("nan")})
 
 

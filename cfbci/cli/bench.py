@@ -315,7 +315,11 @@ def _run_bench_timing(args: argparse.Namespace, console: Console) -> int:
     if needs is not None:
         Console(stderr=True).print(f"error: {needs}", soft_wrap=True, highlight=False)
         return 2
-    report, basis = bench_timing(args.onsets, args.interval, args.seed, args.skew_ms)
+    try:
+        report, basis = bench_timing(args.onsets, args.interval, args.seed, args.skew_ms)
+    except RuntimeError as error:  # a part failed: its log is in the message
+        Console(stderr=True).print(f"error: {error}", soft_wrap=True, highlight=False)
+        return 1
     error, latency = report["onset_error_ms"], report["move_to_frame_ms"]
     console.print(
         f"{report['steps']} steps, {basis['onsets']} valid onsets, "
@@ -324,7 +328,11 @@ def _run_bench_timing(args: argparse.Namespace, console: Console) -> int:
         f"{error['p99']:.3f} ms, max {error['max']:.3f} ms (signed mean "
         f"{basis['mean_error_ms']:+.3f} ms); drift {report['drift_ms_per_hour']:+.2f} ms/h\n"
         f"move to frame: median {latency['median']:.1f} ms, p99 {latency['p99']:.1f} ms "
-        f"(over {basis['latencies']} steps)\n"
+        f"(over {basis['latencies']} steps), of which the service (epoch in, move out): "
+        f"median {basis['service_ms']['median']:.1f} ms, p99 {basis['service_ms']['p99']:.1f} "
+        f"ms; its move to the frame: median "
+        f"{basis['move_to_frame_from_service_ms']['median']:.1f} ms, p99 "
+        f"{basis['move_to_frame_from_service_ms']['p99']:.1f} ms\n"
         f"pylsl.local_clock() - CLOCK_MONOTONIC: at most {basis['clock_difference_ms']:.4f} ms",
         highlight=False, soft_wrap=True,
     )

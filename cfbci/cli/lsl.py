@@ -6,6 +6,7 @@ import argparse
 import json
 import logging
 import signal
+import statistics
 import threading
 from pathlib import Path
 from typing import Any
@@ -13,7 +14,14 @@ from typing import Any
 from rich.console import Console
 
 from calibration_free.frames import FRAMES
-from cfbci.cli.options import add_data_options, add_endpoints, data_spec, parse_settings
+from cfbci.cli.options import (
+    add_data_options,
+    add_endpoints,
+    add_prior_option,
+    checked_prior,
+    data_spec,
+    parse_settings,
+)
 from session.config import learner_settings
 
 
@@ -99,7 +107,17 @@ def _add_bridge(commands: argparse._SubParsersAction) -> None:
         help="EEG sample periods added to every marker timestamp (default: from the marker "
         "stream's metadata: 1 for mne-lsl's PlayerLSL annotations, else 0)",
     )
+    p.add_argument("--photodiode", metavar="CHANNEL",
+                   help="take each onset from this photodiode channel's crossing after the "
+                   "marker, the channel kept out of the epochs (acquisition/photodiode.py)")
+    p.add_argument("--photodiode-threshold", type=float, metavar="LEVEL",
+                   help="the crossing level, uV (default: half-way between the channel's "
+                   "median before the marker and its pulse)")
+    p.add_argument("--photodiode-window", type=float, default=0.1, metavar="SECONDS",
+                   help="the one crossing must come within this many s after the marker, else "
+                   "the move is shown again (default 0.1)")
     p.add_argument("--json", type=Path, help="write the bridge's report as JSON")
+    add_prior_option(p)
     p.set_defaults(run=_run_bridge)
 
 
@@ -116,6 +134,7 @@ def _baseline(values: list[str] | None) -> tuple[float | None, float | None] | N
 def _run_bridge(args: argparse.Namespace, console: Console) -> int:
     _load_liblsl()
     from acquisition.lsl_bridge import BridgeSettings, run_bridge
+    from acquisition.photodiode import PhotodiodeRule
 
     if args.steps < 1 or args.timeout <= 0 or args.buffer <= 0:
         raise ValueError("--steps must be at least 1, --timeout and --buffer positive")
@@ -127,7 +146,9 @@ def _run_bridge(args: argparse.Namespace, console: Console) -> int:
         tmin=args.tmin, tmax=args.tmax, baseline=_baseline(args.baseline),
         onset_marker=args.onset_marker, gap_tolerance=args.gap_tolerance,
         buffer_seconds=args.buffer, late_marker=args.late_marker, timeout=args.timeout,
-        marker_shift=args.marker_shift,
+        marker_shift=args.marker_shift, prior=checked_prior(args),
+        photodiode=args.photodiode and PhotodiodeRule(
+            args.photodiode, args.photodiode_threshold, args.photodiode_window),
     )
     stop = _stop_on_signals()
     try:
@@ -150,6 +171,11 @@ def _run_bridge(args: argparse.Namespace, console: Console) -> int:
                 f"{figures['median']:.2f} ms, p99 {figures['p99']:.2f} ms, max "
                 f"{figures['max']:.2f} ms"
             )
+    if args.photodiode and summary.epochs:
+        delays = [1e3 * (e["onset"] - e["marker"]) for e in summary.epochs]
+        console.print(f"photodiode onsets after their markers: median "
+                      f"{statistics.median(delays):.1f} ms, min {min(delays):.1f}, max "
+                      f"{max(delays):.1f} ms")
     if args.json:
         args.json.write_text(json.dumps(report, indent=2) + "\n")
     return 0
@@ -211,6 +237,9 @@ def _add_simulator(commands: argparse._SubParsersAction) -> None:
                    help="listen: make no onsets, take them from this marker stream (a "
                    "stimulus program's, e.g. cfbci view --stimulus) and the moves from the "
                    "service; the EEG then runs |tmin| + --marker-latency behind real time")
+    p.add_argument("--photodiode", type=float, metavar="SECONDS",
+                   help="a display's delay: each epoch's onset this long after its marker, "
+                   "marked by a pulse on a 'Photodiode' channel (for lsl-bridge --photodiode)")
     p.add_argument("--marker-latency", type=float, default=0.3, metavar="SECONDS",
                    help="with --onsets: how late an onset marker may arrive (default 0.3)")
     p.set_defaults(run=_run_simulator)
@@ -223,6 +252,9 @@ def _run_simulator(args: argparse.Namespace, console: Console) -> int:
 
     if args.onset_delay <= 0 or args.outage <= 0 or args.timeout <= 0:
         raise ValueError("--onset-delay, --outage and --timeout must be positive")
+    if args.photodiode is not None and not 0 <= args.photodiode <= 0.5:
+        raise ValueError(f"--photodiode (a display's delay) must be in 0..0.5 s; got "
+                         f"{args.photodiode}")
     if not args.marker_latency > 0:
         raise ValueError(f"--marker-latency must be positive; got {args.marker_latency}")
     if args.onsets is not None and (args.drop or args.late_onset or args.restart_after):
@@ -238,6 +270,7 @@ def _run_simulator(args: argparse.Namespace, console: Console) -> int:
         drops=tuple(args.drop), late_markers=tuple(args.late_onset),
         restart_after=args.restart_after, outage=args.outage,
         timeout=args.timeout, onsets=args.onsets, marker_latency=args.marker_latency,
+        photodiode=args.photodiode,
     )
     stop = _stop_on_signals()
     try:

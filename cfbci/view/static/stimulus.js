@@ -116,7 +116,9 @@ const cfbciStimulus = (() => {
         scene.draw(move.from_state);
         since = Math.max(since, performance.now());
       }
-      pending = {show, move, due: since + settings.interval_ms};
+      // Never in a frame that began before the move came: its timestamp (the onset)
+      // would precede the move, which the bridge ignores as no onset of it.
+      pending = {show, move, due: Math.max(since + settings.interval_ms, performance.now())};
     };
 
     const check = (made, after, period) => {
