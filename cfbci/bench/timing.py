@@ -72,8 +72,7 @@ TOKEN = "bench-timing-token-0123456789"
 
 def missing() -> str | None:
     """What to install for the bench (one line), or None when everything is there."""
-    programs = [package for program, package in PROGRAMS.items()
-                if shutil.which(program) is None and not Path(f"/usr/bin/{program}").exists()]
+    programs = [package for program, package in PROGRAMS.items() if shutil.which(program) is None]
     try:
         import selenium  # noqa: F401
     except ImportError:
@@ -264,11 +263,10 @@ def _browser(folder: Path, skew_ms: float) -> Iterator[Any]:
     from selenium.webdriver.chrome.service import Service
 
     options = webdriver.ChromeOptions()
-    options.binary_location = shutil.which("chromium") or "/usr/bin/chromium"
+    options.binary_location = str(shutil.which("chromium"))
     for flag in (*CHROME_FLAGS, f"--user-data-dir={folder / 'chromium-profile'}"):
         options.add_argument(flag)
-    driver = webdriver.Chrome(options=options, service=Service(
-        shutil.which("chromedriver") or "/usr/bin/chromedriver"))
+    driver = webdriver.Chrome(options=options, service=Service(shutil.which("chromedriver")))
     try:
         if skew_ms:
             driver.execute_cdp_cmd("Page.addScriptToEvaluateOnNewDocument", {"source": (
