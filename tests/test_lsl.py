@@ -17,7 +17,7 @@ import signal
 import subprocess
 import sys
 import threading
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from contextlib import ExitStack, contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -186,11 +186,12 @@ def _stop(process: subprocess.Popen) -> None:
 
 @contextmanager
 def lsl_clients(
-    tmp_path: Path, steps: int, seed: int, endpoint: str, simulator_options: list[str]
+    tmp_path: Path, steps: int, seed: int, endpoint: str, simulator_options: list[str],
+    bridge_options: Sequence[str] = (),
 ) -> Iterator[Callable[[], LslSession]]:
-    """``lsl-simulator`` and ``lsl-bridge`` as processes connecting to ``endpoint``, for a
-    service recording to ``tmp_path``; yields the function that waits for both to exit
-    (status 0) and returns the session."""
+    """``lsl-simulator`` and ``lsl-bridge`` (with ``bridge_options``) as processes
+    connecting to ``endpoint``, for a service recording to ``tmp_path``; yields the
+    function that waits for both to exit (status 0) and returns the session."""
     name = tmp_path.name[-40:]
     (tmp_path / "lsl_api.cfg").write_text(loopback_config(f"cfbci-test-{name}"))
     common = ["--session", name, "--seed", str(seed), "--connect", endpoint,
@@ -201,7 +202,7 @@ def lsl_clients(
                            str(tmp_path / "written.npz"), *simulator_options)
         running.callback(_stop, simulator)
         bridge = _start(tmp_path, "bridge", "lsl-bridge", *common, "--steps", str(steps),
-                        "--json", str(tmp_path / "bridge.json"))
+                        "--json", str(tmp_path / "bridge.json"), *bridge_options)
         running.callback(_stop, bridge)
         logs = {role: tmp_path / f"{role}.log" for role in ("simulator", "bridge")}
 

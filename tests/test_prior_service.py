@@ -35,6 +35,7 @@ from test_access_control import (
     router,
     service,
 )
+from test_lsl import lsl_clients
 from test_resume import run_with_a_kill
 
 from acquisition.gaussian import generate_gaussian_features
@@ -85,10 +86,12 @@ def record_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return directory
 
 
-def simulated(seed: int, prior: Path | None) -> list[StepRecord]:
+def simulated(
+    seed: int, prior: Path | None, steps: int = STEPS, grid: int = GRID
+) -> list[StepRecord]:
     """The session of ``cfbci simulate --prior`` (or none) for ``seed``, step by step."""
     trace: list[StepRecord] = []
-    config = SessionConfig(steps=STEPS, grid=GRID)
+    config = SessionConfig(steps=steps, grid=grid)
     if prior is not None:
         config = replace(config, prior=simulation_prior([prior], DataSpec(), "feedback"))
     run_session(seed, config, DataSpec().resolve("feedback"), trace.append)
@@ -402,3 +405,23 @@ def test_behind_the_router_a_user_uploads_and_uses_only_its_own_priors(
             assert sorted(p.name for p in (store / "lab").iterdir()) == [f"{sha256}.mcap"]
             message = rejection(session, "lab-x/s1", config_of(1, [sha256]))
             assert f"prior {sha256[:12]} is not in user 'lab-x''s prior store" in message
+
+
+def test_an_lsl_bridge_session_with_a_prior(record_dir: Path, tmp_path: Path) -> None:
+    """`cfbci lsl-bridge --prior`: a session bridged from LSL with day 1 (recorded by the
+    service from `cfbci source`: the same feature space) as its prior, uploaded by the
+    bridge, makes the decisions of `cfbci simulate --prior` and replays identically."""
+    day_one, steps = record_dir / "lab" / "day1.mcap", 30
+    endpoint = free_tcp_endpoint()
+    with spawned(serve, [endpoint], [], tmp_path), lsl_clients(
+        tmp_path, steps, DAY_TWO_SEED, endpoint, ["--onset-delay", "0.3"],
+        ["--prior", str(day_one)],
+    ) as finish:
+        recording_path = finish().recording
+    recording = read_recording(recording_path)
+    assert recording.config["prior"] == [file_sha256(day_one)]
+    moves = [(m["from_state"], m["action"]) for _, m in recording.messages["/move"]]
+    trace = simulated(DAY_TWO_SEED, day_one, steps=steps, grid=5)
+    assert moves == [(r.state, r.action) for r in trace]
+    assert trace != simulated(DAY_TWO_SEED, None, steps=steps, grid=5)
+    assert main(["replay", str(recording_path)]) == 0

@@ -150,3 +150,23 @@ def add_live_plane_options(parser: argparse.ArgumentParser) -> None:
         help="continuous world: dataset class of each direction up,down,right,left "
         "(default 0,1,2,3; the learner never knows it)",
     )
+
+
+def add_prior_option(parser: argparse.ArgumentParser) -> None:
+    """``--prior FILE.mcap ...`` of the sources (``source``, ``session``, ``lsl-bridge``)."""
+    parser.add_argument(
+        "--prior", type=Path, nargs="+", default=[], metavar="FILE.mcap",
+        help="earlier recordings of the user: the learner starts from their signals and the "
+        "labels adopted at their targets (grid, line and pick-and-place worlds); uploaded "
+        "into the service's prior store of the session's user where it lacks them",
+    )
+
+
+def checked_prior(args: argparse.Namespace) -> tuple[Path, ...]:
+    """The ``--prior`` files, each one a readable prior (else a ``ValueError`` or
+    ``FileNotFoundError`` naming the file and the problem)."""
+    if args.prior:
+        from replay.prior import read_prior
+
+        read_prior(args.prior)
+    return tuple(args.prior)

@@ -12,8 +12,10 @@ from rich.console import Console
 
 from cfbci.cli.options import (
     add_endpoints,
+    add_prior_option,
     add_source_options,
     add_zenoh_config,
+    checked_prior,
     source_settings,
 )
 from cfbci.service.limits import LIMIT_HELP, ServiceLimits
@@ -77,7 +79,7 @@ def add_source_command(commands: argparse._SubParsersAction) -> None:
         help="session id: NAME, or USER/NAME in a user's key space (each 1-64 of A-Za-z0-9_-)",
     )
     add_source_options(p)
-    _add_prior_option(p)
+    add_prior_option(p)
     p.add_argument(
         "--pick-service", action="store_true",
         help="ask the services on the network for their load and name the least loaded one "
@@ -101,7 +103,7 @@ def _run_source(args: argparse.Namespace, console: Console) -> int:
     from acquisition.simulated_source import run_source
 
     settings = replace(source_settings(args, args.session), timeout=args.timeout,
-                       prior=_checked_prior(args))
+                       prior=checked_prior(args))
     try:
         summary = run_source(settings, args.listen, args.connect, args.zenoh_config)
     except (TimeoutError, RuntimeError) as error:  # as replay --publish and lsl-bridge
@@ -126,7 +128,7 @@ def add_session_command(commands: argparse._SubParsersAction) -> None:
         "defaults to the machine's physical memory.",
     )
     add_source_options(p)
-    _add_prior_option(p)
+    add_prior_option(p)
     add_limit_options(p)
     p.add_argument(
         "--record", type=Path, help="MCAP recording to write (default runs/<timestamp>.mcap)"
@@ -158,7 +160,7 @@ def _run_session(args: argparse.Namespace, console: Console) -> int:
     from cfbci.service.admission import check_config
 
     record = args.record or default_recording()
-    settings = replace(source_settings(args, session_id_for(record)), prior=_checked_prior(args))
+    settings = replace(source_settings(args, session_id_for(record)), prior=checked_prior(args))
     limits = limits_from_args(args)
     if limits.max_session_mb == ServiceLimits().max_session_mb:  # the flag's default
         limits = replace(limits, max_session_mb=own_limits().max_session_mb)
@@ -186,25 +188,6 @@ def _run_session(args: argparse.Namespace, console: Console) -> int:
     if args.json:
         write_json(result, args.json)
     return 0
-
-
-def _add_prior_option(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument(
-        "--prior", type=Path, nargs="+", default=[], metavar="FILE.mcap",
-        help="earlier recordings of the user: the learner starts from their signals and the "
-        "labels adopted at their targets (grid, line and pick-and-place worlds); uploaded "
-        "into the service's prior store of the session's user where it lacks them",
-    )
-
-
-def _checked_prior(args: argparse.Namespace) -> tuple[Path, ...]:
-    """The ``--prior`` files, each one a readable prior (else a ``ValueError`` or
-    ``FileNotFoundError`` naming the file and the problem)."""
-    if args.prior:
-        from replay.prior import read_prior
-
-        read_prior(args.prior)
-    return tuple(args.prior)
 
 
 def add_limit_options(parser: argparse.ArgumentParser) -> None:
