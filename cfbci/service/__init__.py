@@ -13,7 +13,9 @@ A package of small parts, one job each:
   and events published and recorded);
 - :mod:`cfbci.service.recordings`: the recordings, and the only reader of ``truth``;
 - :mod:`cfbci.service.resume`: sessions recorded but unfinished, re-run and continued
-  after a restart.
+  after a restart;
+- :mod:`cfbci.service.priors`: the prior store (users' earlier recordings by SHA-256, their
+  uploads, the checks of a config's prior).
 
 The session's world, learner and random streams are its config's
 (:func:`session.sessions.open_session`): the agent's start state is the world's on the
