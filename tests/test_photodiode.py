@@ -7,12 +7,16 @@ tests/test_lsl.py."""
 from __future__ import annotations
 
 import json
+import os
+import subprocess
+import sys
 from contextlib import ExitStack
 from pathlib import Path
 
 import numpy as np
 import pytest
 from test_lsl import SFREQ, TIMEOUT, LslSession, _start, _stop, assert_session_is_the_simulation
+from test_view import browser
 
 from acquisition.lsl_epochs import Refusal, SampleBuffer
 from acquisition.lsl_streams import loopback_config
@@ -25,6 +29,7 @@ from acquisition.photodiode import (
 from replay.recording import read_recording
 from wire.zenoh_config import free_tcp_endpoint
 
+__all__ = ["browser"]  # the fixture, shared with tests/test_view.py
 DELAY = 0.04  # s, the simulated display's delay
 DELAY_SAMPLES = round(DELAY * SFREQ)
 
@@ -120,3 +125,63 @@ def test_a_session_takes_its_onsets_from_the_photodiode(tmp_path: Path) -> None:
     assert names == ["Fz", "FCz", "Cz", "Pz"]  # the simulator's EEG, without "Photodiode"
     for _, epoch in recording.messages["/epoch"]:
         assert epoch["ch_names"] == names and epoch["shape"][0] == len(names)
+
+
+#: A bridge's move stream in a process of its own: one move, pushed once the view reads the
+#: stream; the outlet stays until stdin closes.
+_ONE_MOVE = """
+import sys
+from acquisition.lsl_streams import marker_outlet, move_marker
+outlet = marker_outlet(sys.argv[1], "test-moves")
+assert outlet.wait_for_consumers(60)
+move = {"step": 1, "from_state": 0, "action": "right", "to_state": 1, "target_reached": False}
+outlet.push_sample([move_marker(move, 0)])
+sys.stdin.read()
+"""
+#: Each frame's timestamp and the patch's colour after the page's own frame callback
+#: (registered earlier, it runs first in every frame).
+_PATCH_LOG = """
+window.patchLog = [];
+const patch = document.getElementById("photodiode-patch");
+const log = (t) => { window.patchLog.push([t, patch.style.background]);
+                     requestAnimationFrame(log); };
+requestAnimationFrame(log);
+"""
+
+
+def test_the_subject_page_lights_its_photodiode_patch_in_the_onset_frame(
+    tmp_path: Path, browser
+) -> None:
+    from selenium.webdriver.support.ui import WebDriverWait
+
+    name = tmp_path.name[-40:]
+    (tmp_path / "lsl_api.cfg").write_text(loopback_config(f"cfbci-test-{name}"))
+    env = os.environ | {"LSLAPICFG": str(tmp_path / "lsl_api.cfg"),
+                        "CFBCI_VIEW_TOKEN": "photodiode-test-token-0123456789"}
+    with ExitStack() as running, (tmp_path / "view.log").open("w") as log:
+        view = subprocess.Popen(
+            [sys.executable, "-m", "cfbci.cli", "view", "--connect", free_tcp_endpoint(),
+             "--port", "0", "--stimulus", "--moves", f"moves-{name}", "--onsets",
+             f"onsets-{name}", "--interval", "0.2", "--photodiode-patch"],
+            env=env, stdout=subprocess.PIPE, stderr=log, text=True)
+        running.callback(_stop, view)
+        assert view.stdout is not None
+        address = next(line for line in view.stdout if line.startswith("subject view: "))
+        browser.get(address.removeprefix("subject view: ").strip().replace("session=ID&", ""))
+        WebDriverWait(browser, TIMEOUT).until(lambda b: b.execute_script(
+            "return document.getElementById('view').dataset.stimulus") == "on")
+        browser.execute_script(_PATCH_LOG)
+        bridge = subprocess.Popen([sys.executable, "-c", _ONE_MOVE, f"moves-{name}"], env=env,
+                                  stdin=subprocess.PIPE, text=True)
+        running.callback(bridge.wait, TIMEOUT)
+        running.callback(bridge.communicate, "")
+        onset = WebDriverWait(browser, TIMEOUT).until(lambda b: b.execute_script(
+            "const m = performance.getEntriesByName('onset 1');"
+            "return m.length && window.patchLog.filter(([t]) => t > m[0].startTime).length >= 5"
+            " ? m[0].startTime : null"))
+        frames = browser.execute_script("return window.patchLog")
+    colours = {t: colour for t, colour in frames}
+    after = sorted(t for t in colours if t >= onset)
+    assert after[0] == onset  # the patch's frame is the onset's
+    assert [colours[t] for t in after[:5]] == ["white"] * 3 + ["black"] * 2
+    assert {colours[t] for t in colours if t < onset} == {"black"}

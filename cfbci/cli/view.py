@@ -85,6 +85,9 @@ def _add_stimulus_options(p: argparse.ArgumentParser) -> None:
     group.add_argument("--frame-tolerance", type=float, default=1.5, metavar="PERIODS",
                        help="a frame interval beside an onset longer than this many refresh "
                        "periods makes the onset invalid: the move is shown again (default 1.5)")
+    group.add_argument("--photodiode-patch", action="store_true",
+                       help="a square in the bottom-left corner, black, white for 3 frames "
+                       "from each onset's frame: for a photodiode (lsl-bridge --photodiode)")
     group.add_argument("--onset-log", type=Path, metavar="FILE.jsonl",
                        help="append every onset (valid or not) to this JSON Lines file")
 
@@ -135,4 +138,5 @@ def _stimulus(args: argparse.Namespace) -> StimulusSettings | None:
         moves=args.moves, onsets=args.onsets, interval=args.interval, grid=args.grid,
         fixation=not args.no_fixation, target=args.target,
         frame_tolerance=args.frame_tolerance, onset_log=args.onset_log,
+        photodiode_patch=args.photodiode_patch,
     )

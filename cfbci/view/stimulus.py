@@ -64,6 +64,8 @@ log = logging.getLogger("cfbci.view.stimulus")
 DEFAULT_ONSETS = "cfbci-onsets"
 #: Seconds between two pings: while the offset is not known yet, then once it is.
 PING_FAST, PING_SLOW = 0.02, 0.25
+#: Frames the photodiode patch stays white from an onset's frame (50 ms at 60 Hz).
+PATCH_FRAMES = 3
 #: Message types of the stimulus socket sent by a page.
 PAGE_TYPES = ("stimulus", "pong", "onset")
 
@@ -99,6 +101,10 @@ class StimulusSettings:
         dropped frame: the onset is invalid.
     onset_log : Path or None
         A JSON Lines file every onset is appended to.
+    photodiode_patch : bool
+        Show a square in the bottom-left corner, black, and white for `PATCH_FRAMES`
+        frames from each onset's frame: a place for a photodiode
+        (``acquisition.photodiode``).
     """
 
     moves: str = DEFAULT_MOVES
@@ -109,6 +115,7 @@ class StimulusSettings:
     target: int | None = None
     frame_tolerance: float = 1.5
     onset_log: Path | None = None
+    photodiode_patch: bool = False
 
     def __post_init__(self) -> None:
         if not self.interval >= 0:
@@ -123,10 +130,12 @@ class StimulusSettings:
                              f"{self.frame_tolerance}")
 
     def for_page(self) -> dict[str, Any]:
-        """What the page needs: interval (ms), grid, fixation, target, frame tolerance."""
+        """What the page needs: interval (ms), grid, fixation, target, frame tolerance, and
+        the photodiode patch's frames (0: no patch)."""
         return {"interval_ms": self.interval * 1e3, "grid": self.grid,
                 "fixation": self.fixation, "target": self.target,
-                "frame_tolerance": self.frame_tolerance}
+                "frame_tolerance": self.frame_tolerance,
+                "patch_frames": PATCH_FRAMES if self.photodiode_patch else 0}
 
 
 class _MoveReader(threading.Thread):

@@ -57,6 +57,17 @@ const cfbciStimulus = (() => {
         root.append(svg("path", {d: `M${c - 0.12} ${c}H${c + 0.12}M${c} ${c - 0.12}V${c + 0.12}`,
                                  class: "fixation"}));
       }
+      // The photodiode patch: a square in the bottom-left corner, black but white for
+      // `patch_frames` frames from each onset's frame (none when 0).
+      this.patch = null;
+      if (settings.patch_frames > 0) {
+        this.patch = document.createElement("div");
+        this.patch.id = "photodiode-patch";
+        Object.assign(this.patch.style, {position: "fixed", left: "0", bottom: "0",
+                                         width: "2cm", height: "2cm", background: "black",
+                                         zIndex: "10"});
+        document.body.append(this.patch);
+      }
       this.agent = svg("circle", {r: 0.3, cx: 0.5, cy: 0.5, class: "agent"});
       this.agent.style.display = "none";
       root.append(this.agent);
@@ -104,6 +115,7 @@ const cfbciStimulus = (() => {
     let hidden = false;  // the page was hidden since the last show
     let lastShow = -Infinity;  // page time of the last show's frame, ms
     let shows = 0;
+    let lit = 0;  // frames the photodiode patch stays white
     view.dataset.stimulus = "waiting";
 
     const send = (message) => {
@@ -143,6 +155,7 @@ const cfbciStimulus = (() => {
         check(checking, interval, period);
         checking = null;
       }
+      if (lit > 0 && --lit === 0) scene.patch.style.background = "black";
       const steady = intervals.length >= FRAMES_NEEDED
         && interval <= settings.frame_tolerance * period
         && document.visibilityState === "visible";
@@ -151,6 +164,10 @@ const cfbciStimulus = (() => {
         const declared = move.action === "goal";
         const bumped = !declared && move.to_state === move.from_state;
         scene.draw(move.to_state, bumped ? move.action : null, declared);
+        if (scene.patch !== null) {
+          scene.patch.style.background = "white";
+          lit = settings.patch_frames;
+        }
         performance.mark(`onset ${move.step}`, {startTime: t, detail: {repeat: move.repeat}});
         checking = {...pending, frame: t, before: interval,
                     hidden: document.visibilityState !== "visible"};
