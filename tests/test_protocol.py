@@ -131,6 +131,17 @@ EXAMPLES: dict[str, Message] = {
         {"event": "prior_received", "message": "9 of 9 bytes", "config_t_ns": None,
          "prior": "0f" * 32, "received": 9},
     ),
+    "control_pause": Message(  # version 8: the operator's commands
+        "control", "lab/s-03", 0, 22, {"command": "pause"},
+    ),
+    "control_target": Message(
+        "control", "lab/s-03", 1, 23, {"command": "target", "target": 7},
+    ),
+    "event_target_marked": Message(
+        "event", "lab/s-03", 2, 24,
+        {"event": "target_marked", "message": "target 7 from step 5", "config_t_ns": None,
+         "step": 5, "target": 7},
+    ),
     "event_unusable_session": Message(
         "event", "_", 0, 3,
         {"event": "error", "message": "session id 'a b' is invalid — é", "config_t_ns": None},

@@ -2,23 +2,26 @@
 by message", "Re-sending", "Errors and rejections").
 
 The simulated user (`acquisition.simulated_source`, ``cfbci source``), the LSL bridge
-(`acquisition.lsl_bridge`, ``cfbci lsl-bridge``) and the re-publication of a
-recording (`cfbci.recordings.publish`, ``cfbci replay --publish``) play the same part: they
-send a config, then answer every move with the epoch of its step. `Client` is that
-part, once: it subscribes to the session's ``move``, ``state`` and ``event`` keys before
-anything is sent, waits for a service to subscribe to the config, sends the config and
-re-sends it until its ``session_started`` arrives (answering the service's
-``session_pending`` challenge with a ``ready`` message, re-sent with the config: the proof
-that this client listens to the session's events), hands every move to the client's own
-`Answerer` once and in step order, sends the epochs the answerer gives it (with the
-step's truth) and re-sends the latest until the next move arrives, checks the sequence
-numbers of what it receives (gaps are logged), takes a repeated move or state as the one
-it has, and ends when ``session_ended`` has come with every move and state. It ends early
-only on the documented reasons: a ``session_rejected`` answering its own config
-(`RuntimeError`), or a service that keeps it waiting for ``timeout`` seconds
-(`TimeoutError`); an ``error`` event, or a rejection of someone else's config on
-the same id, is only logged. What stays with each client is its own: where its epochs
-come from and what it does with a move.
+(`acquisition.lsl_bridge`, ``cfbci lsl-bridge``) and the re-publication of a recording
+(`cfbci.recordings.publish`, ``cfbci replay --publish``) play the same part: they send a
+config, then answer every move with the epoch of its step. `Client` is that part, once:
+it subscribes to the session's ``move``, ``state`` and ``event`` keys before anything is
+sent, waits for a service to subscribe to the config, sends the config and re-sends it
+until its ``session_started`` arrives (answering the service's ``session_pending``
+challenge with a ``ready`` message, re-sent with the config: the proof that this client
+listens to the session's events), hands every move to the client's own `Answerer` once
+and in step order, sends the epochs the answerer gives it (with the step's truth) and
+re-sends the latest until the next move arrives, checks the sequence numbers of what it
+receives (gaps are logged), takes a repeated move or state as the one it has, and ends
+when ``session_ended`` has come with every move and state. While the operator has paused
+the session (``session_paused``, until ``session_resumed``) it hands no move to the
+answerer and never times out; a ``session_ended`` of the operator (with its ``step``)
+ends it after the moves and states of the epochs taken. It ends early only on the
+documented reasons: a ``session_rejected`` answering its own config (`RuntimeError`), or
+a service that keeps it waiting for ``timeout`` seconds (`TimeoutError`); an ``error``
+event, or a rejection of someone else's config on the same id, is only logged. What
+stays with each client is its own: where its epochs come from and what it does with a
+move.
 
 Layer: the loop speaks only the protocol (keys, messages, sequence numbers, re-sending,
 the events that start and end a session) through `wire.transport`; it knows no user,
@@ -102,6 +105,8 @@ class Client:
         Each step's epoch's ``t_ns`` (its first sending).
     target_events : list of str
         The messages of the ``target_reached`` events, in order.
+    paused : bool
+        The operator has paused the session (docs/protocol.md, "Operator controls").
     """
 
     def __init__(
@@ -126,7 +131,7 @@ class Client:
         self._answerer: Answerer | None = None
         self._heard_ns = time.monotonic_ns()  # last message heard, or last epoch sent
         self.steps = 0
-        self.started = self.ended = False
+        self.started = self.ended = self.paused = False
         self.next_step = 1  # the next move to hand to the answerer
         self.answered_step = 0  # the last step whose epoch was sent
         self.moves: dict[int, protocol.Message] = {}
@@ -156,8 +161,9 @@ class Client:
     @property
     def awaiting(self) -> bool:
         """The client waits for the service (not the service for the client): the
-        session has not started, or every move handed to the answerer has its epoch."""
-        return not self.started or self.answered_step == self.next_step - 1
+        session has not started, or every move handed to the answerer has its epoch; never
+        while the operator has paused the session."""
+        return not self.paused and (not self.started or self.answered_step == self.next_step - 1)
 
     def latency_ns(self) -> list[int]:
         """Per epoch but the last: from its first sending to the next move taken off the
@@ -257,15 +263,17 @@ class Client:
         else:
             self._on_event(
                 fields["event"], fields["message"], fields["config_t_ns"],
-                fields.get("challenge"),
+                fields.get("challenge"), fields.get("step"),
             )
         assert self._answerer is not None
-        while self.started and self.next_step in self.moves:
+        while (self.started and not self.paused and self.next_step <= self.steps
+               and self.next_step in self.moves):
             self._answerer.on_move(self.moves[self.next_step])
             self.next_step += 1
 
     def _on_event(
-        self, event: str, text: str, config_t_ns: int | None, challenge: str | None
+        self, event: str, text: str, config_t_ns: int | None, challenge: str | None,
+        step: int | None,
     ) -> None:
         assert self._config is not None
         own = config_t_ns == self._config.t_ns
@@ -283,6 +291,12 @@ class Client:
             raise RuntimeError(f"the service rejected session {self.sid!r}: {text}")
         elif event == "session_ended":
             self.ended = True
+            if step is not None:  # the operator ended it after the move of ``step``
+                self.steps = min(self.steps, step - 1)
+                self.log.info("%s: %s", event, text)
+        elif event in ("session_paused", "session_resumed"):
+            self.paused = event == "session_paused"  # moves held until the resumption
+            self.log.info("%s: %s", event, text)
         elif event == "target_reached":
             self.target_events.append(text)
         else:  # errors about single messages, information, others' sessions on this id

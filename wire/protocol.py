@@ -32,8 +32,11 @@ NO_SESSION: str = "_"  # key segment of the service's events about unusable sess
 SIGNALS: tuple[str, ...] = ("epochs", "features")
 EVENTS: tuple[str, ...] = (
     "error", "target_reached", "session_started", "session_ended", "session_rejected", "info",
-    "session_pending", "prior_received", "prior_rejected",
+    "session_pending", "prior_received", "prior_rejected", "session_paused", "session_resumed",
+    "target_marked",
 )
+#: The operator's commands (a ``control`` message's ``command``).
+COMMANDS: tuple[str, ...] = ("pause", "resume", "end", "target")
 
 #: Every world's action names, in world order then action order (a move's ``action``).
 ACTION_NAMES: tuple[str, ...] = (*DISCRETE_ACTIONS, PROBE, *PUDDLE_MOVES)
@@ -362,6 +365,28 @@ SPECS: dict[str, KindSpec] = {
                 "count", "`prior_received` only: bytes of the prior the service holds, "
                 "from the start (its size: stored)"
             ),
+            "step": Field(
+                "count", "`session_paused`, `session_resumed`, `target_marked`, and "
+                "`session_ended` when the operator ended the session: the last move's step "
+                "then (see \"Operator controls\")"
+            ),
+            "target": Field("state", "`target_marked` only: the target the operator marked"),
+        },
+    ),
+    "control": KindSpec(
+        "operator",
+        "The operator's command on a running session (see \"Operator controls\"); answered "
+        "by an `event` (`session_paused`, `session_resumed`, `session_ended`, "
+        "`target_marked`) or an `error`.",
+        {"command": Field("str", "what the operator does", COMMANDS)},
+        conditional={
+            ("command", "target"): {
+                "target": Field(
+                    "state", "the target the subject chose, a task of the session's world "
+                    "(the continuous world's: its goal point): the session's truth from the "
+                    "next epoch on; the learner never reads it"
+                ),
+            },
         },
     ),
 }

@@ -5,6 +5,7 @@ arguments.
 - `cfbci.cli.bench`: ``bench ...``;
 - `cfbci.cli.service`: ``serve``, ``source``, ``session``, ``router``;
   `cfbci.cli.priors`: ``priors list|add|delete``;
+  `cfbci.cli.control`: ``control pause|resume|end|target``;
 - `cfbci.cli.recordings`: ``recover``, ``replay``, ``report``, ``export``;
 - `cfbci.cli.lsl`: ``lsl-bridge``, ``lsl-simulator``, ``lsl-check``;
 - `cfbci.cli.view`: ``view``; `cfbci.cli.datasets`: ``datasets ...``;
@@ -40,6 +41,7 @@ COMMAND_GROUPS: tuple[tuple[tuple[str, ...], str], ...] = (
     (("replay",), "cfbci.cli.recordings:add_replay_command"),
     (("report",), "cfbci.cli.recordings:add_report_command"),
     (("router",), "cfbci.cli.service:add_router_command"),
+    (("control",), "cfbci.cli.control:add_control_command"),
     (("sweep",), "cfbci.cli.simulate:add_sweep_command"),
     (("export",), "cfbci.cli.recordings:add_export_command"),
     (("compare",), "cfbci.cli.simulate:add_compare_command"),

@@ -1,16 +1,16 @@
 """The service's loop: intake, dispatch, housekeeping, events and rejections.
 
-:class:`PipelineService` subscribes to ``cfbci/**/config``, ``ready``, ``truth``, ``epoch``
-and ``prior`` (uploads to its :mod:`cfbci.service.priors` store) and keeps one
-:class:`cfbci.service.running.RunningSession` per session id. Messages wait in a
+:class:`PipelineService` subscribes to ``cfbci/**/config``, ``ready``, ``truth``, ``epoch``,
+``prior`` (uploads to its prior store) and ``control`` (:mod:`cfbci.service.control`) and
+keeps one :class:`cfbci.service.running.RunningSession` per session id. Messages wait in a
 :class:`wire.intake.Intake` (bounded, one FIFO per running session served round-robin,
 per-session rate limit); the loop never blocks on anything but the intake. A config is
 admitted (:mod:`cfbci.service.admission`) and starts once its source answers the
 ``session_pending`` event's challenge with a ``ready`` message; an epoch goes down its
 session's path (:meth:`RunningSession.epoch`); a truth goes to the recordings
 (:class:`cfbci.service.recordings.Recordings`), never to a session. Every message the
-service cannot accept gets an ``error`` event; a session it cannot run, or stops running
-(a limit exceeded, no answer to its challenge, no epoch), a ``session_rejected`` event.
+service cannot accept gets an ``error`` event; a session it cannot run, or stops running (a
+limit exceeded, no answer to its challenge, no epoch), a ``session_rejected`` event.
 """
 
 from __future__ import annotations
@@ -34,6 +34,7 @@ from cfbci.service.admission import (
     resolved_or_none,
     take_due,
 )
+from cfbci.service.control import Controls
 from cfbci.service.events import ErrorBudget, Events
 from cfbci.service.limits import ServiceLimits
 from cfbci.service.priors import PriorStore, default_store
@@ -116,6 +117,8 @@ class PipelineService:
         self._puddle_tables = PuddleTables()
         self._stopped = False
         self.events = Events(self._outbox, self.recordings)
+        self.controls = Controls(self.events.publish, self._sessions.get,
+                                 lambda s: self._end(s, s.step - 1), self.limits)
         self.registration = ServiceRegistration(
             session, service_id or default_service_id(),
             lambda: (len(self._sessions) + len(self._pending), self.limits.max_sessions),
@@ -129,7 +132,7 @@ class PipelineService:
             # declared before epoch, so that a source (re)discovering this service knows the
             # truth subscriber before its epochs are delivered: the truth re-sent with an
             # epoch after a restart is then not lost while the epoch gets through.
-            for kind in ("config", "ready", "truth", "epoch", "prior")
+            for kind in ("config", "ready", "truth", "epoch", "prior", "control")
         ]
 
     @property
@@ -179,7 +182,10 @@ class PipelineService:
                 self._on_ready(received)
             elif received.tag == "prior":
                 self._forget_idle(self.priors.receive(received, self.events.publish))
-            else:
+            elif received.tag == "control":  # a resumption hands back the epoch held
+                for held in self.controls.command(received):
+                    self.handle(held)
+            elif not self.controls.hold(received):
                 self._on_epoch(received, (time.monotonic_ns() - received.t_ns) / 1e6)
         except ProtocolError as error:
             self._reject(error)
@@ -206,15 +212,8 @@ class PipelineService:
         for sid, keeper in self.registration.take_conflicts().items():
             self._give_up(sid, f"session {sid!r} is also claimed by service {keeper!r}, which "
                           "keeps it (the smaller id)")
-        idle_ns = int(self.limits.idle_timeout * 1e9)
-        start_ns = int(self.limits.start_timeout * 1e9)
-        for session in list(self._sessions.values()):
-            if session.last_epoch is None and now - session.active_ns > start_ns:
-                self._abort(session, f"no epoch within {self.limits.start_timeout:g} s of the "
-                            "start: session ended")
-            elif now - session.active_ns > idle_ns:
-                self._abort(session, f"no epoch for {self.limits.idle_timeout:g} s: session "
-                            "ended")
+        for session, problem in self.controls.overdue(self._sessions.values(), now):
+            self._abort(session, problem)
         self.recordings.close_overdue()
         drops = self.intake.take_drops()
         if drops:
@@ -378,6 +377,7 @@ class PipelineService:
 
     def _end(self, session: RunningSession, last_epoch_step: int) -> None:
         del self._sessions[session.id]
+        self.controls.forget(session.id)
         self.registration.release(session.id)
         self.intake.close(session.id)
         self.recordings.end(session.id, last_epoch_step)
