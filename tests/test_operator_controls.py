@@ -20,6 +20,12 @@ from typing import Any
 import pytest
 import zenoh
 from live import SPAWN, TIMEOUT
+from selenium import webdriver
+from selenium.webdriver.chrome.service import Service as DriverService
+from selenium.webdriver.common.by import By
+from selenium.webdriver.support import expected_conditions
+from selenium.webdriver.support.ui import WebDriverWait
+from system_deps import require
 
 from acquisition.simulated_source import SourceSettings, SourceSummary, run_source
 from acquisition.sources import DataSpec
@@ -29,6 +35,7 @@ from cfbci.offline.simulation import SessionConfig, run_session
 from cfbci.service import serve
 from cfbci.service.limits import ServiceLimits
 from cfbci.service.process import spawned
+from cfbci.view.server import Access, run_view
 from replay.recording import read_recording
 from replay.rerun import replay_check
 from wire import protocol
@@ -200,3 +207,133 @@ def test_cfbci_control_refuses_bad_input_with_a_message(
     assert "session id" in capsys.readouterr().err
     assert main(["control", "pause", "s"]) == 2
     assert "--connect" in capsys.readouterr().err
+
+
+# The operator page (headless Chromium) ------------------------------------------------
+
+TOKEN = "operator-test-token-0123456789"
+POLL = 0.02  # seconds between two readings of a page
+
+
+def _view_process(listen: str, ready: Any) -> None:
+    run_view([listen], [], access=Access(TOKEN), host="127.0.0.1", port=0,
+             on_ready=ready.put)
+
+
+@pytest.fixture(scope="module")
+def view() -> Iterator[tuple[str, str]]:
+    """A view in a spawned process: its address (without the token), its Zenoh endpoint."""
+    endpoint, ready = free_tcp_endpoint(), SPAWN.Queue()
+    process = SPAWN.Process(target=_view_process, args=(endpoint, ready))
+    process.start()
+    try:
+        yield ready.get(timeout=TIMEOUT), endpoint
+    finally:
+        process.terminate()
+        process.join(TIMEOUT)
+    assert process.exitcode == 0
+
+
+@pytest.fixture(scope="module")
+def browser(tmp_path_factory: pytest.TempPathFactory) -> Iterator[webdriver.Chrome]:
+    options = webdriver.ChromeOptions()
+    options.binary_location = require("chromium", "chromium", "/usr/bin/chromium")
+    for flag in ("--headless", "--no-sandbox", "--disable-gpu", "--no-first-run",
+                 "--disable-background-networking", "--window-size=1440,900"):
+        options.add_argument(flag)
+    options.add_argument(f"--user-data-dir={tmp_path_factory.mktemp('chromium-profile')}")
+    driver = webdriver.Chrome(options=options, service=DriverService(
+        require("chromedriver", "chromium-driver", "/usr/bin/chromedriver")))
+    try:
+        yield driver
+    finally:
+        driver.quit()
+
+
+def _shown(browser: webdriver.Chrome) -> dict[str, str]:
+    """The page's #view data-* attributes and the controls' result line."""
+    return browser.execute_script(
+        "const view = document.getElementById('view');"
+        "const result = document.getElementById('c-result');"
+        "return Object.assign({result: result ? result.textContent : ''}, view.dataset)"
+    )
+
+
+def _wait(browser: webdriver.Chrome, condition: Any, what: str) -> dict[str, str]:
+    """Poll the page until ``condition(shown)`` holds (a guard of `TIMEOUT` s of nothing
+    new on the page)."""
+    last: dict[str, str] = {}
+    deadline = time.monotonic() + TIMEOUT
+    while not condition(shown := _shown(browser)):
+        if shown != last:
+            last, deadline = shown, time.monotonic() + TIMEOUT
+        elif time.monotonic() > deadline:
+            pytest.fail(f"the page never showed {what}; last shown: {last}")
+        time.sleep(POLL)
+    return shown
+
+
+def _click(browser: webdriver.Chrome, element_id: str) -> None:
+    browser.find_element(By.ID, element_id).click()
+
+
+def test_the_operator_page_pauses_marks_the_target_and_resumes_a_session(
+    tmp_path: Path, view: tuple[str, str], browser: webdriver.Chrome,
+) -> None:
+    url, view_endpoint = view
+    sid = "web-pause"
+    with service(tmp_path, (view_endpoint,)) as endpoint, source(sid, endpoint) as future:
+        browser.get(f"{url}/?session={sid}&token={TOKEN}")
+        _wait(browser, lambda s: s["status"] == "running" and int(s["step"]) >= 3, "step 3")
+        _click(browser, "c-pause")
+        paused = _wait(browser, lambda s: s["status"] == "paused", "the pause")
+        assert "paused by the operator at step" in _wait(
+            browser, lambda s: "by the operator" in s["result"], "the answer")["result"]
+        operator_tab = browser.current_window_handle
+        browser.switch_to.new_window("tab")  # the subject's page shows the pause
+        browser.get(f"{url}/subject?session={sid}&token={TOKEN}")
+        WebDriverWait(browser, TIMEOUT).until(
+            lambda b: b.find_element(By.ID, "message").text == "paused")
+        browser.close()
+        browser.switch_to.window(operator_tab)
+        time.sleep(3 * IDLE)  # the pause itself: three idle timeouts
+        still = _shown(browser)
+        assert (still["status"], still["step"]) == ("paused", paused["step"])
+        assert browser.find_element(By.ID, "c-pause").get_attribute("disabled") is not None
+        browser.find_element(By.ID, "c-target").send_keys("4")
+        _click(browser, "c-mark")
+        _wait(browser, lambda s: "marked target 4" in s["result"], "the target marked")
+        _click(browser, "c-resume")
+        _wait(browser, lambda s: s["status"] == "ended" and s["step"] == str(STEPS), "the end")
+        summary = future.result(TIMEOUT)
+    assert summary.records == simulated(SEED)
+    recording = read_recording(tmp_path / f"{sid}.mcap")
+    step = int(paused["step"])
+    logged = [(m["event"], m.get("step"), m.get("target"))
+              for _, m in recording.messages["/event"] if "step" in m]
+    assert logged == [("session_paused", step, None), ("target_marked", step, 4),
+                      ("session_resumed", step, None)]
+    assert replay_check(tmp_path / f"{sid}.mcap").divergence is None
+
+
+def test_the_operator_page_ends_a_session_and_refuses_a_bad_command_inline(
+    tmp_path: Path, view: tuple[str, str], browser: webdriver.Chrome,
+) -> None:
+    url, view_endpoint = view
+    sid = "web-end"
+    with service(tmp_path, (view_endpoint,)) as endpoint, source(sid, endpoint) as future:
+        browser.get(f"{url}/?session={sid}&token={TOKEN}")
+        _wait(browser, lambda s: s["status"] == "running" and int(s["step"]) >= 3, "step 3")
+        browser.find_element(By.ID, "c-target").send_keys("99")
+        _click(browser, "c-mark")  # no cell of the 3 x 3 grid: the service's error, inline
+        _wait(browser, lambda s: "no task of the session's world" in s["result"], "the refusal")
+        assert "refused" in browser.find_element(By.ID, "c-result").get_attribute("class")
+        _click(browser, "c-end")
+        WebDriverWait(browser, TIMEOUT).until(expected_conditions.alert_is_present())
+        browser.switch_to.alert.accept()
+        shown = _wait(browser, lambda s: s["status"] == "ended", "the end")
+        summary = future.result(TIMEOUT)
+    assert int(shown["step"]) < STEPS and "ended by the operator" in shown["result"]
+    assert summary.records == simulated(SEED)[: summary.steps]
+    last = read_recording(tmp_path / f"{sid}.mcap").messages["/event"][-1][1]
+    assert (last["event"], last["step"]) == ("session_ended", int(shown["step"]))

@@ -85,7 +85,7 @@ class SessionView:
         What the session's messages may hold (None: its world is not known).
     threshold, threshold_known : float, bool
         The confidence threshold beta, and whether it is the config's (else the default).
-    status : {"waiting", "running", "ended", "rejected"}
+    status : {"waiting", "running", "paused", "ended", "rejected"}
     step : int
         Step of the latest move (0 before the first).
     agent, from_state : int, [x, y] or None
@@ -313,12 +313,16 @@ class SessionView:
         text = text_of(fields, "message")[:TEXT_LENGTH]
         status = {
             "session_started": "running", "session_ended": "ended",
-            "session_rejected": "rejected",
+            "session_rejected": "rejected", "session_paused": "paused",
+            "session_resumed": "running",
         }.get(event)
         if status is not None:
             self.status = status
         self.events.append({"event": event, "message": text})
-        return {"set": {"status": self.status, "events": list(self.events)}}
+        changed: dict[str, Any] = {"status": self.status, "events": list(self.events)}
+        if event == "target_marked" and not self.truth_hidden:  # the operator's truth
+            self.user_target = changed["user_target"] = any_state(fields, "target")
+        return {"set": changed}
 
     def _on_truth(
         self, fields: dict[str, Any], _: protocol.Message, __: int
@@ -423,5 +427,6 @@ class SessionBook:
 
     def _forget_old(self) -> None:
         while len(self.sessions) > MAX_SESSIONS:
-            idle = [sid for sid, v in self.sessions.items() if v.status != "running"]
+            live = ("running", "paused")
+            idle = [sid for sid, v in self.sessions.items() if v.status not in live]
             del self.sessions[idle[0] if idle else next(iter(self.sessions))]

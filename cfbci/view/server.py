@@ -3,51 +3,50 @@
 One process is both a Zenoh peer and an HTTP server (aiohttp). It subscribes to every
 session's ``config``, ``move``, ``state``, ``event``, ``truth`` and ``epoch``
 (``cfbci/**/<kind>``, docs/protocol.md), keeps what the pages show of each session
-(:mod:`cfbci.view.model`) and sends it to the pages over a WebSocket: a snapshot when a
-page starts following a session, then one patch per message. Pages and scripts are
-package files (``cfbci/view/static``): nothing is fetched from elsewhere.
+(:mod:`cfbci.view.model`) and sends it to the pages over a WebSocket: a snapshot when a page
+starts following a session, then one patch per message. Pages and scripts are package files
+(``cfbci/view/static``): nothing is fetched from elsewhere.
 
 Routes:
 
-* ``/``: the operator view (grid and belief heat map, confidence and threshold, targets,
-  balanced accuracy, latency; a session picker); ``/?session=ID`` follows ``ID``.
-* ``/subject``: the subject view (the grid and the agent only, full screen, for the
-  stimulus screen); ``/subject?session=ID``.
+* ``/``: the operator view (belief heat map, confidence, targets, accuracy, latency, a
+  session picker, the commands of :mod:`cfbci.view.operator`); ``/?session=ID`` follows ``ID``.
+* ``/subject``: the subject view (the grid and the agent only, full screen, for the stimulus
+  screen); ``/subject?session=ID``.
 * ``/stimulus``: with a stimulus, its page's WebSocket (:mod:`cfbci.view.stimulus`).
-* ``/ws``: the WebSocket. The server sends ``{"type": "sessions", "sessions": [...]}``
-  whenever the list of sessions changes, and for the followed session
-  ``{"type": "snapshot", ...}`` then ``{"type": "update", "session", "set", "append"}``
-  (or ``"reset"``); the page sends ``{"follow": ID}``.
+* ``/ws``: the WebSocket, out: ``{"type": "sessions", "sessions": [...]}`` on a change of the
+  list, then for the followed session ``{"type": "snapshot", ...}`` and ``{"type": "update",
+  "session", "set", "append"}`` (or ``"reset"``); in: ``{"follow": ID}``.
 
 Access (:class:`Access`, :class:`Guard`), checked on every request, the page files and the
 WebSocket included, in this order:
 
 * ``Host`` must name the view: the address it is bound to (unless a wildcard such as
-  ``0.0.0.0``), ``localhost``, ``127.0.0.1`` or ``[::1]``, on its port, or a name given
-  with ``--allow-host``. This refuses DNS rebinding (another site's name made to resolve
-  to the view's address).
+  ``0.0.0.0``), ``localhost``, ``127.0.0.1`` or ``[::1]``, on its port, or a name given with
+  ``--allow-host``. This refuses DNS rebinding (another site's name made to resolve to the
+  view's address).
 * ``Origin``, when the request has one (a browser sends it with every WebSocket), must be
   ``http://`` and one of those host names and port, or an origin given with
   ``--allow-origin``: a page of another site cannot follow the sessions.
 * The access token (a random one per start unless given, printed in the addresses): in the
   query (``?token=...``), or in the cookie ``cfbci-view-<port>`` that a response to a
-  request with a valid token in its query sets (HttpOnly, SameSite=Strict, for the
-  browser's session), so that reloads, the page's files and its WebSocket need no token
-  in their address. Compared in constant time.
+  request with a valid token in its query sets (HttpOnly, SameSite=Strict, for the browser's
+  session), so that reloads, the page's files and its WebSocket need no token in their
+  address. Compared in constant time.
 
 A refused request gets 403 and a line that says why. Every response says
 ``Referrer-Policy: no-referrer`` (the token in an address never leaves in a Referer) and
 ``X-Frame-Options: DENY``.
 
-The moves, states and events come from the service the view connects to. The configs,
-truths and epochs come from the sources: the view listens on a loopback endpoint of its
-own (a free port unless ``--listen`` is given), so that sources, told of it by the
-service's Zenoh gossip, connect to it. A source that reaches the view only after sending
-its config (or a view started later) leaves the view without the config: the grid is then
-inferred from the states (:func:`cfbci.view.model.layout_of`), the threshold is the
-default and the number of steps unknown; a source that connects to the view's endpoint
-itself is sure to be seen whole. Like a recorder, the view subscribes to configs: a
-subscriber to a config key is no proof that the service is up.
+The moves, states and events come from the service the view connects to. The configs, truths
+and epochs come from the sources: the view listens on a loopback endpoint of its own (a free
+port unless ``--listen`` is given), so that sources, told of it by the service's Zenoh
+gossip, connect to it. A source that reaches the view only after sending its config (or a
+view started later) leaves the view without the config: the grid is then inferred from the
+states (:func:`cfbci.view.model.layout_of`), the threshold is the default and the number of
+steps unknown; a source that connects to the view's endpoint itself is sure to be seen
+whole. Like a recorder, the view subscribes to configs: a subscriber to a config key is no
+proof that the service is up.
 """
 
 from __future__ import annotations
@@ -69,6 +68,7 @@ import zenoh
 from aiohttp import WSMsgType, web
 
 from cfbci.view.model import SessionBook
+from cfbci.view.operator import Operator
 from wire import protocol
 from wire.protocol import NO_SESSION, ProtocolError
 from wire.transport import Pump, Received
@@ -227,9 +227,7 @@ class Guard:
                 return (f"a page of {origin!r} may not use cfbci view: only its own pages "
                         "may. To allow that origin (e.g. a reverse proxy), start the view "
                         "with --allow-origin ORIGIN.")
-        given = request.query.get("token")
-        if given is None:
-            given = request.cookies.get(self.cookie)
+        given = request.query.get("token", request.cookies.get(self.cookie))
         if given is None or not hmac.compare_digest(given.encode(), self._token):
             return ("cfbci view needs its access token: open the address it printed when it "
                     "started (it ends in ?token=...), or add ?token=TOKEN to this one.")
@@ -302,6 +300,7 @@ class ViewServer:
         self.book = SessionBook(hide_truth)
         self.pages: set[_Page] = set()
         self.stimulus: Stimulus | None = None
+        self.operator = Operator()  # the operator page's commands, POST /control
 
     def receive(self, received: Received) -> None:
         """Take in one sample from Zenoh and tell the pages what changed."""
@@ -375,6 +374,7 @@ class ViewServer:
         app.router.add_get("/", page("operator.html"))
         app.router.add_get("/subject", page("subject.html"))
         app.router.add_get("/ws", self.websocket)
+        app.router.add_post("/control", self.operator.post)
         if self.stimulus is not None:
             app.router.add_get("/stimulus", self.stimulus.socket)
             app.on_startup.append(self.stimulus.start)
@@ -427,7 +427,7 @@ async def _serve(
         loop.add_signal_handler(signum, stop.set)
     runner = web.AppRunner(server.app(guard))
     await runner.setup()
-    with zenoh.open(zenoh_config) as session:
+    with zenoh.open(zenoh_config) as session, server.operator.attached(session):
         sink = _LoopSink(loop, server.receive)
         pumps = [Pump(session, f"{protocol.PREFIX}/**/{kind}", kind, sink) for kind in KINDS]
         try:

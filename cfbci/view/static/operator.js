@@ -3,6 +3,10 @@
 // task's confidence against the threshold, targets reached, the decoder's balanced accuracy,
 // the update latency and the session's events. /?session=ID follows ID; without it, the
 // newest running session (until one is picked; once none runs, the one shown stays).
+// The session controls post the operator's commands (pause, resume, end, the target the
+// subject chose) to the view's /control, which publishes them to the service; the
+// service's answer comes back as the session's events (its status, or an error shown
+// beside the buttons). Clicking a cell of the grid fills in the target.
 (() => {
   const $ = (id) => document.getElementById(id);
   const view = $("view");
@@ -43,6 +47,55 @@
     history.replaceState(null, "", `?session=${encodeURIComponent(pinned)}`);
     link.follow(pinned);
   };
+  const result = (text, refused) => {
+    $("c-result").textContent = text;
+    $("c-result").className = refused ? "muted refused" : "muted";
+  };
+  const command = async (name, extra = {}) => {
+    if (!model) { result("no session followed", true); return; }
+    // Noted before posting: the service may answer before the post returns.
+    sent = {name, after: eventKey(model.events[model.events.length - 1])};
+    try {
+      const response = await fetch(cfbci.link("/control"), {
+        method: "POST", headers: {"Content-Type": "application/json"},
+        body: JSON.stringify({session: model.session, command: name, ...extra}),
+      });
+      const answer = await response.json();
+      if (answer.error) { sent = null; result(`refused: ${answer.error}`, true); }
+      else if (sent) result(`${name} sent, waiting for the service…`, false);
+      if (sent && model) showAnswer(model);
+    } catch (error) {
+      sent = null;
+      result(`not sent: ${error}`, true);
+    }
+  };
+  let sent = null;  // the last command sent, and the newest event before it
+  const eventKey = (e) => (e ? `${e.event}\n${e.message}` : "");
+  $("c-pause").onclick = () => command("pause");
+  $("c-resume").onclick = () => command("resume");
+  $("c-end").onclick = () => {
+    if (confirm(`End session ${model ? model.session : ""} now?`)) command("end");
+  };
+  $("c-mark").onclick = () => {
+    const target = $("c-target").valueAsNumber;
+    if (!Number.isInteger(target) || target < 0) { result("the target is a cell number", true); return; }
+    command("target", {target});
+  };
+  $("world").addEventListener("click", (event) => {
+    const cell = event.target.dataset && event.target.dataset.cell;
+    if (cell !== undefined) $("c-target").value = cell;
+  });
+  const ANSWERS = {pause: "session_paused", resume: "session_resumed", end: "session_ended",
+                   target: "target_marked"};
+  const showAnswer = (m) => {
+    // The service's answer to the last command: its event, or an error about a control.
+    if (!sent) return;
+    const start = sent.after ? m.events.map(eventKey).lastIndexOf(sent.after) + 1 : 0;
+    const answer = m.events.slice(start).find((e) => e.event === ANSWERS[sent.name]
+      || (e.event === "error" && e.message.includes("control")));
+    if (answer) { result(answer.message, answer.event === "error"); sent = null; }
+  };
+
   window.addEventListener("resize", () => { if (model && !frame) frame = requestAnimationFrame(render); });
 
   const cellName = (m, task) => {
@@ -66,6 +119,11 @@
     $("colorbar").style.display = $("legend").style.display = m.layout.kind === "grid" ? "" : "none";
     $("status").textContent = m.status;
     $("status").className = `badge ${m.status}`;
+    const live = m.status === "running" || m.status === "paused";
+    $("c-pause").disabled = m.status !== "running";
+    $("c-resume").disabled = m.status !== "paused";
+    $("c-end").disabled = $("c-mark").disabled = !live;
+    showAnswer(m);
     $("subject-link").href = cfbci.link("/subject", {session: m.session});
     $("truth-key").style.display = m.truth_hidden ? "none" : "";
 

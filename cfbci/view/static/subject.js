@@ -17,7 +17,7 @@
   const render = () => {
     frame = null;
     if (!stimulus) world.draw(model);
-    message.textContent = model.status === "ended" ? "session ended" : "";
+    message.textContent = {ended: "session ended", paused: "paused"}[model.status] || "";
     cfbci.expose(view, model);
   };
   const link = cfbci.connect({
