@@ -366,7 +366,9 @@ class _Simulator:
     def _on_move(self, move: dict[str, Any]) -> None:
         self._answer(move)
         step = move["step"]
-        onset = self.next + self.delay + self.display  # the marker's sample: display before
+        # the marker's sample: the display's delay before it, counted from now even when
+        # the streaming lags (a stalled process): an onset never precedes its move
+        onset = max(self.next, self._due()) + self.delay + self.display
         epoch = self.signals.epochs[self.answers[step]]
         first_time = move["repeat"] == 0
         late = sum(s for k, s in self.settings.late_markers if k == step and first_time)
@@ -379,9 +381,13 @@ class _Simulator:
         self.pending.append(written)
         self.marks.append(written)
 
+    def _due(self) -> int:
+        """The first sample not due yet (the samples before it are due by now)."""
+        return int((pylsl.local_clock() - self.lag - self.t0) * self.sfreq) + 1
+
     def _stream(self) -> None:
         """Stream the samples that are due; send the onset markers among them."""
-        due = int((pylsl.local_clock() - self.lag - self.t0) * self.sfreq) + 1
+        due = self._due()
         if due <= self.next:
             return
         indices = np.arange(self.next, due)
