@@ -84,6 +84,7 @@ class Deployment:
 
 
 def make_certs(directory: Path, *names: str) -> None:
+    require("openssl", "openssl")  # for the other modules' tests that use the deployment
     subprocess.run(
         ["sh", str(DEPLOY / "make-certs.sh"), str(directory), *names], check=True,
         capture_output=True, timeout=TIMEOUT,

@@ -27,7 +27,6 @@ import numpy as np
 import pytest
 import zenoh
 from live import SPAWN, TIMEOUT, rewrite, service_process
-from system_deps import require
 from test_access_control import (
     Deployment,
     cfbci,
@@ -374,7 +373,6 @@ def test_behind_the_router_a_user_uploads_and_uses_only_its_own_priors(
     day 2 with it; ``lab-x`` cannot upload into ``lab``'s key space (the router drops it:
     shown by an upload of its own, answered after, while the forged one left no trace in
     the store) and cannot use ``lab``'s prior."""
-    require("openssl", "openssl")
     grid = ("--grid", str(GRID))
     with router(deployment), service(deployment) as records:
         day_one = cfbci(deployment, *deployment.source_args(
