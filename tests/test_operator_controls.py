@@ -9,7 +9,9 @@ wait is for a message, with a timeout that only guards against a hang.
 
 from __future__ import annotations
 
+import os
 import queue
+import signal
 import time
 from collections.abc import Iterator
 from concurrent.futures import Future, ProcessPoolExecutor
@@ -198,6 +200,34 @@ def test_the_operator_ends_a_session_early_and_its_recording_replays(
     assert summary.records == simulated(SEED)[: summary.steps]
     result = replay_check(tmp_path / f"{sid}.mcap")
     assert result.divergence is None and (result.moves, result.states) == (ended, ended)
+
+
+def test_a_service_killed_during_a_pause_resumes_the_session_paused(tmp_path: Path) -> None:
+    sid = "lab-kill"
+    endpoint, observer_endpoint = free_tcp_endpoint(), free_tcp_endpoint()
+    args = ([endpoint], [observer_endpoint], tmp_path)
+    with zenoh.open(peer_config([observer_endpoint], ())) as session:
+        watch = Watch(session, sid)
+        first = SPAWN.Process(target=serve, args=args, kwargs={"limits": LIMITS})
+        first.start()
+        with source(sid, endpoint) as future:
+            watch.until_move(3)
+            step = send_command(session, sid, "pause")["step"]
+            assert first.pid is not None
+            os.kill(first.pid, signal.SIGKILL)
+            first.join(TIMEOUT)
+            with spawned(serve, *args, limits=LIMITS):  # same directory, same endpoints
+                while not any(e["message"].startswith("still paused") for e in watch.events):
+                    assert watch.take(TIMEOUT), "no pause after the restart"
+                until = time.monotonic() + 3 * IDLE  # paused still, over the idle timeout
+                while watch.take(until - time.monotonic()):
+                    pass
+                assert max(watch.moves) == step
+                send_command(session, sid, "resume")
+                summary = future.result(TIMEOUT)
+        watch.close()
+    assert summary.records == simulated(SEED)
+    assert replay_check(tmp_path / f"{sid}.mcap").divergence is None
 
 
 def test_cfbci_control_refuses_bad_input_with_a_message(

@@ -19,6 +19,7 @@ from typing import Any
 
 from cfbci.service.limits import ServiceLimits
 from cfbci.service.running import RunningSession
+from replay.recording import Recording
 from wire import protocol
 from wire.intake import session_of
 from wire.protocol import ProtocolError
@@ -69,6 +70,17 @@ class Controls:
     def forget(self, session: str) -> None:
         """The session ended: it is no longer paused, its held epoch dropped."""
         self._held.pop(session, None)
+
+    def restore(self, session: RunningSession, recording: Recording) -> None:
+        """Pause a session resumed after a restart if its recording ends paused (its
+        last ``session_paused`` not followed by a ``session_resumed``), and say so again
+        (``session_paused``) to its source."""
+        answers = [m["event"] for _, m in recording.messages.get("/event", [])
+                   if m.get("event") in ("session_paused", "session_resumed")]
+        if answers and answers[-1] == "session_paused":
+            self._held[session.id] = None
+            self._publish(session.id, "session_paused", "still paused by the operator after "
+                          f"a restart, at step {session.step}", extra={"step": session.step})
 
     def overdue(
         self, sessions: Iterable[RunningSession], now_ns: int

@@ -192,3 +192,4 @@ def _resume(service: PipelineService, recording: Recording) -> None:
         service._ended_at_resume[sid] = EndedAtResume(sid, session.step, session.last_epoch, state)
         return
     answer_again(session, recording, rerun)
+    service.controls.restore(session, recording)  # paused when it stopped: paused again
