@@ -41,6 +41,7 @@ from cfbci.service.router import READY
 from replay.recording import read_recording
 from replay.rerun import replay_check
 from wire import protocol
+from wire.operator import send_command
 from wire.transport import Outbox, Pump, Received, wait_for_subscribers
 from wire.zenoh_config import build_config, merge, read_config_file
 
@@ -52,7 +53,7 @@ STEPS = 30
 FORGED_CELL = 777  # from_state of the forged moves, target of the forged truth: no cell of 5 x 5
 #: The client file of each user (deploy/).
 CLIENT_FILES = {"service": "service", "lab": "source", "lab-x": "source-lab-x",
-                "monitor": "monitor"}
+                "monitor": "monitor", "operator": "operator"}
 #: What the monitor may receive.
 WATCHED = ("move", "state", "event", "truth")
 
@@ -446,6 +447,50 @@ def test_only_the_service_moves_and_the_monitor_only_watches(deployment: Deploym
     # The epoch of step 1 taken is the forger's (the monitor's came first, had it come).
     assert [m["t_ns"] for _, m in recording.messages["/features"]] == [epoch.t_ns]
     assert sorted(p.name for p in records.rglob("*.mcap")) == ["held.mcap"]
+
+
+def test_only_the_sessions_user_and_the_operator_send_its_commands(
+    deployment: Deployment,
+) -> None:
+    """Operator commands (``control``) on sessions that do not run, which the service
+    answers with an ``error`` event: ``lab-x``'s on ``lab``'s key chunk and the monitor's
+    are dropped by the router (each followed on its link by an allowed message that is
+    answered); ``lab``'s on its own chunk and the operator's on any are answered."""
+    pause = {"command": "pause"}
+    with (
+        router(deployment),
+        service(deployment),
+        zenoh.open(deployment.client_config("monitor")) as watcher,
+        zenoh.open(deployment.client_config("lab-x")) as other_session,
+        zenoh.open(deployment.client_config("lab")) as own_session,
+        zenoh.open(deployment.client_config("operator")) as operator_session,
+    ):
+        monitor = Monitor(watcher)
+        other, own = Outbox(other_session), Outbox(own_session)
+        _matched(other, "lab-x/ghost", "control")  # it sees the service's subscriber
+        other.send("control", "lab/from-lab-x", pause)  # not its chunk: dropped
+        other.send("control", "lab-x/ghost", pause)  # its own: answered, after it
+        monitor.wait_for(_event("lab-x/ghost", "error"))
+        intruder = Outbox(watcher)
+        intruder.send("control", "lab/from-monitor", pause)
+        # After it on the monitor's link, a subscription that the lab client sees: what
+        # it sends then comes after the monitor's command on the service's link.
+        spy = Pump(watcher, protocol.key("lab/from-monitor", "event"), "event",
+                   queue.SimpleQueue())
+        assert wait_for_subscribers(
+            own.publisher(protocol.key("lab/from-monitor", "event")), TIMEOUT)
+        _matched(own, "lab/own-ghost", "control")
+        own.send("control", "lab/own-ghost", pause)
+        answer = monitor.wait_for(_event("lab/own-ghost", "error"))
+        assert "control 'pause' for a session that is not running" in answer.fields["message"]
+        with pytest.raises(ValueError, match="not running"):  # the operator's, answered
+            send_command(operator_session, "lab/op-ghost", "pause", timeout=TIMEOUT)
+        spy.close()
+        intruder.close()
+        other.close()
+        own.close()
+        monitor.close()
+    assert monitor.events("lab/from-lab-x") == monitor.events("lab/from-monitor") == []
 
 
 def test_a_users_quota_leaves_the_other_users_sessions(deployment: Deployment) -> None:
