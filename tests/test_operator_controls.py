@@ -367,3 +367,36 @@ def test_the_operator_page_ends_a_session_and_refuses_a_bad_command_inline(
     assert summary.records == simulated(SEED)[: summary.steps]
     last = read_recording(tmp_path / f"{sid}.mcap").messages["/event"][-1][1]
     assert (last["event"], last["step"]) == ("session_ended", int(shown["step"]))
+
+
+def test_the_operator_page_starts_a_session_after_showing_the_services_refusal_inline(
+    tmp_path: Path, view: tuple[str, str], browser: webdriver.Chrome,
+) -> None:
+    url, view_endpoint = view
+    sid = "web-start"
+    with service(tmp_path, (view_endpoint,)):
+        browser.get(f"{url}/?token={TOKEN}")
+        browser.find_element(By.CSS_SELECTOR, "#start summary").click()
+        form = browser.find_element(By.ID, "start-form")
+        fields = {"session": sid, "grid": str(GRID), "steps": str(STEPS), "seed": str(SEED),
+                  "interval": str(INTERVAL), "learner": "eps=2"}
+        for name, value in fields.items():
+            field = form.find_element(By.NAME, name)
+            field.clear()
+            field.send_keys(value)
+        _click(browser, "s-start")  # eps 2 is no learner's: the service's check, inline
+        WebDriverWait(browser, TIMEOUT).until(
+            lambda b: "eps" in b.find_element(By.ID, "s-result").text)
+        result = browser.find_element(By.ID, "s-result")
+        assert result.text.startswith("refused: bad config") and "refused" in (
+            result.get_attribute("class"))
+        form.find_element(By.NAME, "learner").clear()
+        _click(browser, "s-start")
+        WebDriverWait(browser, TIMEOUT).until(
+            lambda b: b.find_element(By.ID, "s-result").text == f"started {sid}")
+        _wait(browser, lambda s: s["session"] == sid and s["status"] == "ended"
+              and s["step"] == str(STEPS), "the started session's end")
+    moves = [m for _, m in read_recording(tmp_path / f"{sid}.mcap").messages["/move"]]
+    trace = simulated(SEED)
+    assert [(m["from_state"], m["action"]) for m in moves] == [(r.state, r.action)
+                                                               for r in trace]

@@ -374,7 +374,7 @@ class ViewServer:
         app.router.add_get("/", page("operator.html"))
         app.router.add_get("/subject", page("subject.html"))
         app.router.add_get("/ws", self.websocket)
-        app.router.add_post("/control", self.operator.post)
+        self.operator.routes(app)  # POST /control and /start
         if self.stimulus is not None:
             app.router.add_get("/stimulus", self.stimulus.socket)
             app.on_startup.append(self.stimulus.start)
@@ -427,7 +427,7 @@ async def _serve(
         loop.add_signal_handler(signum, stop.set)
     runner = web.AppRunner(server.app(guard))
     await runner.setup()
-    with zenoh.open(zenoh_config) as session, server.operator.attached(session):
+    with zenoh.open(zenoh_config) as session, server.operator.attached(session, zenoh_config):
         sink = _LoopSink(loop, server.receive)
         pumps = [Pump(session, f"{protocol.PREFIX}/**/{kind}", kind, sink) for kind in KINDS]
         try:

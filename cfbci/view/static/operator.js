@@ -96,6 +96,46 @@
     if (answer) { result(answer.message, answer.event === "error"); sent = null; }
   };
 
+  // Start a session: the settings posted to /start, checked by the view as the service
+  // would; a refusal is shown inline, a start followed at once.
+  const settingsOf = (form) => {
+    const data = Object.fromEntries(new FormData(form));
+    const body = {session: data.session, world: data.world, frame: data.frame,
+                  dataset: data.dataset, learner: {}};
+    for (const name of ["grid", "steps", "seed", "accuracy", "interval"]) {
+      if (data[name] !== "") body[name] = Number(data[name]);
+    }
+    for (const pair of data.learner.split(",").map((p) => p.trim()).filter((p) => p)) {
+      const [name, ...rest] = pair.split("=");
+      const text = rest.join("=").trim();
+      try { body.learner[name.trim()] = JSON.parse(text); }
+      catch { body.learner[name.trim()] = text; }
+    }
+    return body;
+  };
+  $("start-form").onsubmit = async (event) => {
+    event.preventDefault();
+    const body = settingsOf(event.target);
+    const shown = (text, refused) => {
+      $("s-result").textContent = text;
+      $("s-result").className = refused ? "muted refused" : "muted";
+    };
+    try {
+      const response = await fetch(cfbci.link("/start"), {
+        method: "POST", headers: {"Content-Type": "application/json"},
+        body: JSON.stringify(body),
+      });
+      const answer = await response.json();
+      if (answer.error) { shown(`refused: ${answer.error}`, true); return; }
+      shown(`started ${answer.started}`, false);
+      pinned = answer.started;
+      history.replaceState(null, "", `?session=${encodeURIComponent(pinned)}`);
+      link.follow(pinned);
+    } catch (error) {
+      shown(`not started: ${error}`, true);
+    }
+  };
+
   window.addEventListener("resize", () => { if (model && !frame) frame = requestAnimationFrame(render); });
 
   const cellName = (m, task) => {
