@@ -177,6 +177,8 @@ def test_a_pause_longer_than_the_idle_timeout_holds_the_session_and_it_completes
     result = replay_check(path)
     assert result.divergence is None and (result.moves, result.states) == (STEPS, STEPS + 1)
     assert [m["event"] for _, m in recording.messages["/event"]][-1] == "session_ended"
+    assert main(["replay", str(path)]) == 0
+    assert "identical" in capsys.readouterr().out
 
 
 def test_the_operator_ends_a_session_early_and_its_recording_replays(
