@@ -131,11 +131,11 @@ class StimulusSettings:
 
     def for_page(self) -> dict[str, Any]:
         """What the page needs: interval (ms), grid, fixation, target, frame tolerance, and
-        the photodiode patch's frames (0: no patch)."""
+        with a photodiode patch its frames."""
         return {"interval_ms": self.interval * 1e3, "grid": self.grid,
                 "fixation": self.fixation, "target": self.target,
                 "frame_tolerance": self.frame_tolerance,
-                "patch_frames": PATCH_FRAMES if self.photodiode_patch else 0}
+                } | ({"patch_frames": PATCH_FRAMES} if self.photodiode_patch else {})
 
 
 class _MoveReader(threading.Thread):

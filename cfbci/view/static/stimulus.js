@@ -58,9 +58,9 @@ const cfbciStimulus = (() => {
                                  class: "fixation"}));
       }
       // The photodiode patch: a square in the bottom-left corner, black but white for
-      // `patch_frames` frames from each onset's frame (none when 0).
+      // `patch_frames` frames from each onset's frame (none without it).
       this.patch = null;
-      if (settings.patch_frames > 0) {
+      if (settings.patch_frames) {
         this.patch = document.createElement("div");
         this.patch.id = "photodiode-patch";
         Object.assign(this.patch.style, {position: "fixed", left: "0", bottom: "0",
