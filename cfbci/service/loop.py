@@ -1,7 +1,7 @@
 """The service's loop: intake, dispatch, housekeeping, events and rejections.
 
 :class:`PipelineService` subscribes to ``cfbci/**/config``, ``ready``, ``truth``, ``epoch``,
-``prior`` (uploads to its prior store) and ``control`` (:mod:`cfbci.service.control`) and
+``prior`` (uploads to its prior store) and ``control`` (`cfbci.service.control`) and
 keeps one :class:`cfbci.service.running.RunningSession` per session id. Messages wait in a
 :class:`wire.intake.Intake` (bounded, one FIFO per running session served round-robin,
 per-session rate limit); the loop never blocks on anything but the intake. A config is

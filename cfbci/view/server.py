@@ -10,7 +10,7 @@ starts following a session, then one patch per message. Pages and scripts are pa
 Routes:
 
 * ``/``: the operator view (belief heat map, confidence, targets, accuracy, latency, a
-  session picker, the commands of :mod:`cfbci.view.operator`); ``/?session=ID`` follows ``ID``.
+  session picker, the commands of `cfbci.view.operator`); ``/?session=ID`` follows ``ID``.
 * ``/subject``: the subject view (the grid and the agent only, full screen, for the stimulus
   screen); ``/subject?session=ID``.
 * ``/stimulus``: with a stimulus, its page's WebSocket (:mod:`cfbci.view.stimulus`).
