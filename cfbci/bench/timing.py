@@ -41,6 +41,7 @@ trace: the onset error shows it, the page's own report does not.
 from __future__ import annotations
 
 import asyncio
+import importlib.util
 import json
 import os
 import shutil
@@ -73,12 +74,7 @@ TOKEN = "bench-timing-token-0123456789"
 def missing() -> str | None:
     """What to install for the bench (one line), or None when everything is there."""
     programs = [package for program, package in PROGRAMS.items() if shutil.which(program) is None]
-    try:
-        import selenium  # noqa: F401
-    except ImportError:
-        python = True
-    else:
-        python = False
+    python = importlib.util.find_spec("selenium") is None
     if not programs and not python:
         return None
     needs = ([f"apt-get install {' '.join(programs)}"] if programs else []) + (
