@@ -5,10 +5,10 @@ bytes on Eclipse Zenoh. A message is::
 
     [uint32 little-endian: header length H][H bytes: UTF-8 JSON object][float32 LE payload]
 
-The header always holds ``v``, ``kind``, ``session``, ``seq`` and ``t_ns`` (:data:`COMMON`),
-then the fields of its kind (:data:`SPECS`); a message with a payload also holds ``shape``,
-``dtype`` and ``units`` (:data:`PAYLOAD_FIELDS`). :data:`SPECS` is the one table that both
-:func:`decode` checks against and ``docs/protocol.md`` prints (:func:`markdown_table`).
+The header always holds ``v``, ``kind``, ``session``, ``seq`` and ``t_ns`` (`COMMON`),
+then the fields of its kind (`SPECS`); a message with a payload also holds ``shape``,
+``dtype`` and ``units`` (`PAYLOAD_FIELDS`). `SPECS` is the one table that both
+`decode` checks against and ``docs/protocol.md`` prints (`markdown_table`).
 No pickle, no code evaluation: JSON and raw float32 only.
 """
 
@@ -118,7 +118,7 @@ TYPES: dict[str, tuple[str, Callable[[Any], bool]]] = {
 
 @dataclass(frozen=True)
 class Field:
-    """One header field: its :data:`TYPES` name, its meaning, and its allowed values."""
+    """One header field: its `TYPES` name, its meaning, and its allowed values."""
 
     type: str
     meaning: str
@@ -459,15 +459,15 @@ class Message:
     Parameters
     ----------
     kind : str
-        One of :data:`KINDS`.
+        One of `KINDS`.
     session : str
-        Session id (see :func:`key`).
+        Session id (see `key`).
     seq : int
         Sender's sequence number on this key expression, >= 0.
     t_ns : int
         Sender's monotonic clock at publication (``time.monotonic_ns()``), nanoseconds.
     fields : dict
-        The kind's header fields (:data:`SPECS`), e.g. ``{"step": 3, "signal": "features"}``.
+        The kind's header fields (`SPECS`), e.g. ``{"step": 3, "signal": "features"}``.
     payload : ndarray or None
         float32 values: epoch ``(n_channels, n_times)`` or ``(n_features,)`` in microvolts;
         state ``(n_tasks,)`` confidences. None for kinds without a payload.
@@ -513,9 +513,9 @@ def key(session: str, kind: str) -> str:
     ----------
     session : str
         A name (1 to 64 characters of ``[A-Za-z0-9_-]``) or ``<user>/<name>``; ``"_"``
-        (:data:`NO_SESSION`) only for ``kind="event"``.
+        (`NO_SESSION`) only for ``kind="event"``.
     kind : str
-        One of :data:`KINDS`.
+        One of `KINDS`.
 
     Raises
     ------
@@ -536,7 +536,7 @@ def user_of(session: str) -> str | None:
 
 
 def split_key(key_expr: str) -> tuple[str, str]:
-    """The ``(session, kind)`` of a key expression built by :func:`key`.
+    """The ``(session, kind)`` of a key expression built by `key`.
 
     Raises
     ------
@@ -619,7 +619,7 @@ def _check_fields(
 def _validate(
     header: dict[str, Any], body: bytes, context: dict[str, Any], key_expr: str | None
 ) -> Message:
-    """Check a parsed header and its payload bytes against :data:`SPECS`."""
+    """Check a parsed header and its payload bytes against `SPECS`."""
     for name, value in _context(header.get("session"), header.get("seq")).items():
         context[name] = context[name] if context[name] is not None else value
     if "v" not in header:
@@ -743,7 +743,7 @@ def decode(data: bytes, *, max_bytes: int = MAX_BYTES, key_expr: str | None = No
 
 
 def encode(message: Message) -> bytes:
-    """Serialise a message, after checking it against :data:`SPECS` as :func:`decode` does.
+    """Serialise a message, after checking it against `SPECS` as `decode` does.
 
     The payload is cast to little-endian float32 (bit-exact for float32 input); ``shape``,
     ``dtype`` and ``units`` are filled in from it and the kind.
@@ -751,7 +751,7 @@ def encode(message: Message) -> bytes:
     Raises
     ------
     ProtocolError
-        If the message would be rejected by :func:`decode`.
+        If the message would be rejected by `decode`.
     """
     context = _context(message.session, message.seq)
     own = sorted((COMMON.keys() | PAYLOAD_FIELDS.keys()) & message.fields.keys())
@@ -818,7 +818,7 @@ class SequenceTracker:
         """None if ``seq`` is the expected one, else what is wrong with it.
 
         A gap counts the skipped messages as lost and moves on; a duplicate or a late
-        message leaves :attr:`expected` unchanged (a late one is no longer lost).
+        message leaves `expected` unchanged (a late one is no longer lost).
         """
         if not _is_count(seq):
             raise ValueError(f"seq must be {TYPES['count'][0]}; got {seq!r}")
