@@ -25,17 +25,17 @@ before it, so a sample stamped ``t`` is pushed at ``t + |tmin| + marker_latency`
 later than ``marker_latency`` finds the epoch's first samples sent: it is reported
 (``Simulation.late``) and nothing is written.
 
-The user is :class:`acquisition.user.SimulatedUser` with the random streams of
-:func:`calibration_free.streams.session_streams`, and synthetic epochs come from the data
-stream as in :mod:`acquisition.simulated_source`: with the bridge's ``--seed`` equal to the
+The user is `acquisition.user.SimulatedUser` with the random streams of
+`calibration_free.streams.session_streams`, and synthetic epochs come from the data
+stream as in `acquisition.simulated_source`: with the bridge's ``--seed`` equal to the
 simulator's, a session over LSL makes the decisions of ``cfbci session`` with that seed.
 A move sent again (``repeat`` > 0, the bridge could not cut its epoch) is answered with
 the same epoch, and its truth is not sent again.
 
-Between epochs the signal is a simple continuous background (:class:`Background`).
+Between epochs the signal is a simple continuous background (`Background`).
 With ``photodiode`` (s), a display's delay: every epoch's onset sample is that delay after
 its marker's, and a photodiode channel (``acquisition.photodiode``) pulses from it.
-For tests, :class:`Drop` leaves samples of an epoch out of the stream (a gap in the
+For tests, `Drop` leaves samples of an epoch out of the stream (a gap in the
 timestamps) and ``restart_after`` closes the EEG outlet for ``outage`` seconds and opens
 it again (the stream vanishes and comes back with a new uid).
 """
