@@ -3,10 +3,10 @@
 ``cfbci lsl-bridge`` stands where the simulated source stands in ``cfbci session``: it
 sends the session's ``config`` to the pipeline service, forwards every ``move`` of the
 service to the stimulus program (the LSL move stream,
-:func:`acquisition.lsl_streams.move_marker`) and answers it with the ``epoch`` cut from the
+`acquisition.lsl_streams.move_marker`) and answers it with the ``epoch`` cut from the
 continuous EEG around the stimulus program's onset marker of that step (docs/protocol.md).
 It publishes no ``truth``: in the lab nobody knows it; ``cfbci lsl-simulator`` publishes
-its own. The loop is every client's, :class:`wire.client.Client`: the config is re-sent
+its own. The loop is every client's, `wire.client.Client`: the config is re-sent
 until the session starts and each epoch until the next move arrives (a service that
 dropped one, or was restarted, still gets it), a move sent again is the one the bridge
 has (the stimulus program sees it once), and the session ends only on ``session_ended``
@@ -32,10 +32,10 @@ plays a raw ``.fif`` as an amplifier and its annotations ``onset <step>`` as the
 stimulus program's markers (stream ``<name>-annotations``), but stamps every annotation
 one sample period early (the chunk's start against the data's last-sample stamps); the
 bridge recognises that stream by its metadata and adds the period back
-(``marker_shift``; :func:`acquisition.lsl_streams.marker_stream_shift`).
+(``marker_shift``; `acquisition.lsl_streams.marker_stream_shift`).
 
 Faults. A discontinuity of the EEG timestamps (samples dropped, a restarted stream) is
-reported and splits the buffer (:class:`acquisition.lsl_epochs.SampleBuffer`); an epoch
+reported and splits the buffer (`acquisition.lsl_epochs.SampleBuffer`); an epoch
 is never cut across one. When the window of the awaited step is broken (by a gap, or by a
 marker so late that its samples have left the buffer) the bridge reports it and sends the
 move again with ``repeat`` incremented, and the stimulus program presents it again. An
@@ -106,7 +106,7 @@ class BridgeSettings:
     moves : str
         Name of the move stream the bridge creates.
     seed, steps, grid, frame, learner
-        The session's config (see :class:`acquisition.simulated_source.SourceSettings`).
+        The session's config (see `acquisition.simulated_source.SourceSettings`).
     tmin, tmax : float
         Epoch limits around the onset, s (rounded to samples as MNE does).
     baseline : (float or None, float or None) or None
@@ -232,7 +232,7 @@ def run_bridge(
     settings: BridgeSettings, listen: Sequence[str] = (), connect: Sequence[str] = (),
     keep_running: Callable[[], bool] = lambda: True,
 ) -> BridgeSummary:
-    """Open a Zenoh peer and bridge one session (see :func:`bridge_session`)."""
+    """Open a Zenoh peer and bridge one session (see `bridge_session`)."""
     with zenoh.open(peer_config(listen, connect)) as session:
         return bridge_session(session, settings, keep_running)
 
@@ -313,7 +313,7 @@ def bridge_session(
         config) or a prior's upload; ``error`` events about single messages are logged.
     ValueError
         If the EEG stream's metadata do not describe EEG (see
-        :func:`acquisition.lsl_streams.eeg_stream_meta`) or the marker stream does not
+        `acquisition.lsl_streams.eeg_stream_meta`) or the marker stream does not
         carry strings.
     """
     summary = BridgeSummary(settings.session)
@@ -357,7 +357,7 @@ def bridge_session(
 
 
 class _Bridge:
-    """The bridge's side of the session (a :class:`wire.client.Answerer`): EEG in, markers
+    """The bridge's side of the session (a `wire.client.Answerer`): EEG in, markers
     in, moves out to the stimulus program, epochs out to the client."""
 
     def __init__(
@@ -474,7 +474,7 @@ class _Bridge:
 
     def on_move(self, move: protocol.Message) -> None:
         """Forward the move to the stimulus program; its epoch is cut once its onset marker
-        and window have come (:meth:`poll`)."""
+        and window have come (`poll`)."""
         if self.awaited is not None:
             log.warning("move of step %d while step %d awaits its epoch; following the service",
                         move.fields["step"], self.awaited.step)
