@@ -1,6 +1,6 @@
 """``cfbci datasets``: ``fetch`` and ``path`` of the public real data sets
-(:mod:`acquisition.fetch`), ``speech`` writes the synthesised speech dataset
-(:mod:`acquisition.speech`)."""
+(`acquisition.fetch`), ``speech`` writes the synthesised speech dataset
+(`acquisition.speech`)."""
 
 from __future__ import annotations
 
