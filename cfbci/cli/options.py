@@ -76,7 +76,7 @@ def learner_settings_of(args: argparse.Namespace, **defaults: Any) -> dict[str, 
 
 
 def data_spec(args: argparse.Namespace) -> DataSpec:
-    """The :class:`DataSpec` of the options of :func:`add_data_options`."""
+    """The `DataSpec` of the options of `add_data_options`."""
     return DataSpec(
         args.dataset, args.synthetic_accuracy, args.synthetic, args.dims, args.mixing_decay
     )
