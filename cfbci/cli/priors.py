@@ -1,4 +1,4 @@
-"""``cfbci priors list|add|delete``: a service's prior store (:mod:`cfbci.service.priors`)."""
+"""``cfbci priors list|add|delete``: a service's prior store (`cfbci.service.priors`)."""
 
 from __future__ import annotations
 
