@@ -191,7 +191,7 @@ def _run_session(args: argparse.Namespace, console: Console) -> int:
 
 
 def add_limit_options(parser: argparse.ArgumentParser) -> None:
-    """Add one ``--max-sessions``-style flag per limit, defaulting to :class:`ServiceLimits`."""
+    """Add one ``--max-sessions``-style flag per limit, defaulting to `ServiceLimits`."""
     defaults = ServiceLimits()
     for spec in fields(ServiceLimits):
         default = getattr(defaults, spec.name)
@@ -202,7 +202,7 @@ def add_limit_options(parser: argparse.ArgumentParser) -> None:
 
 
 def limits_from_args(args: argparse.Namespace) -> ServiceLimits:
-    """The limits given by :func:`add_options`' flags."""
+    """The limits given by `add_options`' flags."""
     return ServiceLimits(**{spec.name: getattr(args, spec.name) for spec in fields(ServiceLimits)})
 
 
