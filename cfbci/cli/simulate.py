@@ -137,7 +137,7 @@ def _simulate_frame_hypotheses(args: argparse.Namespace, console: Console) -> in
 
 
 def _print_frame_hypotheses(summary: dict[str, Any], beta: float, console: Console) -> None:
-    """The frame-hypotheses summary (:func:`cfbci.offline.frame_sessions.frame_hypotheses_report`)
+    """The frame-hypotheses summary (`cfbci.offline.frame_sessions.frame_hypotheses_report`)
     as two tables, over every session and per teacher frame, with what each row means."""
     from rich.table import Table
 
@@ -310,7 +310,7 @@ def _plane_config(args: argparse.Namespace, data: DataSpec) -> dict[str, Any]:
 
 
 def add_scheduler_options(parser: argparse.ArgumentParser) -> None:
-    """``--jobs`` and ``--scheduler``, as :meth:`Scheduler.from_options` reads them."""
+    """``--jobs`` and ``--scheduler``, as `Scheduler.from_options` reads them."""
     parser.add_argument(
         "--jobs", type=int, default=0,
         help="worker processes of the local Dask cluster (default: one per core; 1: run in "
