@@ -1,11 +1,11 @@
 """``cfbci view``: the command of the live view in the browser (the server is
-:mod:`cfbci.view.server`, imported when the command runs).
+`cfbci.view.server`, imported when the command runs).
 
 ``cfbci view --connect EP [--port 8080]`` serves the operator view at ``/`` and the
 subject view at ``/subject?session=ID``, to this machine only by default, and to a browser
 that has the access token only: it prints both addresses with the token
 (``?token=...``). The token is ``--token``, else the environment variable
-:data:`cfbci.view.TOKEN_ENV`, else a random one made at start. With ``--stimulus`` the
+`cfbci.view.TOKEN_ENV`, else a random one made at start. With ``--stimulus`` the
 subject page is the stimulus program of ``cfbci lsl-bridge`` (`cfbci.view.stimulus`).
 """
 
