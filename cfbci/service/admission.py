@@ -1,12 +1,12 @@
 """Admission: whether the service can run a config, and the configs waiting to start.
 
-A config is checked against the service's :class:`cfbci.service.limits.ServiceLimits` (grid side,
+A config is checked against the service's `cfbci.service.limits.ServiceLimits` (grid side,
 steps, channels, the learner settings, the memory the session would commit:
-:func:`session.memory.config_memory_bytes`, one estimate for every world) before anything
+`session.memory.config_memory_bytes`, one estimate for every world) before anything
 is built; a config whose source has not subscribed to its events yet waits as a
-:class:`Pending` entry; a puddle-world config also waits while its world's policy tables,
+`Pending` entry; a puddle-world config also waits while its world's policy tables,
 which every puddle session of the process shares, are built on a thread of their own
-(:class:`PuddleTables`: 3-4 s and about 300 MiB of temporaries, once per process).
+(`PuddleTables`: 3-4 s and about 300 MiB of temporaries, once per process).
 """
 
 from __future__ import annotations
@@ -41,12 +41,12 @@ class Rejection(ProtocolError):
         self.config_t_ns = config_t_ns
 
 
-#: Makes the :class:`Rejection` of a problem with the config being admitted.
+#: Makes the `Rejection` of a problem with the config being admitted.
 Reject = Callable[[str], Rejection]
 
 
 def resolved_or_none(config: dict[str, Any]) -> dict[str, Any] | None:
-    """:func:`session.config.resolved_config`, or None for a config whose learner settings
+    """`session.config.resolved_config`, or None for a config whose learner settings
     are bad."""
     try:
         return resolved_config(config)
@@ -73,7 +73,7 @@ def check_memory(
     config: dict[str, Any], n_features: int, limits: ServiceLimits, reject: Reject
 ) -> None:
     """Raise ``reject(problem)`` for a session that would commit more memory than the
-    limit (:func:`session.memory.config_memory_bytes`; ``n_features`` 0 at the config)."""
+    limit (`session.memory.config_memory_bytes`; ``n_features`` 0 at the config)."""
     needed, what = config_memory_bytes(config, n_features)
     if needed > limits.max_session_mb * 2**20:
         raise reject(
@@ -182,7 +182,7 @@ def check_quota(
 
 
 class PuddleTables:
-    """Builds the puddle world's policy tables (:func:`session.plane.puddle_world`) on a
+    """Builds the puddle world's policy tables (`session.plane.puddle_world`) on a
     daemon thread, once per process, so that the service's loop never waits for them."""
 
     def __init__(self) -> None:
