@@ -21,8 +21,8 @@ _LOG_LEVELS = {"error": 4, "session_rejected": 4, "prior_rejected": 4, "info": 2
 
 
 class ErrorBudget:
-    """At most :data:`ERRORS_PER_SECOND` error and rejection events per session id per
-    second, and :data:`EVENTS_PER_SECOND` in all; the others are only counted (and the
+    """At most `ERRORS_PER_SECOND` error and rejection events per session id per
+    second, and `EVENTS_PER_SECOND` in all; the others are only counted (and the
     count logged)."""
 
     def __init__(self) -> None:
