@@ -1,7 +1,7 @@
 """The service's limits: what one client may make it hold or do, with their defaults.
 
-``cfbci serve`` takes every limit as a flag (:func:`add_options`, :func:`from_args`); the
-table in docs/protocol.md ("Limits") documents them. :func:`world_memory_bytes` is the
+``cfbci serve`` takes every limit as a flag (`add_options`, `from_args`); the
+table in docs/protocol.md ("Limits") documents them. `world_memory_bytes` is the
 upper estimate of the memory a session commits, checked against ``max_session_mb`` when
 its config arrives (without the feature term) and again at its first epoch (with it).
 """
@@ -53,12 +53,12 @@ class ServiceLimits:
     max_epoch_values : int
         Most float32 values in an epoch's payload (n_channels x n_times).
     max_session_mb : float
-        Most memory a session may commit by :func:`world_memory_bytes`, MiB.
+        Most memory a session may commit by `world_memory_bytes`, MiB.
     rate : int
         Messages accepted per session id per second (config, epoch and truth together).
     user_prior_mb : float
         Most MiB of priors one user's prior store may hold, uploads in progress counted
-        by their declared size (:mod:`cfbci.service.priors`).
+        by their declared size (`cfbci.service.priors`).
     """
 
     max_sessions: int = 8
@@ -112,7 +112,7 @@ def world_memory_bytes(
 ) -> int:
     """Upper estimate of the memory a session's learner commits, bytes.
 
-    :func:`session.memory.estimate`'s total (documented term by term there): the
+    `session.memory.estimate`'s total (documented term by term there): the
     world's tables and their building, the history and every task's per-fold statistics,
     one step's fit, cross-validation and planning, as functions of the world's sizes, the
     learner settings (frame, decoder, likelihood, planner, folds), ``steps`` and
