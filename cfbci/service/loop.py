@@ -1,14 +1,14 @@
 """The service's loop: intake, dispatch, housekeeping, events and rejections.
 
-:class:`PipelineService` subscribes to ``cfbci/**/config``, ``ready``, ``truth``, ``epoch``,
+`PipelineService` subscribes to ``cfbci/**/config``, ``ready``, ``truth``, ``epoch``,
 ``prior`` (uploads to its prior store) and ``control`` (`cfbci.service.control`) and
-keeps one :class:`cfbci.service.running.RunningSession` per session id. Messages wait in a
-:class:`wire.intake.Intake` (bounded, one FIFO per running session served round-robin,
+keeps one `cfbci.service.running.RunningSession` per session id. Messages wait in a
+`wire.intake.Intake` (bounded, one FIFO per running session served round-robin,
 per-session rate limit); the loop never blocks on anything but the intake. A config is
-admitted (:mod:`cfbci.service.admission`) and starts once its source answers the
+admitted (`cfbci.service.admission`) and starts once its source answers the
 ``session_pending`` event's challenge with a ``ready`` message; an epoch goes down its
-session's path (:meth:`RunningSession.epoch`); a truth goes to the recordings
-(:class:`cfbci.service.recordings.Recordings`), never to a session. Every message the
+session's path (`RunningSession.epoch`); a truth goes to the recordings
+(`cfbci.service.recordings.Recordings`), never to a session. Every message the
 service cannot accept gets an ``error`` event; a session it cannot run, or stops running (a
 limit exceeded, no answer to its challenge, no epoch), a ``session_rejected`` event.
 """
@@ -58,8 +58,8 @@ IDLE_TICK = 0.5
 PENDING_PER_SESSION = 4
 
 
-#: Called with a session's id, its :attr:`RunningSession.update_ns` and its
-#: :attr:`RunningSession.queued_ms` when the session ends.
+#: Called with a session's id, its `RunningSession.update_ns` and its
+#: `RunningSession.queued_ms` when the session ends.
 SessionEndHook = Callable[[str, list[int], list[float]], None]
 
 
@@ -69,26 +69,26 @@ class PipelineService:
     Parameters
     ----------
     session : zenoh.Session
-        An open Zenoh session (the caller closes it, after :meth:`close`).
+        An open Zenoh session (the caller closes it, after `close`).
     record_dir : Path or None
         Directory of the recordings, ``<session>.mcap``; None: no recording. The
         unfinished sessions recorded there are resumed
-        (:func:`cfbci.service.resume.resume_recorded`).
+        (`cfbci.service.resume.resume_recorded`).
     limits : ServiceLimits
     on_end : callable or None
         Called with ``(session id, update_ns, queued_ms)`` when a session ends normally:
         the learner's time per epoch in ns and each epoch's queueing delay in ms, as
-        :attr:`RunningSession.update_ns` and :attr:`RunningSession.queued_ms`
+        `RunningSession.update_ns` and `RunningSession.queued_ms`
         (``cfbci bench latency``).
     resume : bool
         Resume the unfinished sessions of ``record_dir``.
     service_id : str or None
-        This service's id among several (:mod:`wire.services`; default ``<host>-<pid>``):
+        This service's id among several (`wire.services`; default ``<host>-<pid>``):
         it answers the offers query and runs the configs that name it or no service.
     prior_dir : Path or None
-        The prior store (:mod:`cfbci.service.priors`); default ``<record_dir>/priors``.
+        The prior store (`cfbci.service.priors`); default ``<record_dir>/priors``.
 
-    Use :meth:`run` to serve until :meth:`stop`; :meth:`handle` processes one message.
+    Use `run` to serve until `stop`; `handle` processes one message.
     """
 
     def __init__(
@@ -141,13 +141,13 @@ class PipelineService:
         return tuple(self._sessions)
 
     def stop(self) -> None:
-        """Make :meth:`run` return (safe to call from a signal handler)."""
+        """Make `run` return (safe to call from a signal handler)."""
         self._stopped = True
         self.intake.stop()
 
     def run(self) -> None:
-        """Handle messages fairly (:class:`wire.intake.Intake`) until :meth:`stop`; start
-        the sessions whose source has subscribed, end idle ones; then :meth:`close`."""
+        """Handle messages fairly (`wire.intake.Intake`) until `stop`; start
+        the sessions whose source has subscribed, end idle ones; then `close`."""
         try:
             while not self._stopped:
                 received = self.intake.get(TICK if self._pending else IDLE_TICK)
@@ -318,7 +318,7 @@ class PipelineService:
 
     def _world_ready(self, config: dict[str, Any]) -> bool:
         """Whether a config's world can start now: always, but for the puddle world while
-        its tables are being built (see :class:`cfbci.service.admission.PuddleTables`)."""
+        its tables are being built (see `cfbci.service.admission.PuddleTables`)."""
         return config.get("world") != "puddle" or self._puddle_tables.ready()
 
     def _start(self, message: protocol.Message, publisher: zenoh.Publisher) -> None:
@@ -385,7 +385,7 @@ class PipelineService:
 
     def _reject(self, error: ProtocolError) -> None:
         """Report a rejected message where the protocol says (its session, else ``_``);
-        a :class:`Rejection` of a running session (the one its ``config_t_ns`` names) ends
+        a `Rejection` of a running session (the one its ``config_t_ns`` names) ends
         it. A session that neither runs nor waits for its source holds no claim (say its
         start failed): the claim is withdrawn before the rejection is published, so that a
         source told of it may pick another service at once."""
