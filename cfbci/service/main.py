@@ -1,4 +1,4 @@
-"""``cfbci serve``: a :class:`cfbci.service.loop.PipelineService` in its own process, until
+"""``cfbci serve``: a `cfbci.service.loop.PipelineService` in its own process, until
 SIGINT or SIGTERM."""
 
 from __future__ import annotations
@@ -30,7 +30,7 @@ def serve(
     service_id: str | None = None,
     prior_dir: Path | None = None,
 ) -> None:
-    """Run a :class:`PipelineService` until SIGINT or SIGTERM, then shut down cleanly.
+    """Run a `PipelineService` until SIGINT or SIGTERM, then shut down cleanly.
 
     Recordings are closed and the Zenoh session is closed before returning. Meant as the
     main function of ``cfbci serve`` or of a spawned process.
@@ -38,22 +38,22 @@ def serve(
     Parameters
     ----------
     listen, connect : sequence of str
-        Zenoh endpoints (see :func:`wire.zenoh_config.peer_config`).
+        Zenoh endpoints (see `wire.zenoh_config.peer_config`).
     record_dir : Path or None
         Directory of the recordings (``<session>.mcap``); None records nothing. Unfinished
         sessions recorded there are resumed.
     on_end : callable or None
-        See :class:`PipelineService`.
+        See `PipelineService`.
     limits : ServiceLimits or None
-        Default :class:`cfbci.service.limits.ServiceLimits`.
+        Default `cfbci.service.limits.ServiceLimits`.
     zenoh_config : Path or None
         Zenoh JSON5 configuration merged over the defaults (``--zenoh-config``).
     resume : bool
         Resume the unfinished sessions recorded in ``record_dir``.
     service_id : str or None
-        See :class:`PipelineService`.
+        See `PipelineService`.
     prior_dir : Path or None
-        The prior store (:mod:`cfbci.service.priors`); default ``<record_dir>/priors``.
+        The prior store (`cfbci.service.priors`); default ``<record_dir>/priors``.
     """
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
     keep_freed_memory()
