@@ -1,6 +1,6 @@
 """The service's prior store: earlier recordings of a user, named by the SHA-256 of their files.
 
-A config names the prior its learner starts from (:mod:`calibration_free.prior`) by the
+A config names the prior its learner starts from (`calibration_free.prior`) by the
 SHA-256 digests of one or more recording files (its field ``prior``, protocol version 8),
 since a config is small and a recording of raw epochs is not. The files are in the
 store, one folder per user::
@@ -11,7 +11,7 @@ store, one folder per user::
 The access rule is the key space's: a session ``<user>/<name>`` uses only the priors of
 ``<prior dir>/<user>/``, and its source uploads only into that folder (over
 ``cfbci/<user>/<name>/prior``, a key chunk that access control grants that user alone).
-A source uploads a file in chunks (``prior`` messages, :class:`PriorStore.receive`),
+A source uploads a file in chunks (``prior`` messages, `PriorStore.receive`),
 each answered by a ``prior_received`` event saying how many bytes the service holds (the
 file's size once it is stored, its hash checked), or by ``prior_rejected`` saying why.
 An upload interrupted goes on where it stopped; a service restarted starts it over. The
@@ -19,7 +19,7 @@ store of a user holds at most ``user_prior_mb`` MiB (uploads in progress counted
 their declared size). ``cfbci priors`` lists, adds and deletes priors.
 
 When a session starts, its recording receives the content of its prior (``/prior``,
-:mod:`replay.recorded_prior`), so that ``cfbci replay`` re-runs it without the store.
+`replay.recorded_prior`), so that ``cfbci replay`` re-runs it without the store.
 """
 
 from __future__ import annotations
@@ -62,7 +62,7 @@ UPLOAD_IDLE = 300.0
 CACHED = 16
 
 #: ``publish(session, event, text, extra=fields)``: an event answering an upload
-#: (:meth:`cfbci.service.events.Events.publish`).
+#: (`cfbci.service.events.Events.publish`).
 Answer = Callable[..., None]
 
 
@@ -73,7 +73,7 @@ def default_store(record_dir: Path | None) -> Path | None:
 
 
 def owner(session: str) -> str:
-    """The store folder's name of a session id: its user, or :data:`ANONYMOUS`."""
+    """The store folder's name of a session id: its user, or `ANONYMOUS`."""
     user = protocol.user_of(session)
     return ANONYMOUS if user is None else user
 
@@ -85,7 +85,7 @@ def short(sha256: str) -> str:
 
 @dataclass(frozen=True)
 class StoredPrior:
-    """A file of the store: its user (or :data:`ANONYMOUS`), digest, size (bytes) and
+    """A file of the store: its user (or `ANONYMOUS`), digest, size (bytes) and
     path."""
 
     user: str
@@ -114,7 +114,7 @@ def add_prior(directory: Path, user: str, source: Path) -> StoredPrior:
     ------
     FileNotFoundError, ValueError
         On a missing file, a user name that is not one, or a file that is no prior
-        (:func:`replay.prior.read_prior`'s message).
+        (`replay.prior.read_prior`'s message).
     """
     if user != ANONYMOUS and not protocol.TYPES["name"][1](user):
         raise ValueError(f"user {user!r} is not a name: {protocol.TYPES['name'][0]}")
@@ -280,7 +280,7 @@ class PriorStore:
 
     def prior(self, session: str, hashes: Sequence[str]) -> Prior:
         """The prior of a session's config's ``prior`` digests, read from its user's store
-        (the last :data:`CACHED` kept).
+        (the last `CACHED` kept).
 
         Raises
         ------
@@ -308,7 +308,7 @@ class PriorStore:
         """Raise ``reject(problem)`` for a config whose ``prior`` the service cannot use:
         not in the store, no prior, a world in the plane, or another feature space than the
         config's (frame, classes, sampling, channels, feature settings; the size of the
-        feature vectors is checked at the first epoch, :func:`check_features`)."""
+        feature vectors is checked at the first epoch, `check_features`)."""
         if "prior" not in config:
             return
         if is_plane(config):
@@ -322,7 +322,7 @@ class PriorStore:
     def open(
         self, session: str, config: dict[str, Any], recorder: SessionRecorder | None
     ) -> Session:
-        """The session of a config (:func:`session.sessions.open_session`) with its prior,
+        """The session of a config (`session.sessions.open_session`) with its prior,
         whose files go into the recording (``/prior``)."""
         if "prior" not in config:
             return open_session(config)
@@ -339,7 +339,7 @@ def check_space(prior: Prior, config: dict[str, Any]) -> None:
     """Raise a ``ValueError`` saying what differs when a config's feature space (frame,
     classes, and for raw epochs sampling, first sample time, channels and feature settings)
     is not the prior's; the size of the feature vectors is checked at the first epoch
-    (:func:`check_features`)."""
+    (`check_features`)."""
     frame = Frame(config_world(config), config["frame"])
     prior.check_space(recording_space(config, prior.space.n_features, frame.n_classes))
 
