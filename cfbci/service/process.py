@@ -31,7 +31,7 @@ def spawned(
     ------
     RuntimeError
         When the process exits with another status than 0 after SIGTERM (killed: it did
-        not end within :data:`STOP_TIMEOUT` seconds).
+        not end within `STOP_TIMEOUT` seconds).
     """
     process = SPAWN.Process(target=target, args=args, kwargs=kwargs, name=name)
     process.start()
