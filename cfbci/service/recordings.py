@@ -1,8 +1,8 @@
 """The service's recordings: one MCAP file per session, and the only reader of ``truth``.
 
-:class:`Recordings` holds the session recorders and no learner: it owns the service's only
+`Recordings` holds the session recorders and no learner: it owns the service's only
 ``cfbci/**/truth`` subscription's messages and writes them to the recordings, so that a
-label never reaches a learner. :func:`record_beliefs` records a state's beliefs in the
+label never reaches a learner. `record_beliefs` records a state's beliefs in the
 form each world's recording holds them.
 """
 
@@ -40,7 +40,7 @@ def recording_path(directory: Path, session: str) -> Path:
 
 def is_recording_name(name: str, session: str) -> bool:
     """Whether a file name (relative to the record directory, ``/``-separated) is one
-    :func:`recording_path` gives ``session``'s recordings."""
+    `recording_path` gives ``session``'s recordings."""
     stem = name.removesuffix(".mcap")
     if stem == session:
         return name.endswith(".mcap")
@@ -71,10 +71,10 @@ class Recordings:
     One MCAP file per session, ``<directory>/<session>.mcap``; never over an existing
     file: a session whose id already names a file there (an earlier session's recording,
     or anything else, a link included) is recorded to ``<session>.<n>.mcap``, the first
-    ``n`` from 2 that names no file (:func:`recording_path`). A recording is closed when
+    ``n`` from 2 that names no file (`recording_path`). A recording is closed when
     its session has ended and the truth of its last step has been recorded (at once if no
-    truth arrived at all; after :data:`TRUTH_WAIT` seconds at the latest), or by
-    :meth:`close`.
+    truth arrived at all; after `TRUTH_WAIT` seconds at the latest), or by
+    `close`.
 
     Parameters
     ----------
