@@ -1,9 +1,9 @@
 """Resume after a restart: a recorded, unfinished session rebuilt and continued.
 
 Started on a record directory, the service resumes every session recorded there that
-neither ended nor was rejected (:func:`unfinished`): :func:`rerun_recording` re-runs the
-session's core over the recorded epochs (:class:`replay.rerun.Rerun`, as ``cfbci replay``
-does) and checks that it reproduces the recorded moves; :func:`resumed_session` continues
+neither ended nor was rejected (`unfinished`): `rerun_recording` re-runs the
+session's core over the recorded epochs (`replay.rerun.Rerun`, as ``cfbci replay``
+does) and checks that it reproduces the recorded moves; `resumed_session` continues
 it from there, its recording rewritten in place and continued (one file, every step once).
 The source re-sends its unanswered epoch until the next move arrives; a re-sent epoch
 already answered (same step, ``seq`` and ``t_ns``) is answered again, unrecorded.
