@@ -30,7 +30,7 @@ def run_router(
     Parameters
     ----------
     listen, connect : sequence of str
-        Endpoints (see :func:`wire.zenoh_config.router_config`).
+        Endpoints (see `wire.zenoh_config.router_config`).
     zenoh_config : Path or None
         Zenoh JSON5 configuration merged over the router defaults.
     on_ready : callable, optional
