@@ -1,9 +1,9 @@
 """A running session in the service: an epoch's path from the wire to the next move.
 
-:class:`RunningSession` holds what the service knows of one session (the learner's side:
-no labels): its :class:`session.core.Session` (world, learner and streams, built by
-:func:`session.sessions.open_session`), the :class:`session.core.SignalPath` of its
-epochs, its recorder and the sequence of its epochs. :meth:`RunningSession.take` is an
+`RunningSession` holds what the service knows of one session (the learner's side:
+no labels): its `session.core.Session` (world, learner and streams, built by
+`session.sessions.open_session`), the `session.core.SignalPath` of its
+epochs, its recorder and the sequence of its epochs. `RunningSession.take` is an
 accepted epoch's path: the session's checks, the features, the recording of the epoch and
 its features, the step of the core session, and the move, state and events published (and
 recorded) in answer.
@@ -67,7 +67,7 @@ class RunningSession:
         Payload shape of the session's first accepted epoch.
     update_ns : list of int
         The learner's time per epoch, ns: the core's step (``observe`` of the epoch plus
-        ``propose`` of the next move; :func:`time.perf_counter_ns` differences; none for
+        ``propose`` of the next move; `time.perf_counter_ns` differences; none for
         the last epoch).
     queued_ms : list of float
         Per epoch with a next move, as ``update_ns``: its queueing delay in ms, from its
@@ -166,13 +166,13 @@ class RunningSession:
         self, message: protocol.Message, received_ns: int, queued_ms: float, limits: Any
     ) -> bool:
         """An epoch of this session: answered again if it is a re-send of the last one,
-        else checked and taken (:meth:`signal`, the sequence, the memory limit once the
-        size of the features is known, :meth:`take`); True when it was the last.
+        else checked and taken (`signal`, the sequence, the memory limit once the
+        size of the features is known, `take`); True when it was the last.
 
         Raises
         ------
         ProtocolError
-            As :meth:`signal`, for a duplicate or late ``seq``, and a :class:`Rejection`
+            As `signal`, for a duplicate or late ``seq``, and a `Rejection`
             over the memory limit or for a prior of another feature size.
         """
         if self.last_epoch == (message.fields["step"], message.seq, message.t_ns):
@@ -221,9 +221,9 @@ class RunningSession:
     ) -> None:
         """Publish and record a step's move, its state, then its target events.
 
-        ``started_ns``: :func:`time.perf_counter_ns` before the core observed the epoch
+        ``started_ns``: `time.perf_counter_ns` before the core observed the epoch
         that led here (None for the first move); the learner's time is then appended to
-        :attr:`update_ns`. ``queued_ms``: how long that epoch waited in the intake. Both
+        `update_ns`. ``queued_ms``: how long that epoch waited in the intake. Both
         are recorded with the move (``update_ms``, ``queued_ms``).
         """
         assert step.move is not None
