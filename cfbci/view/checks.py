@@ -1,5 +1,5 @@
 """Checks of the values a message gives the browser view: each field of the types and in
-the ranges the protocol and the session's world allow (:class:`WorldRules`), or a
+the ranges the protocol and the session's world allow (`WorldRules`), or a
 ``ValueError`` that names the field, its value and what it must be; and the layout, the
 threshold and the config fields the view keeps of a session."""
 
@@ -87,7 +87,7 @@ def is_fraction(value: Any) -> bool:
 
 
 def remember(mapping: dict[int, Any], key: int, value: Any) -> None:
-    """``mapping[key] = value``, forgetting the oldest entries beyond :data:`PENDING_STEPS`."""
+    """``mapping[key] = value``, forgetting the oldest entries beyond `PENDING_STEPS`."""
     mapping.pop(key, None)
     mapping[key] = value
     while len(mapping) > PENDING_STEPS:
@@ -216,7 +216,7 @@ def layout_of(
 
 def threshold_of(config: dict[str, Any] | None) -> tuple[float, bool]:
     """The confidence threshold beta of a session and whether it is known from its config
-    (else the default of :class:`LearnerConfig`)."""
+    (else the default of `LearnerConfig`)."""
     if config is not None:
         try:
             return learner_settings(config.get("learner", {}), config["frame"]).frame_beta, True
@@ -241,7 +241,7 @@ def config_of(fields: dict[str, Any]) -> dict[str, Any]:
 
 
 def confidences_of(payload: Any) -> list[float]:
-    """A state's payload, checked: 1 to :data:`MAX_TASKS` confidences in [0, 1]."""
+    """A state's payload, checked: 1 to `MAX_TASKS` confidences in [0, 1]."""
     array = isinstance(payload, np.ndarray)
     if not array or payload.ndim != 1 or not 1 <= len(payload) <= MAX_TASKS:
         shape = payload.shape if array else type(payload).__name__
