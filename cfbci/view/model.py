@@ -1,23 +1,23 @@
 """What the browser view shows of each session, built from the messages on the wire.
 
-:class:`SessionView` takes in one session's decoded messages (``config``, ``move``,
+`SessionView` takes in one session's decoded messages (``config``, ``move``,
 ``state``, ``event``, ``truth``, ``epoch``; docs/protocol.md) and keeps what the page draws:
 the layout (a grid, or a ranked list for a world without one), the agent, the latest
 confidence of every task, the best task's confidence and the decoder's balanced accuracy
 over the steps, the update latency, the declared targets and whether each was the user's.
-:meth:`SessionView.snapshot` is all of it as JSON (for a page that starts following), and
-:meth:`SessionView.update` returns the part one message changed (a *patch*: ``set``
-replaces fields, ``append`` extends the series). :class:`SessionBook` holds the sessions.
+`SessionView.snapshot` is all of it as JSON (for a page that starts following), and
+`SessionView.update` returns the part one message changed (a *patch*: ``set``
+replaces fields, ``append`` extends the series). `SessionBook` holds the sessions.
 
-Messages come from the network: :meth:`SessionView.update` checks every field it uses
+Messages come from the network: `SessionView.update` checks every field it uses
 before it changes anything, and refuses a malformed message with a ``ValueError`` that
 names the field, its value and what it must be. The types are the protocol's (the decoder
 checks them too); the values must be ones the session's world allows once its config is
-seen (:class:`WorldRules`: a state or target of that world, one of its actions, a step of
+seen (`WorldRules`: a state or target of that world, one of its actions, a step of
 the session), and the confidences and the balanced accuracy lie in [0, 1]. Everything kept
-per session is bounded, the newest kept: :data:`PATH_LENGTH`, :data:`EVENT_LOG`,
-:data:`SERIES_LENGTH`, :data:`TARGETS_KEPT`, :data:`PENDING_STEPS`, :data:`TEXT_LENGTH`,
-:data:`MAX_TASKS`; and so is the number of sessions (:data:`MAX_SESSIONS`).
+per session is bounded, the newest kept: `PATH_LENGTH`, `EVENT_LOG`,
+`SERIES_LENGTH`, `TARGETS_KEPT`, `PENDING_STEPS`, `TEXT_LENGTH`,
+`MAX_TASKS`; and so is the number of sessions (`MAX_SESSIONS`).
 
 Pure bookkeeping: no transport, no clock (receipt times are given).
 """
@@ -74,7 +74,7 @@ class SessionView:
     ----------
     id : str
     truth_hidden : bool
-        Truth messages are not taken in (:class:`SessionBook`): no page learns the user's
+        Truth messages are not taken in (`SessionBook`): no page learns the user's
         targets, and declared targets stay unjudged.
     config : dict or None
         What the view keeps of the config message's fields (``world``, ``grid``,
@@ -92,9 +92,9 @@ class SessionView:
         The agent's state after and before the latest move.
     action : str or None
     grid_actions : bool
-        Whether every move so far was a grid action (:func:`layout_of`).
+        Whether every move so far was a grid action (`layout_of`).
     path : deque
-        The agent's latest states, oldest first (at most :data:`PATH_LENGTH`).
+        The agent's latest states, oldest first (at most `PATH_LENGTH`).
     confidence : list of float
         Latest confidence of every task, in [0, 1] (``n_tasks``).
     best_task : int or None
@@ -105,24 +105,24 @@ class SessionView:
         Classes of the frame (from the state's ``class_counts``).
     series : deque of [int, float, float or None]
         Per state: ``[n_signals, confidence of its best task, balanced accuracy]``, the
-        beliefs after the epoch of step ``n_signals`` (the newest :data:`SERIES_LENGTH`).
+        beliefs after the epoch of step ``n_signals`` (the newest `SERIES_LENGTH`).
     latency : deque of [int, float]
         Per step k: ``[k, ms]`` from the epoch of step k to the move of step k + 1, both
-        as received by the view (its own monotonic clock; the newest :data:`SERIES_LENGTH`).
+        as received by the view (its own monotonic clock; the newest `SERIES_LENGTH`).
     targets : deque of dict
         Declared targets ``{"step", "cell", "status"}``, status ``"correct"``, ``"wrong"``
         (by the truth of that step) or ``"pending"`` (no truth yet); the newest
-        :data:`TARGETS_KEPT`.
+        `TARGETS_KEPT`.
     correct, wrong : int
         Targets judged correct and wrong, all of them.
     user_target : int, [x, y] or None
         The user's target in the latest truth.
     events : deque of dict
-        The latest events ``{"event", "message"}`` (messages cut at :data:`TEXT_LENGTH`).
+        The latest events ``{"event", "message"}`` (messages cut at `TEXT_LENGTH`).
     truths, epoch_ns, move_ns : dict of int
         Step -> the user's target, the epoch's and the move's receipt time (ns): truths
         waiting for their target, epochs and moves waiting for each other to make a latency
-        (each at most :data:`PENDING_STEPS`, the newest).
+        (each at most `PENDING_STEPS`, the newest).
     """
 
     id: str
@@ -191,7 +191,7 @@ class SessionView:
         }
 
     def layout(self) -> dict[str, Any]:
-        """See :func:`layout_of`."""
+        """See `layout_of`."""
         return layout_of(self.config, len(self.confidence), self.grid_actions)
 
     def starts_anew(self, config: protocol.Message) -> bool:
@@ -209,7 +209,7 @@ class SessionView:
         Parameters
         ----------
         message : protocol.Message
-            A message of this session (as :func:`wire.protocol.decode` returns it).
+            A message of this session (as `wire.protocol.decode` returns it).
         received_ns : int
             When the view received it (monotonic clock), ns.
 
@@ -378,13 +378,13 @@ class SessionView:
 
 
 class SessionBook:
-    """The sessions the view has seen, oldest first (at most :data:`MAX_SESSIONS`).
+    """The sessions the view has seen, oldest first (at most `MAX_SESSIONS`).
 
     Parameters
     ----------
     hide_truth : bool
         Take in no truth message: no page learns the user's targets (see
-        :attr:`SessionView.truth_hidden`).
+        `SessionView.truth_hidden`).
     """
 
     def __init__(self, hide_truth: bool = False) -> None:
@@ -399,13 +399,13 @@ class SessionBook:
         self, message: protocol.Message, received_ns: int
     ) -> tuple[dict[str, Any] | None, bool]:
         """Route a message to its session (created if new); return its patch (see
-        :meth:`SessionView.update`) and whether the list of sessions (ids, statuses)
+        `SessionView.update`) and whether the list of sessions (ids, statuses)
         changed.
 
         Raises
         ------
         ValueError
-            As :meth:`SessionView.update` (nothing is stored).
+            As `SessionView.update` (nothing is stored).
         """
         view = self.sessions.get(message.session)
         before = None if view is None else (view.status, view.config_t_ns)
