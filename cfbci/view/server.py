@@ -3,7 +3,7 @@
 One process is both a Zenoh peer and an HTTP server (aiohttp). It subscribes to every
 session's ``config``, ``move``, ``state``, ``event``, ``truth`` and ``epoch``
 (``cfbci/**/<kind>``, docs/protocol.md), keeps what the pages show of each session
-(:mod:`cfbci.view.model`) and sends it to the pages over a WebSocket: a snapshot when a page
+(`cfbci.view.model`) and sends it to the pages over a WebSocket: a snapshot when a page
 starts following a session, then one patch per message. Pages and scripts are package files
 (``cfbci/view/static``): nothing is fetched from elsewhere.
 
@@ -13,12 +13,12 @@ Routes:
   session picker, the commands of `cfbci.view.operator`); ``/?session=ID`` follows ``ID``.
 * ``/subject``: the subject view (the grid and the agent only, full screen, for the stimulus
   screen); ``/subject?session=ID``.
-* ``/stimulus``: with a stimulus, its page's WebSocket (:mod:`cfbci.view.stimulus`).
+* ``/stimulus``: with a stimulus, its page's WebSocket (`cfbci.view.stimulus`).
 * ``/ws``: the WebSocket, out: ``{"type": "sessions", "sessions": [...]}`` on a change of the
   list, then for the followed session ``{"type": "snapshot", ...}`` and ``{"type": "update",
   "session", "set", "append"}`` (or ``"reset"``); in: ``{"follow": ID}``.
 
-Access (:class:`Access`, :class:`Guard`), checked on every request, the page files and the
+Access (`Access`, `Guard`), checked on every request, the page files and the
 WebSocket included, in this order:
 
 * ``Host`` must name the view: the address it is bound to (unless a wildcard such as
@@ -43,7 +43,7 @@ and epochs come from the sources: the view listens on a loopback endpoint of its
 port unless ``--listen`` is given), so that sources, told of it by the service's Zenoh
 gossip, connect to it. A source that reaches the view only after sending its config (or a
 view started later) leaves the view without the config: the grid is then inferred from the
-states (:func:`cfbci.view.model.layout_of`), the threshold is the default and the number of
+states (`cfbci.view.model.layout_of`), the threshold is the default and the number of
 steps unknown; a source that connects to the view's endpoint itself is sure to be seen
 whole. Like a recorder, the view subscribes to configs: a subscriber to a config key is no
 proof that the service is up.
@@ -159,7 +159,7 @@ class Access:
     Attributes
     ----------
     token : str
-        The token every request must carry (:func:`check_token`).
+        The token every request must carry (`check_token`).
     allow_hosts : tuple of str
         More host names the view may be reached under (a reverse proxy's, a machine
         name): ``NAME`` (on the view's port) or ``NAME:PORT``.
@@ -189,7 +189,7 @@ class Access:
 
 class Guard:
     """The checks of every request to a view bound to ``host`` and ``port`` (see the
-    module): :meth:`middleware` refuses and sets the cookie, :meth:`prepare` adds the
+    module): `middleware` refuses and sets the cookie, `prepare` adds the
     headers."""
 
     def __init__(self, access: Access, host: str, port: int) -> None:
@@ -251,7 +251,7 @@ class Guard:
 
     @staticmethod
     async def prepare(_: web.Request, response: web.StreamResponse) -> None:
-        """Add :data:`SECURITY_HEADERS` to a response (every one, refusals included)."""
+        """Add `SECURITY_HEADERS` to a response (every one, refusals included)."""
         response.headers.update(SECURITY_HEADERS)
 
 
@@ -471,10 +471,10 @@ def run_view(
     port : int
         HTTP port; 0 picks a free one.
     hide_truth : bool
-        Take in no truth message (:class:`cfbci.view.model.SessionBook`).
+        Take in no truth message (`cfbci.view.model.SessionBook`).
     on_ready : callable
         ``on_ready(address)`` once the server accepts connections: its
-        :func:`base_address`, e.g. ``http://127.0.0.1:8080`` (without the token).
+        `base_address`, e.g. ``http://127.0.0.1:8080`` (without the token).
     stimulus : StimulusSettings or None
         Make the subject page the stimulus program (`cfbci.view.stimulus`).
 
