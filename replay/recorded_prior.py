@@ -57,12 +57,12 @@ def prior_files(recording: Recording) -> dict[str, bytes]:
 
 def recorded_prior(recording: Recording) -> Prior | None:
     """The prior a recorded session started from (None for a session without one), read
-    from its files (:func:`prior_files`) as the service read them from its store.
+    from its files (`prior_files`) as the service read them from its store.
 
     Raises
     ------
     ValueError
-        As :func:`prior_files`.
+        As `prior_files`.
     """
     files = prior_files(recording)
     if not files:
