@@ -68,7 +68,7 @@ def upload_contents(
     timeout: float,
     resend_interval: float,
 ) -> list[str]:
-    """:func:`upload_priors` of files' contents, each with the name messages give it."""
+    """`upload_priors` of files' contents, each with the name messages give it."""
     inbox: queue.SimpleQueue[Received] = queue.SimpleQueue()
     pump = Pump(session, protocol.key(sid, "event"), "event", inbox)
     outbox = Outbox(session)
