@@ -177,6 +177,7 @@ class Outbox:
         session: str,
         fields: dict[str, Any],
         payload: Any = None,
+        before: Callable[[protocol.Message], None] | None = None,
     ) -> protocol.Message:
         """Encode and publish one message on ``cfbci/<session>/<kind>``; return it.
 
@@ -189,6 +190,9 @@ class Outbox:
         payload : ndarray or None
             float32 payload (epoch ``(n_channels, n_times)`` or ``(n_features,)`` uV;
             state ``(n_tasks,)``).
+        before : callable, optional
+            Called with the message once it is encoded, before it is published (e.g. to
+            record it first, so that whatever a receiver saw is on disk).
 
         Raises
         ------
@@ -199,6 +203,8 @@ class Outbox:
         seq = self._seq.get(key_expr, 0)
         message = protocol.Message(kind, session, seq, time.monotonic_ns(), fields, payload)
         data = protocol.encode(message)
+        if before is not None:
+            before(message)
         self.publisher(key_expr).put(data)
         self._seq[key_expr] = seq + 1
         return message

@@ -8,6 +8,7 @@ import time
 from collections import Counter
 
 from cfbci.service.recordings import Recordings
+from wire.protocol import Message
 from wire.transport import Outbox
 
 log = logging.getLogger("cfbci.service")
@@ -67,12 +68,16 @@ class Events:
         if challenge is not None:
             fields["challenge"] = challenge
         fields |= extra or {}
-        message = self._outbox.send("event", session, fields)
+        recorder = self._recordings.get(session)
+
+        def record(message: Message) -> None:  # before publishing: what was heard is kept
+            if recorder is not None:
+                recorder.record("/event", {"seq": message.seq, "t_ns": message.t_ns, **fields},
+                                message.t_ns)
+                recorder.record_log(_LOG_LEVELS.get(event, 2), f"{event}: {text}",
+                                    message.t_ns)
+
+        self._outbox.send("event", session, fields, before=record)
         (log.warning if _LOG_LEVELS.get(event) == 4 else log.info)(
             "%s: %s", event, text
         )
-        recorder = self._recordings.get(session)
-        if recorder is not None:
-            recorder.record("/event", {"seq": message.seq, "t_ns": message.t_ns, **fields},
-                            message.t_ns)
-            recorder.record_log(_LOG_LEVELS.get(event, 2), f"{event}: {text}", message.t_ns)
