@@ -96,43 +96,99 @@
     if (answer) { result(answer.message, answer.event === "error"); sent = null; }
   };
 
-  // Start a session: the settings posted to /start, checked by the view as the service
-  // would; a refusal is shown inline, a start followed at once.
-  const settingsOf = (form) => {
-    const data = Object.fromEntries(new FormData(form));
-    const body = {session: data.session, world: data.world, frame: data.frame,
-                  dataset: data.dataset, learner: {}};
-    for (const name of ["grid", "steps", "seed", "accuracy", "interval"]) {
-      if (data[name] !== "") body[name] = Number(data[name]);
+  // Start a session: the settings posted to /start, checked by the view as the source
+  // and the service would; a refusal is shown inline, a start followed at once. The source
+  // is the simulated user or LSL streams (the view runs cfbci lsl-bridge, and shows that
+  // command line). GET /start says whether the view may start sessions at all.
+  const form = $("start-form");
+  const NUMBERS = new Set(["grid", "steps", "seed", "accuracy", "interval", "tmin", "tmax",
+                           "photodiode_threshold", "photodiode_window"]);
+  const settingsOf = () => {
+    const body = {learner: {}};
+    for (const [name, value] of new FormData(form)) {  // a hidden source's are disabled
+      if (name === "learner") {
+        for (const pair of value.split(",").map((p) => p.trim()).filter((p) => p)) {
+          const [key, ...rest] = pair.split("=");
+          const text = rest.join("=").trim();
+          try { body.learner[key.trim()] = JSON.parse(text); }
+          catch { body.learner[key.trim()] = text; }
+        }
+      } else if (value !== "") {
+        body[name] = NUMBERS.has(name) ? Number(value) : value;
+      }
     }
-    for (const pair of data.learner.split(",").map((p) => p.trim()).filter((p) => p)) {
-      const [name, ...rest] = pair.split("=");
-      const text = rest.join("=").trim();
-      try { body.learner[name.trim()] = JSON.parse(text); }
-      catch { body.learner[name.trim()] = text; }
-    }
+    if (!body.photodiode) { delete body.photodiode_threshold; delete body.photodiode_window; }
     return body;
   };
-  $("start-form").onsubmit = async (event) => {
+  const shown = (id, text, refused) => {
+    $(id).textContent = text;
+    $(id).className = refused ? "muted refused" : "muted";
+  };
+  const getJSON = async (path) => (await fetch(cfbci.link(path))).json();
+  const showStarted = async () => {
+    const answer = await getJSON("/start");
+    $("s-disabled").hidden = !answer.disabled;
+    $("s-disabled").textContent = answer.disabled || "";
+    $("s-fields").disabled = Boolean(answer.disabled);
+    $("s-started").replaceChildren(...answer.started.map((s) => {
+      const item = document.createElement("li");
+      const state = s.exit === null ? "running" : `ended, exit status ${s.exit}`;
+      item.textContent = `${s.session}: ${state}${s.command ? ` (${s.command})` : ""}`;
+      return item;
+    }));
+  };
+  const lookForStreams = async () => {
+    shown("s-streams-result", "looking…", false);
+    const answer = await getJSON("/lsl-streams");
+    if (answer.error) { shown("s-streams-result", answer.error, true); return; }
+    shown("s-streams-result", `${answer.streams.length} found`, false);
+    $("s-streams").tBodies[0].replaceChildren(...answer.streams.map((s) => {
+      const row = document.createElement("tr");
+      for (const text of [s.name, s.type, s.channels, s.rate || "irregular", s.host]) {
+        row.insertCell().textContent = text;
+      }
+      row.className = s.role;
+      row.title = {eeg: "click: the EEG stream", markers: "click: the onset-marker stream",
+                   other: "neither EEG (a numeric stream with a rate) nor markers (strings)"}[s.role];
+      row.onclick = () => {
+        if (s.role !== "other") form.elements[s.role === "eeg" ? "eeg" : "markers"].value = s.name;
+      };
+      return row;
+    }));
+    for (const [list, role] of [["s-eeg-names", "eeg"], ["s-marker-names", "markers"]]) {
+      $(list).replaceChildren(...answer.streams.filter((s) => s.role === role)
+        .map((s) => new Option(`${s.type}, ${s.channels} ch, ${s.host}`, s.name)));
+    }
+  };
+  form.elements.source.onchange = () => {
+    const source = form.elements.source.value;
+    for (const set of form.querySelectorAll("fieldset[data-source]")) {
+      set.hidden = set.disabled = set.dataset.source !== source;
+    }
+    if (source === "lsl") lookForStreams();
+  };
+  $("s-look").onclick = lookForStreams;
+  $("start").addEventListener("toggle", () => { if ($("start").open) showStarted(); });
+  setInterval(() => { if ($("start").open) showStarted(); }, 3000);  // the sources' states
+  form.onsubmit = async (event) => {
     event.preventDefault();
-    const body = settingsOf(event.target);
-    const shown = (text, refused) => {
-      $("s-result").textContent = text;
-      $("s-result").className = refused ? "muted refused" : "muted";
-    };
+    shown("s-result", "checking…", false);
+    $("s-command").textContent = "";
     try {
       const response = await fetch(cfbci.link("/start"), {
         method: "POST", headers: {"Content-Type": "application/json"},
-        body: JSON.stringify(body),
+        body: JSON.stringify(settingsOf()),
       });
       const answer = await response.json();
-      if (answer.error) { shown(`refused: ${answer.error}`, true); return; }
-      shown(`started ${answer.started}`, false);
+      if (answer.error) { shown("s-result", `refused: ${answer.error}`, true); return; }
+      shown("s-result", `started ${answer.started}`, false);
+      if (answer.command) $("s-command").textContent = `the same from a terminal: ${answer.command}`;
       pinned = answer.started;
       history.replaceState(null, "", `?session=${encodeURIComponent(pinned)}`);
       link.follow(pinned);
+      showStarted();
     } catch (error) {
-      shown(`not started: ${error}`, true);
+      shown("s-result", `not started: ${error}`, true);
     }
   };
 
