@@ -46,7 +46,9 @@ DEFINITIONS: dict[str, str] = {
     "Step": "One device action, answered by one epoch (the user's reaction).",
     "Declared target": "The world's declaration action (the grid's goal) performed while "
     "confident; correct when the state was that of the user's target task at that step "
-    "(recorded truth; in a grid, the same cell).",
+    "(recorded truth; in a grid, the same cell). Without recorded truth (a session with a "
+    "person), the operator's marks: from a mark on, the user's target is the marked one "
+    "until the next mark; a target declared before the first mark is unverified.",
     "Steps per correct target": "Steps recorded divided by correct targets (first search "
     "included).",
     "Mean steps between targets": "Mean number of steps between successive declared "
@@ -147,6 +149,8 @@ def metrics_table(metrics: SessionMetrics) -> str:
             ", ".join(f"{rule} > {threshold:g} ({steps})" for rule, threshold, steps in rules)
             if rules else rules_text(metrics))] if metrics.beta is not None else []),
         (None, "steps recorded (configured)", f"{metrics.steps} ({metrics.configured_steps})"),
+        *([(None, "truth the targets are judged by", metrics.truth)]
+          if metrics.truth is not None else []),
         ("first_target_step", "first target step", metrics.first_target_step),
         ("correct_targets", "targets correct / wrong / unverified",
          f"{metrics.correct_targets} / {metrics.wrong_targets} / {metrics.unverified_targets}"),

@@ -17,7 +17,13 @@ recording holds one more, final, state after the last signal).
 * **Declared target** at step ``k``: move ``k`` has ``target_reached`` True, in the state
   ``from_state``. It is *correct* when ``from_state`` is the state of the truth target (a
   task) of step ``k`` (in a grid, the same cell), *wrong* otherwise, and *unverified* when
-  the truth of step ``k`` is missing (a truncated recording).
+  the truth of step ``k`` is missing (a truncated recording, or a step before the
+  operator's first mark).
+* **Truth**: the recorded ``/truth`` (the simulated user's); a recording without it (a
+  session with a person) takes the operator's marks instead (``target_marked`` events,
+  docs/protocol.md, "Operator controls"): from a mark at step ``s`` on, the user's target
+  is the marked one until the next mark; the steps before the first mark have no truth,
+  and the epochs' true classes are unknown (no decoder accuracy against the truth).
 * **Confidence of the true task** at step ``k``: ``confidence[target_k]`` of the ``k``-th
   state, with ``target_k`` the truth target of step ``k``; the **best other task** is the
   task of highest confidence among the others.
@@ -292,6 +298,8 @@ class SessionMetrics:
         Their number.
     settings : SessionSettings or None
         Seed, dataset and learner settings of the session.
+    truth : str or None
+        The truth the targets were judged by (`session_truth`; None: not said).
     """
 
     file: str
@@ -346,6 +354,7 @@ class SessionMetrics:
     target_requirement: list[float | None] | None = None
     settings: SessionSettings | None = None
     damage: dict[str, Any] | None = None
+    truth: str | None = None
 
     def scalars(self) -> dict[str, float | int | None]:
         """The `SCALAR_METRICS` that apply to this session's world
@@ -399,6 +408,49 @@ def declared_targets(
 def truth_by_step(recording: Recording) -> dict[int, dict[str, Any]]:
     """The ``/truth`` messages by step (the latest one if a step repeats)."""
     return {int(m["step"]): m for _, m in recording.messages.get("/truth", [])}
+
+
+#: What `session_truth` says it used when the recording holds ``/truth``.
+SIMULATED_TRUTH = "the simulated user's truth (/truth)"
+
+
+def operator_marks(recording: Recording) -> list[tuple[int, Any]]:
+    """The operator's marks, ``(step, target)`` of every ``target_marked`` event, in the
+    order they were recorded."""
+    return [(int(m["step"]), m["target"]) for _, m in recording.messages.get("/event", [])
+            if m.get("event") == "target_marked"]
+
+
+def session_truth(
+    recording: Recording, steps: list[int]
+) -> tuple[dict[int, dict[str, Any]], str]:
+    """The truth the report judges ``steps`` by, and what it is (module docstring).
+
+    Returns
+    -------
+    truth : dict
+        ``{step: {"target": ...}}`` (with ``"label"`` from ``/truth``); a step without
+        truth is left out.
+    text : str
+        `SIMULATED_TRUTH`, the operator's marks with their number and the steps they leave
+        without truth, or that there is no truth.
+    """
+    truth = truth_by_step(recording)
+    if truth:
+        return truth, SIMULATED_TRUTH
+    marks = operator_marks(recording)
+    if not marks:
+        return {}, "none: the recording holds no /truth and no operator's marks"
+    marked: dict[int, dict[str, Any]] = {}
+    for step in steps:  # the last mark at or before each step
+        targets = [target for mark, target in marks if mark <= step]
+        if targets:
+            marked[step] = {"target": targets[-1]}
+    first = min(mark for mark, _ in marks)
+    before = f"steps 1 to {first - 1} have no truth" if first > 1 else "every step has one"
+    return marked, (f"the operator's marks ({len(marks)} mark{'s' * (len(marks) != 1)}, "
+                    f"the first at step {first}: {before}; the epochs' classes are unknown: "
+                    "no decoder accuracy against the truth)")
 
 
 def _signal_steps(recording: Recording) -> list[int]:
@@ -536,9 +588,9 @@ def session_metrics(recording: Recording, file: str = "", rerun: bool = True) ->
     n_classes = frame_.n_classes
     moves = [m for _, m in recording.messages.get("/move", [])]
     states = [m for _, m in recording.messages.get("/state", [])]
-    truth = truth_by_step(recording)
     n_steps = len(moves)
     steps = [int(m["step"]) for m in moves]
+    truth, truth_text = session_truth(recording, steps)
     targets = [truth.get(step, {}).get("target") for step in steps]
     true_conf, other_conf, other_task = _confidences(states, targets, n_steps)
     counted = [k for k, (s, t) in enumerate(zip(states, targets, strict=False))
@@ -622,6 +674,7 @@ def session_metrics(recording: Recording, file: str = "", rerun: bool = True) ->
         decision_threshold=thresholds,
         target_requirement=required,
         settings=session_settings(config),
+        truth=truth_text,
     )
 
 

@@ -111,12 +111,16 @@ REAL_SEED, REAL_STEPS, REAL_GRID = 5, 90, 3
 
 
 def write_real(path: Path, seed: int = REAL_SEED, steps: int = REAL_STEPS,
-               grid: int = REAL_GRID, settings_given: dict[str, Any] | None = None) -> None:
+               grid: int = REAL_GRID, settings_given: dict[str, Any] | None = None,
+               marks_from: int | None = None) -> None:
     """A synthetic-epoch session: the learner, a simulated user and the service's messages.
 
     Same streams, start cell, feature extraction and message order as a live session
     (``update_ms`` is a made-up, deterministic value: no clock is read);
-    ``settings_given``: learner settings (the others their defaults).
+    ``settings_given``: learner settings (the others their defaults). ``marks_from``: a
+    session with a person instead: no ``/truth``, but the operator marks the user's target
+    at that step and each new one at the step after the previous one was declared (the
+    service's ``target_marked`` events, the last move's step).
     """
     data_rng, user_rng, learner_rng = session_streams(seed)
     data = synthetic_epochs(DEFAULT_SYNTHETIC_ACCURACY, data_rng)
@@ -134,6 +138,7 @@ def write_real(path: Path, seed: int = REAL_SEED, steps: int = REAL_STEPS,
         "sfreq": float(data.sfreq), "tmin": float(data.tmin), "ch_names": list(data.ch_names),
     }
     extractor = ErrPFeatures(data.sfreq, data.tmin, data.ch_names)
+    marked = None  # the target the operator marked last
     with SessionRecorder(path, "real", config) as recorder:
 
         def record_state(t: int) -> None:
@@ -155,6 +160,13 @@ def write_real(path: Path, seed: int = REAL_SEED, steps: int = REAL_STEPS,
                     "seq": step, "t_ns": t, "event": "target_reached",
                     "message": f"step {step}: target reached in cell {state}",
                 }, t)
+            if marks_from is not None and step >= marks_from and user.target != marked:
+                marked = user.target
+                recorder.record("/event", {
+                    "seq": step, "t_ns": t, "event": "target_marked", "config_t_ns": None,
+                    "message": f"the operator marked target {marked} at step {step}",
+                    "step": step, "target": marked,
+                }, t)
             index, label = user.answer(state, proposal.action)
             epoch = data.epochs[index]
             header = {"seq": step, "t_ns": t + 1, "units": "uV", "step": step,
@@ -165,8 +177,9 @@ def write_real(path: Path, seed: int = REAL_SEED, steps: int = REAL_STEPS,
             signal = extractor.transform(epoch[None])[0].astype(np.float32)
             recorder.record_array("/features", {"seq": step, "t_ns": t + 1, "step": step},
                                   signal, t + 1)
-            recorder.record("/truth", {"seq": step, "t_ns": t + 2, "step": step,
-                                       "target": user.target, "label": label}, t + 2)
+            if marks_from is None:
+                recorder.record("/truth", {"seq": step, "t_ns": t + 2, "step": step,
+                                           "target": user.target, "label": label}, t + 2)
             if proposal.declares_target:
                 user.new_target()
             learner.observe(state, proposal.action, signal)

@@ -39,7 +39,7 @@ from replay.calibration import (
 from replay.extent import usable_part
 from replay.figures import FeatureLayout, calibration_figure, save_figures, session_figures
 from replay.html_report import SessionReport, write_html
-from replay.metrics import aggregate, session_metrics
+from replay.metrics import SIMULATED_TRUTH, aggregate, session_metrics
 from replay.plane_report import plane_figures, plane_metrics
 from replay.puddle_report import puddle_figures, puddle_metrics
 from replay.recording import read_recording
@@ -219,6 +219,9 @@ def print_summary(reports: list[SessionReport], console: Console) -> None:
             for note in [report.metrics.warning or "", *report.metrics.damage["notes"]]:
                 console.print(f"[yellow]warning:[/] damaged recording {escape(report.file)}: "
                               f"{escape(note)}", soft_wrap=True)
+        if report.metrics is not None and report.metrics.truth not in (None, SIMULATED_TRUTH):
+            console.print(f"{escape(report.file)}: truth: {escape(report.metrics.truth or '')}",
+                          soft_wrap=True)
         if report.metrics is not None and report.metrics.replay_identical is False:
             console.print(f"[yellow]warning:[/] {report.file}: the re-run differs from the "
                           f"recording: {report.metrics.replay_note}", soft_wrap=True)
