@@ -23,11 +23,10 @@ import pytest
 import zenoh
 from live import SPAWN, TIMEOUT
 from selenium import webdriver
-from selenium.webdriver.chrome.service import Service as DriverService
 from selenium.webdriver.common.by import By
 from selenium.webdriver.support import expected_conditions
 from selenium.webdriver.support.ui import WebDriverWait
-from system_deps import require
+from test_view import browser
 
 from acquisition.simulated_source import SourceSettings, SourceSummary, run_source
 from acquisition.sources import DataSpec
@@ -44,6 +43,8 @@ from wire import protocol
 from wire.operator import send_command
 from wire.transport import Pump, Received
 from wire.zenoh_config import free_tcp_endpoint, peer_config
+
+__all__ = ["browser"]  # the fixture, shared with tests/test_view.py
 
 STEPS, GRID, SEED = 40, 3, 3
 IDLE = 1.0  # the service's idle and start timeouts, s: a pause lasts 3 of them
@@ -127,15 +128,28 @@ def _cli(capsys: pytest.CaptureFixture[str], *args: str) -> tuple[int, str]:
     return status, capsys.readouterr().out
 
 
-def test_a_pause_longer_than_the_idle_timeout_holds_the_session_and_it_completes_as_simulated(
-    tmp_path: Path, capsys: pytest.CaptureFixture[str], operator: list[zenoh.Session],
-) -> None:
-    sid = "lab-pause"
+@contextmanager
+def watched(tmp_path: Path, sid: str, operator: list[zenoh.Session],
+            step: int) -> Iterator[tuple[str, Watch, Future[SourceSummary]]]:
+    """A service and the source of ``sid``, watched from a Zenoh session of the test's
+    until the move of ``step``: the service's endpoint, the watch, the source's summary."""
     with service(tmp_path) as endpoint, source(sid, endpoint) as future:
         session = zenoh.open(peer_config((), [endpoint]))
         operator.append(session)
         watch = Watch(session, sid)
-        watch.until_move(3)
+        try:
+            watch.until_move(step)
+            yield endpoint, watch, future
+        finally:
+            watch.close()
+
+
+def test_a_pause_longer_than_the_idle_timeout_holds_the_session_and_it_completes_as_simulated(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], operator: list[zenoh.Session],
+) -> None:
+    sid = "lab-pause"
+    with watched(tmp_path, sid, operator, 3) as (endpoint, watch, future):
+        session = operator[-1]
         status, out = _cli(capsys, "pause", sid, "--connect", endpoint, "--json")
         assert status == 0 and '"session_paused"' in out
         while not any(e["event"] == "session_paused" for e in watch.events):
@@ -163,7 +177,6 @@ def test_a_pause_longer_than_the_idle_timeout_holds_the_session_and_it_completes
         summary = future.result(TIMEOUT)
         with pytest.raises(ValueError, match="not running"):
             send_command(session, sid, "resume")
-        watch.close()
 
     assert summary.records == simulated(SEED)  # every decision as without the pause
     path = tmp_path / f"{sid}.mcap"
@@ -185,15 +198,10 @@ def test_the_operator_ends_a_session_early_and_its_recording_replays(
     tmp_path: Path, capsys: pytest.CaptureFixture[str], operator: list[zenoh.Session],
 ) -> None:
     sid = "lab-end"
-    with service(tmp_path) as endpoint, source(sid, endpoint) as future:
-        session = zenoh.open(peer_config((), [endpoint]))
-        operator.append(session)
-        watch = Watch(session, sid)
-        watch.until_move(8)
+    with watched(tmp_path, sid, operator, 8) as (endpoint, _, future):
         status, out = _cli(capsys, "end", sid, "--connect", endpoint)
         assert status == 0 and "ended by the operator" in out
         summary = future.result(TIMEOUT)  # the source ends, without an error
-        watch.close()
     recording = read_recording(tmp_path / f"{sid}.mcap")
     last = recording.messages["/event"][-1][1]
     ended = last["step"]  # the last move's step: its epoch was not taken
@@ -272,22 +280,6 @@ def view() -> Iterator[tuple[str, str]]:
     assert process.exitcode == 0
 
 
-@pytest.fixture(scope="module")
-def browser(tmp_path_factory: pytest.TempPathFactory) -> Iterator[webdriver.Chrome]:
-    options = webdriver.ChromeOptions()
-    options.binary_location = require("chromium", "chromium", "/usr/bin/chromium")
-    for flag in ("--headless", "--no-sandbox", "--disable-gpu", "--no-first-run",
-                 "--disable-background-networking", "--window-size=1440,900"):
-        options.add_argument(flag)
-    options.add_argument(f"--user-data-dir={tmp_path_factory.mktemp('chromium-profile')}")
-    driver = webdriver.Chrome(options=options, service=DriverService(
-        require("chromedriver", "chromium-driver", "/usr/bin/chromedriver")))
-    try:
-        yield driver
-    finally:
-        driver.quit()
-
-
 def _shown(browser: webdriver.Chrome) -> dict[str, str]:
     """The page's #view data-* attributes and the controls' result line."""
     return browser.execute_script(
@@ -315,14 +307,24 @@ def _click(browser: webdriver.Chrome, element_id: str) -> None:
     browser.find_element(By.ID, element_id).click()
 
 
-def test_the_operator_page_pauses_marks_the_target_and_resumes_a_session(
-    tmp_path: Path, view: tuple[str, str], browser: webdriver.Chrome,
-) -> None:
+@contextmanager
+def followed(tmp_path: Path, view: tuple[str, str], browser: webdriver.Chrome,
+             sid: str) -> Iterator[Future[SourceSummary]]:
+    """A service connected to the view and the source of ``sid``, the operator page
+    following the session from its step 3: the source's summary."""
     url, view_endpoint = view
-    sid = "web-pause"
     with service(tmp_path, (view_endpoint,)) as endpoint, source(sid, endpoint) as future:
         browser.get(f"{url}/?session={sid}&token={TOKEN}")
         _wait(browser, lambda s: s["status"] == "running" and int(s["step"]) >= 3, "step 3")
+        yield future
+
+
+def test_the_operator_page_pauses_marks_the_target_and_resumes_a_session(
+    tmp_path: Path, view: tuple[str, str], browser: webdriver.Chrome,
+) -> None:
+    url = view[0]
+    sid = "web-pause"
+    with followed(tmp_path, view, browser, sid) as future:
         _click(browser, "c-pause")
         paused = _wait(browser, lambda s: s["status"] == "paused", "the pause")
         assert "paused by the operator at step" in _wait(
@@ -357,11 +359,8 @@ def test_the_operator_page_pauses_marks_the_target_and_resumes_a_session(
 def test_the_operator_page_ends_a_session_and_refuses_a_bad_command_inline(
     tmp_path: Path, view: tuple[str, str], browser: webdriver.Chrome,
 ) -> None:
-    url, view_endpoint = view
     sid = "web-end"
-    with service(tmp_path, (view_endpoint,)) as endpoint, source(sid, endpoint) as future:
-        browser.get(f"{url}/?session={sid}&token={TOKEN}")
-        _wait(browser, lambda s: s["status"] == "running" and int(s["step"]) >= 3, "step 3")
+    with followed(tmp_path, view, browser, sid) as future:
         browser.find_element(By.ID, "c-target").send_keys("99")
         _click(browser, "c-mark")  # no cell of the 3 x 3 grid: the service's error, inline
         _wait(browser, lambda s: "no task of the session's world" in s["result"], "the refusal")
