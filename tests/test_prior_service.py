@@ -302,6 +302,52 @@ def test_a_wrong_missing_oversized_or_mismatched_prior_is_refused(
         assert "is not in user 'lab''s prior store" in message
 
 
+def next_event(listener: Listener) -> dict:
+    """The next event of the listener's session id."""
+    received = listener.inbox.get(timeout=TIMEOUT)
+    return protocol.decode(received.data, key_expr=received.key_expr).fields
+
+
+def test_a_prior_deleted_between_admission_and_start_refuses_the_session(
+    record_dir: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A config naming a stored prior is admitted (``session_pending``); the prior is
+    deleted (`cfbci priors delete`) before the source answers the challenge: the answer
+    is a ``session_rejected`` saying the prior is gone, no recording is left of the
+    session, and the service runs the next session."""
+    day_one = record_dir / "lab" / "day1.mcap"
+    sha256 = file_sha256(day_one)
+    store, records, sid = tmp_path / "store", tmp_path / "records", "lab/gone"
+    endpoint = free_tcp_endpoint()
+    with spawned(serve, [endpoint], [], records, prior_dir=store), zenoh.open(
+        peer_config((), [endpoint])
+    ) as session:
+        listener = Listener(session, sid)  # subscribed before the upload's answers come
+        try:
+            assert upload_priors(session, "lab/up", [day_one], TIMEOUT, 1.0) == [sha256]
+            config = listener.outbox.send("config", sid, config_of(1, [sha256]))
+            pending = next_event(listener)
+            assert pending["event"] == "session_pending", pending
+            assert main(["priors", "delete", "--prior-dir", str(store), "--user", "lab",
+                         sha256]) == 0
+            listener.outbox.send("ready", sid, {"config_t_ns": config.t_ns,
+                                                "challenge": pending["challenge"]})
+            answer = next_event(listener)
+        finally:
+            listener.close()
+        assert answer["event"] == "session_rejected", answer
+        assert answer["config_t_ns"] == config.t_ns
+        assert "internal error" not in answer["message"]
+        assert (f"prior {sha256[:12]} is not in user 'lab''s prior store any more"
+                in answer["message"]), answer["message"]
+        # The service goes on: a session uploading the prior again runs.
+        settings = SourceSettings("lab/after", seed=2, steps=5, grid=GRID, prior=(day_one,))
+        assert run_source(settings, [], [endpoint]).steps == 5
+    capsys.readouterr()
+    assert not (records / "lab" / "gone.mcap").exists()  # no empty recording
+    assert sorted(p.name for p in (records / "lab").iterdir()) == ["after.mcap"]
+
+
 def test_cfbci_session_with_a_prior(record_dir: Path, tmp_path: Path) -> None:
     """`cfbci session --prior`: the embedded service takes the prior, the session equals
     its simulation, its recording replays identically, and nothing of the service's own

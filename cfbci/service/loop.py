@@ -329,10 +329,10 @@ class PipelineService:
                 f"the service runs its maximum of {self.limits.max_sessions} sessions", sid,
                 message.seq, message.t_ns,
             )
-        # Recorded with every learner setting it runs with (defaults included).
-        recorder = self.recordings.open(sid, {"seq": message.seq, "t_ns": message.t_ns, **config})
+        # Recorded with every learner setting it runs with (defaults included), prior read first.
+        core, recorder = self.priors.open(message, config, self.recordings.open)
         session = RunningSession(
-            sid, config, message.t_ns, self.priors.open(sid, config, recorder), recorder,
+            sid, config, message.t_ns, core, recorder,
             self._outbox, self.events.publish, time.monotonic_ns(),
         )
         self._sessions[sid] = session

@@ -37,7 +37,7 @@ from typing import Any
 
 from calibration_free.frames import Frame
 from calibration_free.prior import Prior, ReturningLearner
-from cfbci.service.admission import Reject
+from cfbci.service.admission import Reject, Rejection
 from cfbci.service.limits import ServiceLimits
 from replay.prior import read_prior, recording_space
 from replay.recorded_prior import record_prior
@@ -292,7 +292,7 @@ class PriorStore:
             raise ValueError("this service keeps no prior store (start it with --record-dir "
                              "or --prior-dir)")
         user, key = owner(session), tuple(hashes)
-        paths = [self.directory / user / f"{sha256}.mcap" for sha256 in hashes]
+        paths = self._paths(session, hashes)
         missing = [short(sha256) for sha256, path in zip(hashes, paths, strict=True)
                    if not path.is_file()]
         if missing:
@@ -319,20 +319,48 @@ class PriorStore:
         except (ValueError, KeyError) as error:
             raise reject(f"prior refused: {error}") from None
 
+    def _paths(self, session: str, hashes: Sequence[str]) -> list[Path]:
+        """The files of a session's prior digests in its user's store."""
+        assert self.directory is not None
+        return [self.directory / owner(session) / f"{sha256}.mcap" for sha256 in hashes]
+
     def open(
-        self, session: str, config: dict[str, Any], recorder: SessionRecorder | None
-    ) -> Session:
-        """The session of a config (`session.sessions.open_session`) with its prior,
-        whose files go into the recording (``/prior``)."""
+        self,
+        message: protocol.Message,
+        config: dict[str, Any],
+        record: Callable[[str, dict[str, Any]], SessionRecorder | None],
+    ) -> tuple[Session, SessionRecorder | None]:
+        """The session of an admitted config (`session.sessions.open_session`, ``config``
+        resolved from ``message``'s) with its prior, and its recording: ``record(session,
+        fields)`` (`cfbci.service.recordings.Recordings.open`), opened once the prior is
+        read, which receives the prior's files (``/prior``).
+
+        Raises
+        ------
+        Rejection
+            When the prior is no longer in the store (deleted since the config was
+            admitted) or cannot be read: no recording is opened.
+        """
+        sid = message.session
+        fields = {"seq": message.seq, "t_ns": message.t_ns, **config}
         if "prior" not in config:
-            return open_session(config)
-        prior = self.prior(session, config["prior"])
+            return open_session(config), record(sid, fields)
+        hashes, paths = config["prior"], self._paths(sid, config["prior"])
+        gone = [short(h) for h, path in zip(hashes, paths, strict=True) if not path.is_file()]
+        try:
+            if gone:
+                raise ValueError(f"prior {', '.join(gone)} is not in user {owner(sid)!r}'s "
+                                 "prior store any more (deleted since the config was "
+                                 "admitted)")
+            prior = self.prior(sid, hashes)
+            files = {h: path.read_bytes() for h, path in zip(hashes, paths, strict=True)}
+        except (ValueError, OSError) as error:
+            raise Rejection(f"prior refused: {error}: session not started", sid, message.seq,
+                            message.t_ns) from None
+        recorder = record(sid, fields)
         if recorder is not None:
-            assert self.directory is not None
-            folder = self.directory / owner(session)
-            record_prior(recorder, {h: (folder / f"{h}.mcap").read_bytes()
-                                    for h in config["prior"]})
-        return open_session(config, prior=prior)
+            record_prior(recorder, files)
+        return open_session(config, prior=prior), recorder
 
 
 def check_space(prior: Prior, config: dict[str, Any]) -> None:
