@@ -269,6 +269,8 @@ def check_bridge(body: dict[str, Any], endpoints: list[str], listed: set[str]) -
     config = {
         "seed": settings.seed, "world": "grid", "grid": settings.grid,
         "frame": settings.frame, "steps": settings.steps, "learner": settings.learner,
+        "dataset": {"description": f"LSL streams {settings.eeg!r} (EEG) and "
+                                   f"{settings.markers!r} (markers)"},
         "signal": "epochs", "sfreq": meta.sfreq, "tmin": first / meta.sfreq,
         "ch_names": names,
     }
