@@ -133,7 +133,8 @@
     $("s-started").replaceChildren(...answer.started.map((s) => {
       const item = document.createElement("li");
       const state = s.exit === null ? "running" : `ended, exit status ${s.exit}`;
-      item.textContent = `${s.session}: ${state}${s.command ? ` (${s.command})` : ""}`;
+      item.textContent = `${s.session}: ${s.command ? "cfbci lsl-bridge" : "simulated user"}, ${state}`;
+      if (s.command) item.title = s.command;
       return item;
     }));
   };
