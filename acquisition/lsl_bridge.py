@@ -51,7 +51,8 @@ the marker, the channel kept out of the epochs (the rule: ``acquisition.photodio
 from __future__ import annotations
 
 import logging
-import socket
+import queue
+import threading
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -61,9 +62,9 @@ from typing import Any
 import numpy as np
 import pylsl
 import zenoh
-from pylsl.util import LostError
 
 from acquisition.lsl_epochs import Epoch, Gap, Refusal, SampleBuffer, apply_baseline
+from acquisition.lsl_input import StreamInput, StreamReader
 from acquisition.lsl_streams import (
     StreamMeta,
     as_float32,
@@ -73,7 +74,6 @@ from acquisition.lsl_streams import (
     marker_stream_shift,
     move_marker,
     parse_onset_marker,
-    resolve_inlet,
 )
 from acquisition.photodiode import Photodiode, PhotodiodeRule
 from wire import protocol
@@ -87,8 +87,8 @@ log = logging.getLogger("cfbci.lsl_bridge")
 DEFAULT_MOVES = "cfbci-moves"
 #: Seconds of EEG the bridge keeps.
 DEFAULT_BUFFER_SECONDS = 30.0
-#: Seconds one poll of the EEG inlet may wait for a sample.
-_POLL_SECONDS = 0.005
+#: Seconds the loop waits for the service or the streams before its checks.
+_IDLE_SECONDS = 0.1
 #: Seconds without EEG after which the silence is reported.
 _SILENCE_SECONDS = 1.0
 
@@ -237,51 +237,6 @@ def run_bridge(
         return bridge_session(session, settings, keep_running)
 
 
-class _Input:
-    """An LSL inlet resolved by name, resolved again when its stream is lost."""
-
-    def __init__(self, name: str, settings: BridgeSettings, summary: BridgeSummary,
-                 keep_running: Callable[[], bool]) -> None:
-        self.name, self.settings, self.summary = name, settings, summary
-        self.keep_running = keep_running
-        self.inlet = resolve_inlet(name, settings.timeout, keep_running=keep_running)
-        self.offset = 0.0
-        self.local = on_this_host(self.inlet)
-
-    def pull(self, timeout: float, as_numpy: bool) -> tuple[Any, Any]:
-        """(samples, timestamps) available now or within ``timeout``; ([], []) after a
-        reconnection."""
-        try:
-            return self.inlet.pull_chunk(timeout=timeout, max_samples=1024, min_samples=1,
-                                         as_numpy=as_numpy)
-        except LostError:
-            log.warning("LSL stream %r lost; resolving it again", self.name)
-            self.inlet = resolve_inlet(self.name, self.settings.timeout,
-                                       keep_running=self.keep_running)
-            self.local = on_this_host(self.inlet)
-            self.summary.reconnects.append(self.name)
-            log.warning("LSL stream %r reconnected", self.name)
-            return [], []
-
-    def clock_offset(self) -> float:
-        """Seconds to add to the stream's timestamps to get this machine's LSL clock: 0 for
-        a stream of this machine (the same clock; a measured offset would only add its
-        noise of some microseconds)."""
-        if self.local:
-            return 0.0
-        try:
-            self.offset = self.inlet.time_correction(timeout=2.0)
-        except (pylsl.util.TimeoutError, LostError) as error:
-            log.warning("no time correction for %r (%s); using the last one", self.name, error)
-        return self.offset
-
-
-def on_this_host(inlet: pylsl.StreamInlet) -> bool:
-    """Whether the inlet's stream comes from a program on this machine (its host name):
-    then it shares this machine's clock and its timestamps need no correction."""
-    return bool(inlet.info().hostname() == socket.gethostname())
-
-
 @dataclass
 class _Awaited:
     """The step whose epoch the bridge waits for."""
@@ -317,12 +272,17 @@ def bridge_session(
         carry strings.
     """
     summary = BridgeSummary(settings.session)
-    eeg = _Input(settings.eeg, settings, summary, keep_running)
+    stop = threading.Event()  # the reader's
+
+    def reading() -> bool:
+        return keep_running() and not stop.is_set()
+
+    eeg = StreamInput(settings.eeg, settings.timeout, summary.reconnects, reading)
     meta = eeg_stream_meta(eeg.inlet.info())
     first, last = settings.window(meta.sfreq)
     photodiode = settings.photodiode and settings.photodiode.bind(list(meta.ch_names), meta.sfreq)
     names = photodiode.eeg_names(list(meta.ch_names)) if photodiode else list(meta.ch_names)
-    markers = _Input(settings.markers, settings, summary, keep_running)
+    markers = StreamInput(settings.markers, settings.timeout, summary.reconnects, reading)
     shift = settings.marker_shift
     if shift is None:
         shift = marker_stream_shift(markers.inlet.info())
@@ -347,9 +307,15 @@ def bridge_session(
         config["prior"] = upload_priors(session, settings.session, settings.prior,
                                         settings.timeout, RESEND_INTERVAL)
     with Client(session, settings.session, log, settings.timeout) as client:
-        bridge = _Bridge(settings, meta, (first, last), shift / meta.sfreq, eeg, markers,
-                         moves, client, summary, photodiode or None, names)
-        client.run(config, bridge, keep_running)
+        reader = StreamReader(eeg, markers, client.wake, stop)
+        bridge = _Bridge(settings, meta, (first, last), shift / meta.sfreq, reader, moves,
+                         client, summary, photodiode or None, names)
+        reader.start()
+        try:
+            client.run(config, bridge, keep_running)
+        finally:
+            stop.set()
+            reader.join()
     for stream in (eeg, markers):  # before their outlets close: no broken stream
         stream.inlet.close_stream()
     let_consumers_leave(moves)
@@ -362,13 +328,13 @@ class _Bridge:
 
     def __init__(
         self, settings: BridgeSettings, meta: StreamMeta, window: tuple[int, int],
-        marker_shift: float, eeg: _Input, markers: _Input, moves: pylsl.StreamOutlet,
-        client: Client, summary: BridgeSummary, photodiode: Photodiode | None,
-        names: list[str],
+        marker_shift: float, reader: StreamReader, moves: pylsl.StreamOutlet, client: Client,
+        summary: BridgeSummary, photodiode: Photodiode | None, names: list[str],
     ) -> None:
         self.settings, self.meta, self.window = settings, meta, window
         self.marker_shift = marker_shift  # s added to every marker timestamp
-        self.eeg, self.markers, self.moves, self.client = eeg, markers, moves, client
+        self.reader, self.eeg, self.markers = reader, reader.eeg, reader.markers
+        self.moves, self.client = moves, client
         self.summary, self.photodiode, self.names = summary, photodiode, names
         self.buffer = SampleBuffer(len(meta.ch_names), meta.sfreq, settings.buffer_seconds,
                                    settings.gap_tolerance)
@@ -379,20 +345,27 @@ class _Bridge:
         self.silent = False
 
     def poll(self) -> float:
-        """One round: take the EEG and the markers; cut what is due. The EEG inlet's pull
-        is the round's wait, so the client does not wait for the service (0 s)."""
-        self._take_eeg()
-        self._take_markers()
-        if self.awaited is not None and self.awaited.onset is not None:
-            self._try_cut(self.awaited)
+        """Take the reader's polls in order, each a round: its EEG, its markers, then cut
+        what is due; wait for the service at most `_IDLE_SECONDS` (the reader wakes the
+        loop when a stream brings something)."""
+        while True:
+            try:
+                samples, times, eeg_ns, values, stamps, arrived = self.reader.taken.get_nowait()
+            except queue.Empty:
+                break
+            self._take_eeg(samples, times, eeg_ns)
+            self._take_markers(values, stamps, arrived)
+            if self.awaited is not None and self.awaited.onset is not None:
+                self._try_cut(self.awaited)
+        if self.reader.error is not None:
+            raise self.reader.error
         self._check_silence()
-        return 0.0
+        return _IDLE_SECONDS
 
-    def _take_eeg(self) -> None:
-        samples, times = self.eeg.pull(_POLL_SECONDS, as_numpy=True)
+    def _take_eeg(self, samples: Any, times: Any, now: int) -> None:
         if not len(times):
             return
-        now = self.eeg_ns = time.monotonic_ns()
+        self.eeg_ns = now
         if self.silent:
             log.warning("EEG stream %r: samples again", self.settings.eeg)
             self.silent = False
@@ -400,9 +373,7 @@ class _Bridge:
             log.warning("EEG stream %r: %s", self.settings.eeg, gap.describe())
             self.summary.gaps.append(gap)
 
-    def _take_markers(self) -> None:
-        values, times = self.markers.pull(0.0, as_numpy=False)
-        arrived = pylsl.local_clock()
+    def _take_markers(self, values: Any, times: Any, arrived: float) -> None:
         for value, stamp in zip(values, times, strict=True):
             is_onset, step = parse_onset_marker(value[0], self.settings.onset_marker)
             if is_onset:

@@ -58,8 +58,9 @@ from pylsl.util import LostError
 
 from acquisition.labelled import LabelledEpochs
 from acquisition.loaders import load_epochs
-from acquisition.lsl_bridge import DEFAULT_MOVES, on_this_host
+from acquisition.lsl_bridge import DEFAULT_MOVES
 from acquisition.lsl_epochs import nearest_sample
+from acquisition.lsl_input import on_this_host
 from acquisition.lsl_streams import (
     eeg_outlet,
     let_consumers_leave,

@@ -10,15 +10,19 @@ timeout that only guards against a hang.
 
 from __future__ import annotations
 
+import logging
+import math
 import queue
 import subprocess
 import sys
+import threading
 from pathlib import Path
 
 import zenoh
 from live import TIMEOUT, service_process
 
 from wire import protocol
+from wire.client import Client
 from wire.transport import Pump, Received
 from wire.zenoh_config import free_tcp_endpoint, peer_config
 
@@ -59,3 +63,36 @@ def test_a_service_that_never_answers_ends_the_source_with_one_line_and_status_1
         "session_started)"
     ]
     assert again.data == first.data  # the config, re-sent unchanged while unanswered
+
+
+
+class _Polls:
+    """An answerer that counts its polls and would wait for the service for ever."""
+
+    polls = 0
+
+    def on_move(self, move: protocol.Message) -> None:
+        raise AssertionError(f"no move expected; got {move}")
+
+    def poll(self) -> float:
+        self.polls += 1
+        return math.inf
+
+
+def test_a_wake_from_another_thread_ends_the_clients_wait_for_the_service() -> None:
+    """The LSL bridge reads its streams in a thread that wakes the client's loop:
+    `Client.wake` ends the loop's wait, though nothing is due (the config's re-sending is
+    ``TIMEOUT`` away, and the peer subscribed to it never answers)."""
+    sid, endpoint = "woken", free_tcp_endpoint()
+    config = {"seed": 0, "world": "grid", "grid": 5, "frame": "feedback", "steps": 1,
+              "learner": {}, "dataset": {}, "signal": "features"}
+    with zenoh.open(peer_config([endpoint], ())) as peer:
+        pump = Pump(peer, protocol.key(sid, "config"), "config", queue.SimpleQueue())
+        try:
+            with Client(peer, sid, logging.getLogger("test"), TIMEOUT, TIMEOUT) as client:
+                answerer = _Polls()
+                threading.Thread(target=client.wake).start()
+                client.run(config, answerer, keep_running=lambda: answerer.polls < 1)
+        finally:
+            pump.close()
+    assert answerer.polls == 1 and not client.started

@@ -72,7 +72,7 @@ class Answerer(Protocol):
     def poll(self) -> float:
         """Do what is due now (after every message, every re-send, every wait); return
         the seconds the loop may wait for the service before calling again (``math.inf``:
-        until a message comes)."""
+        until a message comes, or `Client.wake`)."""
 
 
 class Client:
@@ -119,7 +119,7 @@ class Client:
     ) -> None:
         self.config_key = protocol.key(sid, "config")  # ProtocolError (ValueError) on a bad id
         self.sid, self.log, self.timeout = sid, log, timeout
-        self._inbox: queue.SimpleQueue[Received] = queue.SimpleQueue()
+        self._inbox: queue.SimpleQueue[Received | None] = queue.SimpleQueue()  # None: a wake
         self._pumps = [Pump(session, protocol.key(sid, kind), kind, self._inbox)
                        for kind in KINDS]
         self._outbox = Outbox(session)
@@ -219,25 +219,27 @@ class Client:
             self._last_truth = self._resender.send("truth", self.sid, truth, companion=True)
         return epoch
 
+    def wake(self) -> None:
+        """End `run`'s wait for the service now, so that the answerer's `poll` runs at
+        once (from any thread: one that reads the answerer's own input, say)."""
+        self._inbox.put(None)
+
     def _receive(self, wait: float) -> None:
-        """Take the messages that came, or wait up to ``wait`` s for one."""
+        """Take the messages that came, or wait up to ``wait`` s for one (or a `wake`)."""
         try:
             received = self._inbox.get(timeout=wait) if wait > 0 else self._inbox.get_nowait()
-        except queue.Empty:
-            silent_ns = time.monotonic_ns() - self._heard_ns
-            if self.awaiting and silent_ns >= self.timeout * 1e9:
-                raise TimeoutError(
-                    f"session {self.sid!r}: no message from the service for "
-                    f"{self.timeout:g} s (awaiting {self._awaited()})"
-                ) from None
-            return
-        while True:
-            self._heard_ns = time.monotonic_ns()
-            self._take(received)
-            try:
+            while True:
+                if received is not None:
+                    self._heard_ns = time.monotonic_ns()
+                    self._take(received)
                 received = self._inbox.get_nowait()
-            except queue.Empty:
-                return
+        except queue.Empty:
+            pass
+        if self.awaiting and time.monotonic_ns() - self._heard_ns >= self.timeout * 1e9:
+            raise TimeoutError(
+                f"session {self.sid!r}: no message from the service for "
+                f"{self.timeout:g} s (awaiting {self._awaited()})"
+            )
 
     def _awaited(self) -> str:
         if not self.started:
