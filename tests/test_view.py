@@ -46,6 +46,7 @@ from system_deps import require
 from acquisition.simulated_source import SourceSettings, SourceSummary, run_source
 from cfbci.recordings.publish import publish_recording
 from cfbci.view.checks import layout_of
+from cfbci.view.chromium import headless_options
 from cfbci.view.model import SessionBook, SessionView
 from cfbci.view.server import STATIC, Access, run_view
 from replay.recording import read_recording
@@ -54,11 +55,6 @@ from wire.transport import Outbox, Pump, Received
 from wire.zenoh_config import free_tcp_endpoint, peer_config
 
 WINDOW = (1440, 900)  # browser window, CSS pixels
-CHROME_FLAGS = (
-    "--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
-    "--disable-component-update", "--disable-sync", "--no-first-run", "--hide-scrollbars",
-    "--host-resolver-rules=MAP *.test 127.0.0.1",
-)
 TOKEN = "view-test-token-0123456789"  # the views' access token
 SEED = 3  # reaches targets early on the synthetic default (checked below: >= 1 target)
 STEPS = 120
@@ -144,12 +140,10 @@ def view(other_site: int) -> Iterator[tuple[str, str]]:
 @pytest.fixture(scope="module")
 def browser(tmp_path_factory: pytest.TempPathFactory) -> Iterator[webdriver.Chrome]:
     """Headless Chromium with a fresh profile."""
-    options = webdriver.ChromeOptions()
-    options.binary_location = _executable("chromium", "/usr/bin/chromium")
-    for flag in CHROME_FLAGS:
-        options.add_argument(flag)
-    options.add_argument(f"--user-data-dir={tmp_path_factory.mktemp('chromium-profile')}")
-    options.add_argument(f"--window-size={WINDOW[0]},{WINDOW[1]}")
+    options = headless_options(
+        _executable("chromium", "/usr/bin/chromium"), tmp_path_factory.mktemp("chromium-profile"),
+        "--host-resolver-rules=MAP *.test 127.0.0.1", f"--window-size={WINDOW[0]},{WINDOW[1]}",
+    )
     driver = webdriver.Chrome(
         options=options, service=DriverService(_executable("chromedriver", "/usr/bin/chromedriver"))
     )

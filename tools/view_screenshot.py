@@ -28,11 +28,7 @@ from selenium.webdriver.chrome.service import Service
 from selenium.webdriver.support.ui import WebDriverWait
 
 from cfbci.view import TOKEN_ENV
-
-FLAGS = (
-    "--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
-    "--disable-component-update", "--disable-sync", "--no-first-run", "--hide-scrollbars",
-)
+from cfbci.view.chromium import headless_options
 
 
 def with_token(url: str, token: str | None) -> str:
@@ -57,12 +53,8 @@ def main() -> None:
                         help=f"the view's access token (default: ${TOKEN_ENV}); not needed if "
                         "the URL has one")
     args = parser.parse_args()
-    options = webdriver.ChromeOptions()
-    options.binary_location = "/usr/bin/chromium"
-    for flag in FLAGS:
-        options.add_argument(flag)
     with tempfile.TemporaryDirectory() as profile:
-        options.add_argument(f"--user-data-dir={profile}")
+        options = headless_options("/usr/bin/chromium", profile)
         driver = webdriver.Chrome(options=options, service=Service("/usr/bin/chromedriver"))
         try:
             driver.execute_cdp_cmd("Emulation.setDeviceMetricsOverride", {

@@ -58,14 +58,12 @@ from typing import Any
 import numpy as np
 
 from acquisition.lsl_streams import loopback_config
+from cfbci.view.chromium import headless_options
 from replay.recording import read_recording
 from wire.zenoh_config import free_tcp_endpoint
 
 #: Debian's programs the bench drives, and the packages that install them.
 PROGRAMS = {"chromium": "chromium", "chromedriver": "chromium-driver"}
-CHROME_FLAGS = ("--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
-                "--disable-component-update", "--disable-sync", "--no-first-run",
-                "--hide-scrollbars", "--window-size=1280,800")
 #: Seconds a part may keep the session waiting (processes, streams, the page).
 TIMEOUT = 60.0
 TOKEN = "bench-timing-token-0123456789"
@@ -264,10 +262,8 @@ def _browser(folder: Path, skew_ms: float) -> Iterator[Any]:
     from selenium import webdriver
     from selenium.webdriver.chrome.service import Service
 
-    options = webdriver.ChromeOptions()
-    options.binary_location = str(shutil.which("chromium"))
-    for flag in (*CHROME_FLAGS, f"--user-data-dir={folder / 'chromium-profile'}"):
-        options.add_argument(flag)
+    options = headless_options(str(shutil.which("chromium")), folder / "chromium-profile",
+                               "--window-size=1280,800")
     driver = webdriver.Chrome(options=options, service=Service(shutil.which("chromedriver")))
     try:
         if skew_ms:
