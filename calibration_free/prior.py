@@ -247,8 +247,9 @@ class PriorCheck:
     the blank learner acts when it is confident (its target, as from scratch) or ``D < 0``,
     else the informed one, whose target is then declared only if today's signals alone
     corroborate it (`ReturningLearner.corroborated`: the blank learner's posterior of that
-    task at least ``corroboration`` times its best task's), else withheld (the blank
-    learner's proposal is made instead). The prior is
+    task at least ``corroboration`` times its best task's and ``lift`` times the uniform
+    ``1 / n_tasks``: today's signals alone raised it above what they give a task before
+    any signal), else withheld (the blank learner's proposal is made instead). The prior is
 
     * abandoned once ``D <= -refute``: the blank learner acts from then on;
     * trusted for good once ``D >= trust``: the blank learner is dropped;
@@ -264,7 +265,11 @@ class PriorCheck:
     of 150 signals with ``D >= 0``) cost wrong targets once the blank learner was gone.
     A corroboration by the blank learner's best task alone (``corroboration`` 1) deadlocked
     Gaussian sessions without the power prior, where the blank learner cannot break the
-    tie between a task and its mirror and the informed learner can.
+    tie between a task and its mirror and the informed learner can. At 0.78, the ratio alone
+    (``lift`` 0) let another subject's prior declare a target after 12 or 17 signals that
+    the blank learner gave less than 1.1 / n_tasks: wrong, and both learners, having adopted
+    its labels, then locked into wrong targets (2 sessions of 20); ``lift`` 1.5 withheld
+    them and left the prior's speed-up unchanged.
 
     In the feedback frame with the power prior, the prior's own labels are checked against
     the ErrP power premise first (`power_premise`): a prior whose error-labelled
@@ -281,6 +286,8 @@ class PriorCheck:
         Signals after which the check decides; None: never before ``refute`` or ``trust``.
     corroboration : float
         In (0, 1].
+    lift : float
+        At least 0 (0: the ratio to the best task's alone).
     """
 
     refute: float = 3.0
@@ -288,6 +295,7 @@ class PriorCheck:
     trust: float = math.inf
     horizon: int | None = None
     corroboration: float = 0.5
+    lift: float = 1.5
 
 
 @dataclass
@@ -396,16 +404,18 @@ class ReturningLearner:
     @property
     def corroborated(self) -> bool:
         """Whether today's signals alone back the informed learner's best task: ``D >= 0``
-        and the blank learner's posterior of that task at least ``corroboration`` times
-        its best task's (ties between a task and its mirror, which the blank learner may
-        not break without the power prior, corroborate either)."""
+        and the blank learner's posterior of that task at least ``lift / n_tasks`` and
+        ``corroboration`` times its best task's (ties between a task and its mirror, which
+        the blank learner may not break without the power prior, corroborate either)."""
         informed, blank = self.informed, self.blank
         if informed is None or blank is None:
             return False
         scores = blank.beliefs().scores
         task = informed.beliefs().best_task
+        log_posterior = scores[task] - logsumexp(scores)
         return self.statistic >= 0 and bool(
-            scores[task] >= scores.max() + np.log(self.check.corroboration))
+            scores[task] >= scores.max() + np.log(self.check.corroboration)
+            and log_posterior >= np.log(self.check.lift / len(scores)))
 
     def observe(self, state: int, action: int, signal: np.ndarray) -> None:
         """Every learner observes the signal (following a target another one declared);

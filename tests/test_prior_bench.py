@@ -101,3 +101,22 @@ def test_a_day_one_without_two_targets_gives_no_prior(tmp_path: Path) -> None:
     assert decision == {"outcome": "no prior", "step": None, "premise": None}
     assert (result, None) == run_day(DayJob(data, 100, "scratch", 12))
     assert fallbacks([decision])["no_prior"] == 1
+
+
+def test_another_subjects_prior_declares_no_target_todays_signals_barely_raised(
+    tmp_path: Path,
+) -> None:
+    """Synthetic user 107 (balanced accuracy 0.78) with user 108's day 1 as prior: the
+    informed learner is sure of a task after 17 signals, which the blank learner gives
+    0.036 (below the uniform 1/25) and its best task 0.054; corroborated by the ratio alone
+    (at least half the best's), that first target was wrong, and both learners, having
+    adopted its labels, locked into wrong targets (36 in 500 steps, none correct). The
+    check's lift (the blank learner's posterior at least 1.5 / n_tasks) withholds it: the
+    session's first target is correct."""
+    data = ReturningData(accuracy=0.78)
+    day1 = str(tmp_path / "day1-108.mcap")
+    run_day(DayJob(data, 108, "day1", 500, (day1,)))
+    result, decision = run_day(DayJob(data, 107, "other_subject", 70, (day1,)))
+    assert result.first_target_step is not None
+    assert result.first_correct_target_step == result.first_target_step
+    assert result.wrong_targets == 0 and decision is not None

@@ -147,7 +147,9 @@ def _run_on_dask(
         cluster = LocalCluster(
             n_workers=max(1, min(scheduler.workers, len(jobs))), threads_per_worker=1,
             processes=True, host="127.0.0.1", dashboard_address=LOOPBACK_ANY_PORT,
-            silence_logs=logging.ERROR,
+            # A job's error reaches the caller through its future; a worker's heartbeat to
+            # the scheduler closed at the end of the run is logged as an ERROR traceback.
+            silence_logs=logging.CRITICAL,
         )
         address = cluster.scheduler_address
     else:
