@@ -17,6 +17,7 @@ import pytest
 from test_report import write_real
 
 from cfbci.cli import main
+from cfbci.recordings.reanalysis import recorded_history
 from replay.metrics import (
     SIMULATED_TRUTH,
     SessionMetrics,
@@ -124,3 +125,20 @@ def test_cfbci_report_states_the_truth_it_judged_targets_by(
     assert "truth the targets are judged by" in page
     assert html.escape(f"the operator's marks ({n_marks} marks") in page
     assert html.escape(SIMULATED_TRUTH) in page
+
+
+def test_the_reanalysis_takes_the_users_targets_from_the_marks(tmp_path: Path) -> None:
+    """``cfbci replay --compare`` scores its settings against the user's target of every
+    step: from the operator's marks where there is no ``/truth``, the same targets as the
+    simulated user's truth when the marks follow it from step 1 (None before a first mark)."""
+    truth, marked, late = (tmp_path / f"{n}.mcap" for n in ("truth", "marked", "late"))
+    write_real(truth, SEED, STEPS, GRID)
+    write_real(marked, SEED, STEPS, GRID, marks_from=1)
+    targets = recorded_history(read_recording(truth)).targets
+    assert None not in targets
+    assert recorded_history(read_recording(marked)).targets == targets
+    first = 10
+    write_real(late, SEED, STEPS, GRID, marks_from=first)
+    late_targets = recorded_history(read_recording(late)).targets
+    assert late_targets[: first - 1] == [None] * (first - 1)
+    assert None not in late_targets[first - 1:]

@@ -19,10 +19,11 @@ Steps
     Step ``k`` (1-based) is the recording's ``k``-th move; the beliefs *of step k* are those
     the move of step ``k`` was chosen from, after ``k - 1`` epochs (the ``k``-th ``/state``),
     as in ``cfbci simulate --trace`` and `replay.metrics`. The user's target at step
-    ``k`` is the ``/truth`` target of step ``k``. A learner *is confident at step k* when its
-    beliefs of step ``k`` are (its best task's confidence exceeds ``beta``): it would then
-    walk to its best task instead of exploring. The final beliefs, after the last epoch,
-    are compared with the recording but belong to no step.
+    ``k`` is the ``/truth`` target of step ``k``, or, in a session with a person, the
+    operator's last mark at or before it (`replay.metrics.session_truth`). A learner *is
+    confident at step k* when its beliefs of step ``k`` are (its best task's confidence
+    exceeds ``beta``): it would then walk to its best task instead of exploring. The final
+    beliefs, after the last epoch, are compared with the recording but belong to no step.
 
 Segments
     Segment ``j`` runs from the step after the ``(j-1)``-th recorded declaration (step 1 for
@@ -46,6 +47,7 @@ import numpy as np
 
 from calibration_free.config import LearnerConfig
 from calibration_free.prior import Prior
+from replay.metrics import session_truth
 from replay.recorded_prior import recorded_prior
 from replay.recording import Recording, read_recording
 from replay.rerun import recorded_signals
@@ -101,7 +103,8 @@ class RecordedHistory:
     signals : list of ndarray
         The learner's input of every step, float32.
     targets : list of int or None
-        The user's target of every step (``/truth``), None where no truth was recorded.
+        The user's target of every step (``/truth``, else the operator's marks), None
+        where the recording has none.
     recorded : Trajectory
         The recorded ``/state`` messages (at most ``n_steps + 1``).
     prior : Prior or None
@@ -286,7 +289,7 @@ def recorded_history(recording: Recording, where: str = "") -> RecordedHistory:
                 f"{where}: move #{k} of step {move['step']} and epoch #{k} of step "
                 f"{epoch.get('step')}: the recording's steps are not 1, 2, ... in order"
             )
-    truth = {m["step"]: m["target"] for _, m in recording.messages.get("/truth", [])}
+    truth, _ = session_truth(recording, list(range(1, n_steps + 1)))
     states = [m for _, m in recording.messages.get("/state", [])][: n_steps + 1]
     world = config_world(recording.config)
     n_tasks = world.n_tasks
@@ -305,7 +308,7 @@ def recorded_history(recording: Recording, where: str = "") -> RecordedHistory:
         ),
         declared=np.array([m["target_reached"] for m in moves[:n_steps]], dtype=bool),
         signals=recorded_signals(recording)[:n_steps],
-        targets=[truth.get(k) for k in range(1, n_steps + 1)],
+        targets=[truth[k]["target"] if k in truth else None for k in range(1, n_steps + 1)],
         recorded=recorded,
         prior=recorded_prior(recording),
     )
