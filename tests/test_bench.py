@@ -72,6 +72,57 @@ def test_bench_simulate_reports_the_realtime_factor(tmp_path, capsys):
     assert "faster than real time" in capsys.readouterr().out
 
 
+def _separable_dataset(path, shift):
+    rng = np.random.default_rng(0)
+    labels = np.arange(120) % 2
+    np.savez(path, features=rng.normal(size=(120, 4)) + shift * labels[:, None], labels=labels)
+    return path
+
+
+def test_bench_simulate_prior_times_both_arms_on_the_same_steps(tmp_path, capsys):
+    dataset = _separable_dataset(tmp_path / "data.npz", 2.0)
+    out = tmp_path / "prior.json"
+    code = main([
+        "bench", "simulate", "--dataset", str(dataset), "--seeds", "2", "--steps", "30",
+        "--prior", "--json", str(out),
+    ])
+    assert code == 0
+    report = json.loads(out.read_text())
+    arms = report["arms"]
+    assert list(arms) == ["scratch", "prior"]
+    for arm in arms.values():
+        # The same users' day-2 sessions, every step timed in both arms.
+        assert [(s["seed"], s["steps"]) for s in arm["sessions"]] == [(0, 30), (1, 30)]
+        assert arm["steps"] == 60
+        ms = arm["step_ms"]
+        assert 0 < ms["p10"] <= ms["median"] <= ms["p90"] <= ms["p99"]
+        assert arm["start_ms"] > 0
+    assert all(s["decision"] is None for s in arms["scratch"]["sessions"])
+    # The prior arm's learner is the returning user's: the prior check decided or is testing.
+    assert all(s["decision"]["outcome"] in ("testing", "trusted", "fallen back")
+               for s in arms["prior"]["sessions"])
+    ratio = report["ratio"]
+    assert ratio["median"] == arms["prior"]["step_ms"]["median"] / arms["scratch"]["step_ms"][
+        "median"]
+    assert ratio["per_seed"] == [
+        p["median_ms"] / s["median_ms"]
+        for s, p in zip(arms["scratch"]["sessions"], arms["prior"]["sessions"], strict=True)
+    ]
+    assert (ratio["min"], ratio["max"]) == (min(ratio["per_seed"]), max(ratio["per_seed"]))
+    printed = capsys.readouterr().out
+    assert "prior / scratch per step:" in printed and "the prior check at the end:" in printed
+
+
+def test_bench_simulate_prior_says_why_it_has_no_prior(tmp_path, capsys):
+    dataset = _separable_dataset(tmp_path / "data.npz", 0.0)  # no target in 10 steps
+    base = ["bench", "simulate", "--dataset", str(dataset), "--seeds", "1", "--prior"]
+    assert main([*base, "--steps", "10"]) == 2
+    assert "seed 0's day-1 session of 10 steps declared fewer than two targets" in (
+        capsys.readouterr().err)
+    assert main([*base, "--steps", "10", "--frame", "guidance"]) == 2
+    assert "day 1 is simulated in the feedback frame" in capsys.readouterr().err
+
+
 def test_allocator_tuning_is_safe_to_repeat():
     import sys
 

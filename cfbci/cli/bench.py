@@ -17,6 +17,7 @@ from acquisition.sources import DEFAULT_SYNTHETIC_ACCURACY
 from acquisition.synthetic import ACCURACY_RANGE
 from cfbci.bench.continuous import bench_continuous_step, print_continuous
 from cfbci.bench.flood import bench_flood, print_flood
+from cfbci.bench.prior_steps import bench_prior_steps, print_prior_steps
 from cfbci.bench.returning import (
     ARMS,
     DEFAULT_DRIFT,
@@ -153,19 +154,26 @@ def run_bench_update(args: argparse.Namespace, console: Console) -> int:
 
 
 def run_bench_simulate(args: argparse.Namespace, console: Console) -> int:
-    """``cfbci bench simulate``: run, print, and write the JSON if asked."""
-    report = bench_simulate(
-        args.dataset, args.seeds, args.steps, args.frame, args.grid, console
-    )
-    wall = report["wall_s"]
-    console.print(
-        f"{len(report['sessions'])} sessions of {report['steps']} steps on {args.dataset} "
-        f"({report['frame']}, {args.grid} x {args.grid}): wall time per session median "
-        f"{wall['median']:.2f} s (min {wall['min']:.2f}, max {wall['max']:.2f}); "
-        f"{report['realtime_factor']:.0f}x faster than real time at "
-        f"{SECONDS_PER_ACTION:g} s per action (median over sessions)",
-        soft_wrap=True,  # the dataset's path stays on one line, for copying
-    )
+    """``cfbci bench simulate`` (``--prior``: `bench_prior_steps`): run, print, and write
+    the JSON if asked."""
+    if args.prior:
+        report = bench_prior_steps(
+            args.dataset, args.seeds, args.steps, args.frame, args.grid, console
+        )
+        print_prior_steps(report, console)
+    else:
+        report = bench_simulate(
+            args.dataset, args.seeds, args.steps, args.frame, args.grid, console
+        )
+        wall = report["wall_s"]
+        console.print(
+            f"{len(report['sessions'])} sessions of {report['steps']} steps on {args.dataset} "
+            f"({report['frame']}, {args.grid} x {args.grid}): wall time per session median "
+            f"{wall['median']:.2f} s (min {wall['min']:.2f}, max {wall['max']:.2f}); "
+            f"{report['realtime_factor']:.0f}x faster than real time at "
+            f"{SECONDS_PER_ACTION:g} s per action (median over sessions)",
+            soft_wrap=True,  # the dataset's path stays on one line, for copying
+        )
     if args.json:
         args.json.write_text(json.dumps(report, indent=2) + "\n")
     return 0
@@ -201,6 +209,12 @@ def add_bench_parsers(which: argparse._SubParsersAction) -> None:
     simulate.add_argument("--steps", type=int, default=500, help="steps (default 500)")
     simulate.add_argument("--frame", choices=["feedback", "guidance"], default="feedback")
     simulate.add_argument("--grid", type=int, default=5, help="grid side (default 5)")
+    simulate.add_argument(
+        "--prior", action="store_true",
+        help="instead, per seed: a day-1 session on half of the dataset, recorded, then the "
+        "day-2 session on the other half from scratch and from that prior; the wall time "
+        "per step of each and their ratio (feedback frame)",
+    )
     simulate.add_argument("--json", type=Path, help="write the figures as JSON")
     simulate.set_defaults(run=run_bench_simulate)
 
