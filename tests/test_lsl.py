@@ -184,6 +184,25 @@ def _stop(process: subprocess.Popen) -> None:
         process.wait(TIMEOUT)
 
 
+def listening_loop(
+    tmp_path: Path, seed: int, running: ExitStack
+) -> tuple[str, str, dict[str, str], list[str]]:
+    """A whole-loop session's setting (the simulator listening for a stimulus program's
+    onsets): this test's loopback LSL config, a ``cfbci serve`` recording to ``tmp_path``
+    (stopped with ``running``); returns the session's name, the service's endpoint, the
+    streams' names (``moves``, ``onsets``, ``eeg``) and the options every client shares."""
+    name = tmp_path.name[-40:]
+    (tmp_path / "lsl_api.cfg").write_text(loopback_config(f"cfbci-test-{name}"))
+    endpoint = free_tcp_endpoint()
+    names = {kind: f"{kind}-{name}" for kind in ("moves", "onsets", "eeg")}
+    common = ["--session", name, "--seed", str(seed), "--connect", endpoint,
+              "--timeout", "60", "--eeg", names["eeg"]]
+    serve = _start(tmp_path, "serve", "serve", "--listen", endpoint, "--record-dir",
+                   str(tmp_path))
+    running.callback(_stop, serve)
+    return name, endpoint, names, common
+
+
 @contextmanager
 def lsl_clients(
     tmp_path: Path, steps: int, seed: int, endpoint: str, simulator_options: list[str],

@@ -26,10 +26,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from test_lsl import SFREQ, TIMEOUT, _start, _stop
-
-from acquisition.lsl_streams import loopback_config
-from wire.zenoh_config import free_tcp_endpoint
+from test_lsl import SFREQ, TIMEOUT, _start, _stop, listening_loop
 
 STEPS, SEED = 6, 4
 BUDGET = 0.5  # --marker-latency, s
@@ -85,16 +82,8 @@ def _stimulus(tmp_path: Path, names: dict[str, str], pushed: Path) -> subprocess
 @pytest.fixture(scope="module")
 def session(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Session]:
     tmp_path = tmp_path_factory.mktemp("late-onsets")
-    name = tmp_path.name[-40:]
-    (tmp_path / "lsl_api.cfg").write_text(loopback_config(f"cfbci-test-{name}"))
-    endpoint = free_tcp_endpoint()
-    names = {kind: f"{kind}-{name}" for kind in ("moves", "onsets", "eeg")}
-    common = ["--session", name, "--seed", str(SEED), "--connect", endpoint,
-              "--timeout", "60", "--eeg", names["eeg"]]
     with ExitStack() as running:
-        serve = _start(tmp_path, "serve", "serve", "--listen", endpoint, "--record-dir",
-                       str(tmp_path))
-        running.callback(_stop, serve)
+        name, _, names, common = listening_loop(tmp_path, SEED, running)
         simulator = _start(tmp_path, "simulator", "lsl-simulator", *common, "--onsets",
                            names["onsets"], "--marker-latency", str(BUDGET),
                            "--written", str(tmp_path / "written.npz"))

@@ -34,11 +34,16 @@ import aiohttp
 import numpy as np
 import pytest
 from selenium.webdriver.support.ui import WebDriverWait
-from test_lsl import SFREQ, TIMEOUT, LslSession, _start, _stop, assert_session_is_the_simulation
+from test_lsl import (
+    SFREQ,
+    TIMEOUT,
+    LslSession,
+    _start,
+    _stop,
+    assert_session_is_the_simulation,
+    listening_loop,
+)
 from test_view import browser
-
-from acquisition.lsl_streams import loopback_config
-from wire.zenoh_config import free_tcp_endpoint
 
 __all__ = ["browser"]  # the fixture, shared with tests/test_view.py
 
@@ -143,16 +148,8 @@ def _view(tmp_path: Path, endpoint: str, names: dict[str, str]) -> Iterator[str]
 
 
 def test_the_subject_page_is_the_stimulus_of_a_whole_session(tmp_path: Path, browser) -> None:
-    name = tmp_path.name[-40:]
-    (tmp_path / "lsl_api.cfg").write_text(loopback_config(f"cfbci-test-{name}"))
-    endpoint = free_tcp_endpoint()
-    names = {kind: f"{kind}-{name}" for kind in ("moves", "onsets", "eeg")}
-    common = ["--session", name, "--seed", str(SEED), "--connect", endpoint,
-              "--timeout", "60", "--eeg", names["eeg"]]
     with ExitStack() as running:
-        serve = _start(tmp_path, "serve", "serve", "--listen", endpoint, "--record-dir",
-                       str(tmp_path))
-        running.callback(_stop, serve)
+        name, endpoint, names, common = listening_loop(tmp_path, SEED, running)
         views = _view(tmp_path, endpoint, names)
         running.callback(views.close)
         browser.get(next(views))
