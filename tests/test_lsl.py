@@ -203,6 +203,23 @@ def listening_loop(
     return name, endpoint, names, common
 
 
+def listening_clients(
+    tmp_path: Path, running: ExitStack, names: dict[str, str], common: list[str], steps: int,
+    marker_latency: float,
+) -> tuple[subprocess.Popen, subprocess.Popen]:
+    """``lsl-simulator --onsets`` (its writes in ``written.npz``) and ``lsl-bridge`` (its
+    summary in ``bridge.json``) of a `listening_loop` session, stopped with ``running``."""
+    simulator = _start(tmp_path, "simulator", "lsl-simulator", *common, "--onsets",
+                       names["onsets"], "--marker-latency", str(marker_latency),
+                       "--written", str(tmp_path / "written.npz"))
+    running.callback(_stop, simulator)
+    bridge = _start(tmp_path, "bridge", "lsl-bridge", *common, "--markers", names["onsets"],
+                    "--moves", names["moves"], "--steps", str(steps),
+                    "--json", str(tmp_path / "bridge.json"))
+    running.callback(_stop, bridge)
+    return simulator, bridge
+
+
 @contextmanager
 def lsl_clients(
     tmp_path: Path, steps: int, seed: int, endpoint: str, simulator_options: list[str],

@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from test_lsl import SFREQ, TIMEOUT, _start, _stop, listening_loop
+from test_lsl import SFREQ, TIMEOUT, _stop, listening_clients, listening_loop
 
 STEPS, SEED = 6, 4
 BUDGET = 0.5  # --marker-latency, s
@@ -84,14 +84,7 @@ def session(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Session]:
     tmp_path = tmp_path_factory.mktemp("late-onsets")
     with ExitStack() as running:
         name, _, names, common = listening_loop(tmp_path, SEED, running)
-        simulator = _start(tmp_path, "simulator", "lsl-simulator", *common, "--onsets",
-                           names["onsets"], "--marker-latency", str(BUDGET),
-                           "--written", str(tmp_path / "written.npz"))
-        running.callback(_stop, simulator)
-        bridge = _start(tmp_path, "bridge", "lsl-bridge", *common, "--markers",
-                        names["onsets"], "--moves", names["moves"], "--steps", str(STEPS),
-                        "--json", str(tmp_path / "bridge.json"))
-        running.callback(_stop, bridge)
+        simulator, bridge = listening_clients(tmp_path, running, names, common, STEPS, BUDGET)
         stimulus = _stimulus(tmp_path, names, tmp_path / "pushed.jsonl")
         running.callback(_stop, stimulus)
         logs = {role: tmp_path / f"{role}.log" for role in ("simulator", "bridge", "stimulus")}

@@ -38,9 +38,9 @@ from test_lsl import (
     SFREQ,
     TIMEOUT,
     LslSession,
-    _start,
     _stop,
     assert_session_is_the_simulation,
+    listening_clients,
     listening_loop,
 )
 from test_view import browser
@@ -158,14 +158,7 @@ def test_the_subject_page_is_the_stimulus_of_a_whole_session(tmp_path: Path, bro
             == "on"
         )
         browser.execute_script(FAULTS, running.enter_context(_hiding_server(browser)))
-        simulator = _start(tmp_path, "simulator", "lsl-simulator", *common, "--onsets",
-                           names["onsets"], "--marker-latency", "1",
-                           "--written", str(tmp_path / "written.npz"))
-        running.callback(_stop, simulator)
-        bridge = _start(tmp_path, "bridge", "lsl-bridge", *common, "--markers",
-                        names["onsets"], "--moves", names["moves"], "--steps", str(STEPS),
-                        "--json", str(tmp_path / "bridge.json"))
-        running.callback(_stop, bridge)
+        simulator, bridge = listening_clients(tmp_path, running, names, common, STEPS, 1)
         logs = {role: tmp_path / f"{role}.log" for role in ("simulator", "bridge", "view")}
         assert bridge.wait(TIMEOUT) == 0, logs["bridge"].read_text()
         assert simulator.wait(TIMEOUT) == 0, logs["simulator"].read_text()
