@@ -230,10 +230,12 @@ def _figures(values_ms: np.ndarray) -> dict[str, float]:
 
 def run_bridge(
     settings: BridgeSettings, listen: Sequence[str] = (), connect: Sequence[str] = (),
-    keep_running: Callable[[], bool] = lambda: True,
+    keep_running: Callable[[], bool] = lambda: True, zenoh_config: Path | None = None,
 ) -> BridgeSummary:
-    """Open a Zenoh peer and bridge one session (see `bridge_session`)."""
-    with zenoh.open(peer_config(listen, connect)) as session:
+    """Open a Zenoh session (`wire.zenoh_config.peer_config`: a peer, or what
+    ``zenoh_config``, a JSON5 file, says, e.g. a router's client with its user's
+    credentials) and bridge one session (see `bridge_session`)."""
+    with zenoh.open(peer_config(listen, connect, zenoh_config)) as session:
         return bridge_session(session, settings, keep_running)
 
 

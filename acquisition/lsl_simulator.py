@@ -48,6 +48,7 @@ import threading
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -265,11 +266,12 @@ class Simulation:
 
 def run_simulator(
     settings: SimulatorSettings, listen: Sequence[str] = (), connect: Sequence[str] = (),
-    keep_running: Callable[[], bool] = lambda: True,
+    keep_running: Callable[[], bool] = lambda: True, zenoh_config: Path | None = None,
 ) -> Simulation:
-    """Open a Zenoh peer (for the truth) and simulate until the bridge's move stream ends
-    or ``keep_running()`` turns False."""
-    with zenoh.open(peer_config(listen, connect)) as session:
+    """Open a Zenoh session for the truth (`wire.zenoh_config.peer_config`: a peer, or
+    what ``zenoh_config`` says) and simulate until the bridge's move stream ends or
+    ``keep_running()`` turns False."""
+    with zenoh.open(peer_config(listen, connect, zenoh_config)) as session:
         return _Simulator(session, settings).run(keep_running)
 
 

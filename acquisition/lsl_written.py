@@ -3,6 +3,7 @@ recording (``cfbci lsl-check``): `save_written` and `check_recording`."""
 
 from __future__ import annotations
 
+import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -55,9 +56,22 @@ class Comparison:
 
 
 def check_recording(written_path: Path, recording_path: Path) -> Comparison:
-    """Compare every ``/epoch`` of a recording with what the simulator wrote for its step."""
-    with np.load(written_path, allow_pickle=False) as arrays:
-        last = {int(step): arrays["epochs"][i] for i, step in enumerate(arrays["steps"])}
+    """Compare every ``/epoch`` of a recording with what the simulator wrote for its step.
+
+    Raises
+    ------
+    ValueError
+        If ``written_path`` is not the simulator's written epochs (``--written``: an
+        ``.npz`` of ``steps`` and ``epochs``).
+    """
+    try:
+        with np.load(written_path, allow_pickle=False) as arrays:
+            last = {int(step): arrays["epochs"][i] for i, step in enumerate(arrays["steps"])}
+    except (ValueError, OSError, EOFError, KeyError, zipfile.BadZipFile) as error:
+        raise ValueError(
+            f"{written_path}: not the simulator's written epochs (the .npz of "
+            f"`cfbci lsl-simulator --written`, with 'steps' and 'epochs'): {error}"
+        ) from None
     recording = read_recording(recording_path)
     mismatches, equal = [], 0
     epochs = recording.accepted_epochs()

@@ -558,3 +558,38 @@ def test_tls_client_certificates_from_another_authority_are_refused(
         for refused in (client("other"), client(None), client("certs", ca="other")):
             with pytest.raises(zenoh.ZError):
                 zenoh.open(refused).close()
+
+
+def test_an_lsl_session_runs_behind_the_router_as_its_users(
+    deployment: Deployment, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """``cfbci lsl-bridge --zenoh-config source.json5``: the bridge logs in as ``lab`` and
+    its session, ``lab/lsl1``, runs to its end through the router, recorded in ``lab``'s
+    folder with every epoch the simulator (also logged in as ``lab``, for its truth)
+    wrote."""
+    pytest.importorskip("pylsl")
+    from acquisition.lsl_streams import loopback_config
+
+    (deployment.root / "lsl_api.cfg").write_text(loopback_config(f"cfbci-test-{os.getpid()}"))
+    monkeypatch.setenv("LSLAPICFG", str(deployment.root / "lsl_api.cfg"))
+    streams = [f"--{kind}" if i % 2 == 0 else f"{kind}-{os.getpid()}"
+               for kind in ("eeg", "markers", "moves") for i in range(2)]
+    session, steps = "lab/lsl1", 8
+    with router(deployment), service(deployment) as records:
+        with cli_process(deployment, "simulator", "lsl-simulator", "--session", session,
+                         "--seed", "3", "--zenoh-config", "source.json5", "--connect",
+                         deployment.endpoint, "--timeout", "60", "--written", "written.npz",
+                         *streams) as simulator:
+            bridged = cfbci(deployment, "lsl-bridge", "--session", session, "--seed", "3",
+                            "--steps", str(steps), "--timeout", "60", "--zenoh-config",
+                            "source.json5", "--connect", deployment.endpoint, *streams)
+            assert bridged.returncode == 0, bridged.stderr
+            assert f"{steps} epochs published" in bridged.stdout
+            simulator.wait(TIMEOUT)  # it ends with the bridge's move stream
+    path = records / "lab" / "lsl1.mcap"
+    recording = read_recording(path)
+    assert recording.session == session
+    assert [m["step"] for _, m in recording.messages["/truth"]] == list(range(1, steps + 1))
+    checked = cfbci(deployment, "lsl-check", "written.npz", str(path))
+    assert checked.returncode == 0, checked.stdout + checked.stderr
+    assert f"{steps} of {steps} recorded epochs equal" in checked.stdout

@@ -384,3 +384,19 @@ def test_a_config_lost_before_the_service_subscribed_is_resent_and_answered(
     assert "session_rejected: not yours" in session.logs["bridge"]
     assert [e["step"] for e in session.bridge["epochs"]] == list(range(1, steps + 1))
     assert_session_is_the_simulation(session, steps, seed)
+
+
+@pytest.mark.parametrize("content", [b"MCAP0\r\n not written epochs", b""])
+def test_lsl_check_names_a_file_that_is_not_the_simulators_written_epochs(
+    tmp_path: Path, content: bytes
+) -> None:
+    """Arguments swapped (a recording given as the written file) or an empty file: one
+    line that names the file and what was expected, exit 2, no traceback."""
+    written, recording = tmp_path / "run.mcap", tmp_path / "written.npz"
+    written.write_bytes(content)
+    np.savez(recording, steps=np.arange(2), epochs=np.zeros((2, 4, 8), np.float32))
+    checked = subprocess.run([sys.executable, "-m", "cfbci.cli", "lsl-check", str(written),
+                              str(recording)], capture_output=True, text=True, timeout=TIMEOUT)
+    assert checked.returncode == 2
+    assert f"{written}: not the simulator's written epochs" in checked.stderr
+    assert "Traceback" not in checked.stderr

@@ -18,6 +18,7 @@ from cfbci.cli.options import (
     add_data_options,
     add_endpoints,
     add_prior_option,
+    add_zenoh_config,
     checked_prior,
     data_spec,
     parse_settings,
@@ -118,6 +119,7 @@ def _add_bridge(commands: argparse._SubParsersAction) -> None:
                    "the move is shown again (default 0.1)")
     p.add_argument("--json", type=Path, help="write the bridge's report as JSON")
     add_prior_option(p)
+    add_zenoh_config(p)
     p.set_defaults(run=_run_bridge)
 
 
@@ -152,7 +154,8 @@ def _run_bridge(args: argparse.Namespace, console: Console) -> int:
     )
     stop = _stop_on_signals()
     try:
-        summary = run_bridge(settings, args.listen, args.connect, lambda: not stop.is_set())
+        summary = run_bridge(settings, args.listen, args.connect, lambda: not stop.is_set(),
+                             args.zenoh_config)
     except (TimeoutError, RuntimeError) as error:
         Console(stderr=True).print(f"[bold red]error:[/] {error}")
         return 1
@@ -242,6 +245,7 @@ def _add_simulator(commands: argparse._SubParsersAction) -> None:
                    "marked by a pulse on a 'Photodiode' channel (for lsl-bridge --photodiode)")
     p.add_argument("--marker-latency", type=float, default=0.3, metavar="SECONDS",
                    help="with --onsets: how late an onset marker may arrive (default 0.3)")
+    add_zenoh_config(p)
     p.set_defaults(run=_run_simulator)
 
 
@@ -275,7 +279,7 @@ def _run_simulator(args: argparse.Namespace, console: Console) -> int:
     stop = _stop_on_signals()
     try:
         simulation = run_simulator(settings, args.listen, args.connect,
-                                   lambda: not stop.is_set())
+                                   lambda: not stop.is_set(), args.zenoh_config)
     except TimeoutError as error:
         Console(stderr=True).print(f"[bold red]error:[/] {error}")
         return 1
