@@ -165,6 +165,22 @@ class BridgeSettings:
                              "epoch windows")
         return first, last
 
+    def config(self, meta: StreamMeta) -> dict[str, Any]:
+        """The fields of the session's ``config`` message for an EEG stream of ``meta``
+        (its epochs' channels without the photodiode's), the prior left out."""
+        first, _ = self.window(meta.sfreq)
+        names = list(meta.ch_names)
+        if self.photodiode is not None:
+            names = self.photodiode.bind(names, meta.sfreq).eeg_names(names)
+        return {
+            "seed": self.seed, "world": "grid", "grid": self.grid, "frame": self.frame,
+            "steps": self.steps, "learner": self.learner,
+            "dataset": {"description": f"LSL streams {self.eeg!r} (EEG) and "
+                                       f"{self.markers!r} (markers)"},
+            "signal": "epochs", "sfreq": meta.sfreq, "tmin": first / meta.sfreq,
+            "ch_names": names,
+        }
+
 
 @dataclass
 class BridgeSummary:
@@ -297,14 +313,7 @@ def bridge_session(
     if not moves.wait_for_consumers(settings.timeout):
         raise TimeoutError(f"no stimulus program subscribed to the move stream "
                            f"{settings.moves!r} within {settings.timeout:g} s")
-    config = {
-        "seed": settings.seed, "world": "grid", "grid": settings.grid, "frame": settings.frame,
-        "steps": settings.steps, "learner": settings.learner,
-        "dataset": {"description": f"LSL streams {settings.eeg!r} (EEG) and "
-                                   f"{settings.markers!r} (markers)"},
-        "signal": "epochs", "sfreq": meta.sfreq, "tmin": first / meta.sfreq,
-        "ch_names": names,
-    }
+    config = settings.config(meta)
     if settings.prior:  # uploaded first: the config names the bytes uploaded
         config["prior"] = upload_priors(session, settings.session, settings.prior,
                                         settings.timeout, RESEND_INTERVAL)

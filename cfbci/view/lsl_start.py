@@ -261,19 +261,7 @@ def check_bridge(body: dict[str, Any], endpoints: list[str], listed: set[str]) -
                          "that one; choose another move stream name")
     meta = eeg_stream_meta(_the_stream(settings.eeg, "EEG", found, listed))
     marker_stream_shift(_the_stream(settings.markers, "onset-marker", found, listed))
-    first, _ = settings.window(meta.sfreq)
-    names = list(meta.ch_names)
-    if settings.photodiode is not None:
-        names = settings.photodiode.bind(names, meta.sfreq).eeg_names(names)
-    # What bridge_session sends (acquisition/lsl_bridge.py), checked as the service does.
-    config = {
-        "seed": settings.seed, "world": "grid", "grid": settings.grid,
-        "frame": settings.frame, "steps": settings.steps, "learner": settings.learner,
-        "dataset": {"description": f"LSL streams {settings.eeg!r} (EEG) and "
-                                   f"{settings.markers!r} (markers)"},
-        "signal": "epochs", "sfreq": meta.sfreq, "tmin": first / meta.sfreq,
-        "ch_names": names,
-    }
+    config = settings.config(meta)  # what the bridge sends, checked as the service does
     check_config(config, ServiceLimits(), lambda problem: Rejection(problem, sid, 0, 0))
     protocol.encode(protocol.Message("config", sid, 0, 0, config))
     return BridgeStart(sid, bridge_arguments(sid, values, endpoints), config)
