@@ -29,10 +29,12 @@ import pytest
 from test_lsl import SFREQ, TIMEOUT, _stop, listening_clients, listening_loop
 
 STEPS, SEED = 6, 4
-BUDGET = 0.5  # --marker-latency, s
+#: --marker-latency, s: ample for the markers that are not made late, which a loaded
+#: machine can deliver half a second after their timestamp.
+BUDGET = 2.0
 #: Seconds between an onset's timestamp and its marker's push, by step (others: none):
 #: step 2 late within the budget, step 4 beyond it.
-LATE = {2: 0.3, 4: 1.2}
+LATE = {2: 1.0, 4: 4.0}
 
 STIMULUS = """
 import json, sys, time
@@ -135,5 +137,6 @@ def test_a_marker_later_than_the_budget_is_reported_and_nothing_is_written(
     assert session.check.returncode == 1, session.check.stdout + session.check.stderr
     assert "step 4: recorded, never written" in session.check.stdout
     assert f"{STEPS - 1} of {STEPS} recorded epochs equal" in session.check.stdout
-    # The bridge used the marker (its window was whole) and reported it late.
-    assert [m["step"] for m in session.bridge["late_markers"]] == [4]
+    # The bridge used the late markers (their windows were whole) and reported them (more
+    # than its --late-marker, 0.5 s, late; on a loaded machine an on-time one may be too).
+    assert {2, 4} <= {m["step"] for m in session.bridge["late_markers"]}
