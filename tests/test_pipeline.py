@@ -30,6 +30,7 @@ from calibration_free.world import ACTIONS, GridWorld
 from cfbci.cli import main
 from cfbci.offline.simulation import SessionConfig, run_session
 from cfbci.service import serve
+from cfbci.service.running import STATE_DELAY
 from replay.recording import decode_array, read_recording
 from replay.rerun import replay_check
 from wire import protocol
@@ -115,6 +116,38 @@ def test_live_session_equals_simulation_and_is_recorded(tmp_path: Path) -> None:
     assert divergence is not None
     assert (divergence.topic, divergence.step, divergence.field) == ("/move", 25, "action")
     assert main(["replay", str(altered)]) == 1 and main(["replay", str(path)]) == 0
+
+
+def test_each_moves_state_follows_it_and_comes_before_the_next_move(tmp_path: Path) -> None:
+    """The service publishes a move first and its state (with the step's target events)
+    `STATE_DELAY` later, or as soon as the move's epoch comes if that is sooner: a source
+    that answers at once and one that answers a second later both get every state after its
+    move and before the next move; the slow one's states come before its epochs (the
+    loop's timer, not the next epoch, sent them); both recordings replay identically."""
+    endpoint = free_tcp_endpoint()
+    fast = SourceSettings("fast-1", seed=4, steps=STEPS, grid=GRID)
+    slow = SourceSettings("slow-1", seed=5, steps=6, grid=GRID, interval=1.0)
+    with service_process(endpoint, tmp_path), source_process(fast, endpoint) as answered_at_once, \
+            source_process(slow, endpoint) as answered_later:
+        assert answered_at_once.result(TIMEOUT).steps == STEPS
+        assert answered_later.result(TIMEOUT).steps == 6
+
+    for name, steps in (("fast-1", STEPS), ("slow-1", 6)):
+        recording = read_recording(tmp_path / f"{name}.mcap")
+        moves = {m["step"]: m["t_ns"] for _, m in recording.messages["/move"]}
+        states = {m["n_signals"]: m["t_ns"] for _, m in recording.messages["/state"]}
+        assert sorted(moves) == list(range(1, steps + 1))
+        for step, sent in moves.items():
+            assert sent < states[step - 1], (name, step)  # the move first
+            if step < steps:
+                assert states[step - 1] < moves[step + 1], (name, step)
+        assert replay_check(tmp_path / f"{name}.mcap").divergence is None
+    slow_recording = read_recording(tmp_path / "slow-1.mcap")
+    moves = {m["step"]: m["t_ns"] for _, m in slow_recording.messages["/move"]}
+    states = {m["n_signals"]: m["t_ns"] for _, m in slow_recording.messages["/state"]}
+    epochs = {m["step"]: received for received, m in slow_recording.messages["/epoch"]}
+    assert all(states[step - 1] - moves[step] >= STATE_DELAY * 1e9 for step in moves)
+    assert all(states[step - 1] < epochs[step] for step in moves)
 
 
 def _message(kind: str, session: str, seq: int, fields: dict, payload=None) -> bytes:

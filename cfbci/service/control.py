@@ -119,6 +119,7 @@ class Controls:
         session = self._running(sid)
         if session is None:
             raise ProtocolError(f"control {command!r} for a session that is not running", **where)
+        session.settle()  # the last move's state comes before the operator's action
         step = session.step
         if command == "pause":
             if self.paused(sid):

@@ -40,7 +40,7 @@ from cfbci.service.limits import ServiceLimits
 from cfbci.service.priors import PriorStore, default_store
 from cfbci.service.recordings import Recordings
 from cfbci.service.resume import EndedAtResume, end_again, resume_recorded
-from cfbci.service.running import RunningSession
+from cfbci.service.running import RunningSession, next_due
 from session.config import resolved_config
 from wire import protocol
 from wire.intake import Intake, session_of
@@ -109,9 +109,8 @@ class PipelineService:
         self._outbox = Outbox(session)
         self._sessions: dict[str, RunningSession] = {}
         self._pending: dict[str, Pending] = {}
-        # Sessions whose last epoch was recorded before a kill and which ended at the
-        # resumption, before their source could hear the end: a re-send of that epoch is
-        # answered with the last state and session_ended again (at most max_sessions).
+        # Sessions whose last epoch was recorded before a kill and which ended at the resumption,
+        # unheard: a re-send of that epoch gets the last state and session_ended again.
         self._ended_at_resume: dict[str, EndedAtResume] = {}
         self._errors = ErrorBudget()
         self._puddle_tables = PuddleTables()
@@ -146,11 +145,14 @@ class PipelineService:
         self.intake.stop()
 
     def run(self) -> None:
-        """Handle messages fairly (`wire.intake.Intake`) until `stop`; start
-        the sessions whose source has subscribed, end idle ones; then `close`."""
+        """Handle messages fairly (`wire.intake.Intake`) until `stop`; publish the states
+        due, start the sessions whose source has subscribed, end idle ones; then `close`."""
         try:
             while not self._stopped:
-                received = self.intake.get(TICK if self._pending else IDLE_TICK)
+                for due in [s for s in self._sessions.values() if s.following is not None]:
+                    self._guarded(due.id, lambda s=due: s.settle(time.monotonic_ns()))
+                tick = next_due(self._sessions.values(), TICK if self._pending else IDLE_TICK)
+                received = self.intake.get(tick)
                 if received is not None:
                     self.handle(received)
                 self.housekeeping()
@@ -166,6 +168,8 @@ class PipelineService:
         for received in self.intake.drain():
             if received.tag == "truth":
                 self.handle(received)
+        for session in self._sessions.values():
+            session.settle()
         self.recordings.close()
         self.registration.close()
         self._outbox.close()
@@ -256,10 +260,8 @@ class PipelineService:
         running = self._sessions.get(sid)
         if running is not None:
             if running.config_t_ns == message.t_ns and running.config == resolved_or_none(config):
-                self.events.publish(
-                    sid, "session_started", "session already started (config re-sent)",
-                    message.t_ns,
-                )
+                self.events.publish(sid, "session_started",
+                                    "session already started (config re-sent)", message.t_ns)
                 return
             raise reject("a session with this id is already running")
         if sid in self._pending:
@@ -288,8 +290,7 @@ class PipelineService:
         holder = self.registration.claim(sid) if chosen is not None else None
         if holder is not None:
             raise reject(f"session {sid!r} is already served by service {holder!r}")
-        # Never wait here: the loop starts it once its source answers the challenge (and
-        # its world's tables are built).
+        # Never wait here: the loop starts it once its source answers (and its world is built).
         publisher = self._outbox.publisher(protocol.key(sid, "event"))
         deadline = time.monotonic_ns() + int(limits.subscriber_timeout * 1e9)
         self._pending[sid] = Pending(message, publisher, deadline)
@@ -325,16 +326,12 @@ class PipelineService:
         """Open the session and the recording of a config; publish the first move."""
         sid, config = message.session, resolved_config(message.fields)
         if len(self._sessions) >= self.limits.max_sessions:
-            raise Rejection(
-                f"the service runs its maximum of {self.limits.max_sessions} sessions", sid,
-                message.seq, message.t_ns,
-            )
+            raise Rejection(f"the service runs its maximum of {self.limits.max_sessions} "
+                            "sessions", sid, message.seq, message.t_ns)
         # Recorded with every learner setting it runs with (defaults included), prior read first.
         core, recorder = self.priors.open(message, config, self.recordings.open)
-        session = RunningSession(
-            sid, config, message.t_ns, core, recorder,
-            self._outbox, self.events.publish, time.monotonic_ns(),
-        )
+        session = RunningSession(sid, config, message.t_ns, core, recorder, self._outbox,
+                                 self.events.publish, time.monotonic_ns())
         self._sessions[sid] = session
         self._ended_at_resume.pop(sid, None)  # the id is reused: its old end is over
         self.intake.open(sid)
@@ -376,6 +373,7 @@ class PipelineService:
         self._reject(Rejection(problem, session.id, None, session.config_t_ns))
 
     def _end(self, session: RunningSession, last_epoch_step: int) -> None:
+        session.settle()
         del self._sessions[session.id]
         self.controls.forget(session.id)
         self.registration.release(session.id)

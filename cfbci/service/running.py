@@ -5,14 +5,14 @@ no labels): its `session.core.Session` (world, learner and streams, built by
 `session.sessions.open_session`), the `session.core.SignalPath` of its
 epochs, its recorder and the sequence of its epochs. `RunningSession.take` is an
 accepted epoch's path: the session's checks, the features, the recording of the epoch and
-its features, the step of the core session, and the move, state and events published (and
-recorded) in answer.
+its features, the step of the core session, and the move published (and recorded) in answer;
+the move's state and target events follow a few milliseconds later (`STATE_DELAY`).
 """
 
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -30,6 +30,22 @@ from wire.transport import Outbox
 
 #: ``event(session, kind, text)``: publish (and record and log) an event of the session.
 EventSink = Callable[[str, str, str], None]
+
+#: Seconds between a move and its state and target events. The move goes out first, and the
+#: service leaves the processor to the move's way to the screen (the source, the stimulus
+#: program, the browser) before its own bookkeeping: on a 2-core machine running the whole
+#: lab loop, the move then reached the subject page 0.8 ms sooner at the median and 1.7 ms
+#: at the p99 (docs/results/timing.md). Nothing waits for the state that soon.
+STATE_DELAY = 0.004
+
+
+def next_due(sessions: Iterable[RunningSession], wait: float) -> float:
+    """Seconds until the first of ``sessions``' states is due (`RunningSession.settle`),
+    at most ``wait``."""
+    due = [s.following[1] for s in sessions if s.following is not None]
+    if not due:
+        return wait
+    return min(wait, max(0.0, (min(due) - time.monotonic_ns()) / 1e9))
 
 
 @dataclass
@@ -57,6 +73,9 @@ class RunningSession:
         ``(step, seq, t_ns)`` of the last accepted epoch: a re-send of it is answered again.
     answer : tuple or None
         The last move's fields and the state that accompanied it (fields, confidence).
+    following : tuple or None
+        ``(step, due_ns)``: the last move's `Step`, whose state and target events are
+        still to be published (`settle`), due at ``time.monotonic_ns()`` ``due_ns``.
     answer_unheard : bool
         The session was resumed and its answer re-sent before its source could have
         reconnected: it is sent again before the next new epoch is taken (a source that
@@ -86,6 +105,7 @@ class RunningSession:
     last_epoch: tuple[int, int, int] | None = None
     answer: tuple[dict[str, Any], dict[str, Any], np.ndarray] | None = None
     answer_unheard: bool = False
+    following: tuple[Step, int] | None = None
     signals: SignalPath = field(init=False)
     shape: tuple[int, ...] | None = None
     update_ns: list[int] = field(default_factory=list)
@@ -175,6 +195,7 @@ class RunningSession:
             As `signal`, for a duplicate or late ``seq``, and a `Rejection`
             over the memory limit or for a prior of another feature size.
         """
+        self.settle()
         if self.last_epoch == (message.fields["step"], message.seq, message.t_ns):
             self.answer_again()
             return False
@@ -219,7 +240,8 @@ class RunningSession:
     def publish(
         self, step: Step, started_ns: int | None = None, queued_ms: float | None = None
     ) -> None:
-        """Publish and record a step's move, its state, then its target events.
+        """Publish and record a step's move; its state and target events follow
+        `STATE_DELAY` later (`settle`).
 
         ``started_ns``: `time.perf_counter_ns` before the core observed the epoch
         that led here (None for the first move); the learner's time is then appended to
@@ -236,6 +258,18 @@ class RunningSession:
             timing["queued_ms"] = queued_ms
         sent = self.send("move", step.move, recorded_only=timing)
         self.record_position(step.move, sent.t_ns)
+        self.following = (step, time.monotonic_ns() + round(STATE_DELAY * 1e9))
+
+    def settle(self, now_ns: int | None = None) -> None:
+        """Publish and record the last move's state, then its target events, if they are
+        due at ``now_ns`` (`time.monotonic_ns`), or in any case without it. The
+        state is the core session's after that move: every path that steps the core, or
+        answers with the state, settles first."""
+        if self.following is None or (now_ns is not None and now_ns < self.following[1]):
+            return
+        step, _ = self.following
+        self.following = None
+        assert step.move is not None
         state = self.send_state()
         self.answer = (step.move, state.fields, state.confidence)
         for text in step.events:
