@@ -34,7 +34,7 @@ EventSink = Callable[[str, str, str], None]
 #: Seconds between a move and its state and target events. The move goes out first, and the
 #: service leaves the processor to the move's way to the screen (the source, the stimulus
 #: program, the browser) before its own bookkeeping: on a 2-core machine running the whole
-#: lab loop, the move then reached the subject page 0.8 ms sooner at the median and 1.7 ms
+#: lab loop, the move then reached the subject page 0.6 ms sooner at the median and 1.5 ms
 #: at the p99 (docs/results/timing.md). Nothing waits for the state that soon.
 STATE_DELAY = 0.004
 
