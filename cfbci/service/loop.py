@@ -168,8 +168,8 @@ class PipelineService:
         for received in self.intake.drain():
             if received.tag == "truth":
                 self.handle(received)
-        for session in self._sessions.values():
-            session.settle()
+        for session in list(self._sessions.values()):
+            self._guarded(session.id, session.settle)  # a failure leaves the rest to close
         self.recordings.close()
         self.registration.close()
         self._outbox.close()
