@@ -15,6 +15,7 @@ import json
 import random
 import subprocess
 import sys
+from itertools import pairwise
 from pathlib import Path
 
 import pytest
@@ -55,11 +56,13 @@ def chunks(path: Path) -> list[tuple[int, int, str]]:
 
 
 def ends_after(path: Path, topic: str, before: str) -> list[int]:
-    """Offsets just past a ``topic`` chunk followed by a ``before`` chunk (message indexes
-    included: where a writer killed between the two leaves the file)."""
+    """Offsets just past a ``topic`` chunk followed by a ``before`` chunk, truths aside (a
+    source's truth is recorded whenever it comes: between a move and its state, say)
+    (message indexes included: where a writer killed between the two leaves the file)."""
     found = chunks(path)
-    return [found[k + 1][0] for k in range(len(found) - 1)
-            if found[k][2] == topic and found[k + 1][2] == before]
+    kept = [k for k, (_, _, topic_k) in enumerate(found) if topic_k != "/truth"]
+    return [found[k + 1][0] for k, n in pairwise(kept)
+            if found[k][2] == topic and found[n][2] == before]
 
 
 def cut(source: Path, target: Path, at: int, tail: bytes = b"") -> Path:
