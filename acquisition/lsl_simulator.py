@@ -23,7 +23,9 @@ marker stream of this machine taken as it is, another's mapped with ``time_corre
 as the bridge does). A marker arrives after its timestamp and the epoch starts ``|tmin|``
 before it, so a sample stamped ``t`` is pushed at ``t + |tmin| + marker_latency``; a marker
 later than ``marker_latency`` finds the epoch's first samples sent: it is reported
-(``Simulation.late``) and nothing is written.
+(``Simulation.late``) and nothing is written. Sample 0 is stamped ``|tmin|`` before the EEG
+outlet opens, as from an amplifier already running: an onset shown as soon as the bridge
+has found the stream has its whole window.
 
 The user is `acquisition.user.SimulatedUser` with the random streams of
 `calibration_free.streams.session_streams`, and synthetic epochs come from the data
@@ -323,7 +325,8 @@ class _Simulator:
         moves = resolve_inlet(settings.moves, settings.timeout, keep_running=keep_running)
         events: queue.SimpleQueue[Received] = queue.SimpleQueue()
         pump = Pump(self.session, protocol.key(settings.session, "event"), "event", events)
-        self._start()
+        self._wait_for_truth_subscriber()
+        self.t0 = pylsl.local_clock()  # sample 0: the onsets are ours, all ahead of it
         try:
             while keep_running() and not _ended(events):
                 try:
@@ -342,12 +345,10 @@ class _Simulator:
             self.outbox.close()
         return Simulation(self.written, self.t0, self.targets)
 
-    def _start(self) -> None:
-        """Wait for the truth's subscriber; sample 0 is now."""
+    def _wait_for_truth_subscriber(self) -> None:
         if not wait_for_subscribers(self.outbox.publisher(self.truth_key), self.settings.timeout):
             log.warning("nobody subscribed to %s: the truth will not be recorded",
                         self.truth_key)
-        self.t0 = pylsl.local_clock()
 
     def _wait_for_chunk(self) -> None:
         wake = self.t0 + self.lag + (self.next + CHUNK - 1) / self.sfreq  # the next chunk
@@ -464,9 +465,12 @@ class _Listener:
     def listen(self, keep_running: Callable[[], bool]) -> Simulation:
         sim, settings = self.sim, self.sim.settings
         sim.eeg = sim._open_eeg()
+        # An amplifier already running: the bridge starts the session once it has found
+        # the stream, and an onset shown at once has its window's |tmin| before it.
+        sim.t0 = pylsl.local_clock() + sim.signals.tmin
         markers = resolve_inlet(str(settings.onsets), settings.timeout, keep_running=keep_running)
         offset = 0.0 if on_this_host(markers) else markers.time_correction(timeout=5.0)
-        sim._start()
+        sim._wait_for_truth_subscriber()
         try:
             while keep_running() and not _ended(self.inboxes["event"]):
                 for move in _decoded(self.inboxes["move"]):

@@ -192,7 +192,9 @@ def listening_loop(
     (stopped with ``running``); returns the session's name, the service's endpoint, the
     streams' names (``moves``, ``onsets``, ``eeg``) and the options every client shares."""
     name = tmp_path.name[-40:]
-    (tmp_path / "lsl_api.cfg").write_text(loopback_config(f"cfbci-test-{name}"))
+    # A module's fixture may run in each pytest-xdist worker, under the same folder name:
+    # the process id keeps their LSL apart.
+    (tmp_path / "lsl_api.cfg").write_text(loopback_config(f"cfbci-test-{name}-{os.getpid()}"))
     endpoint = free_tcp_endpoint()
     names = {kind: f"{kind}-{name}" for kind in ("moves", "onsets", "eeg")}
     common = ["--session", name, "--seed", str(seed), "--connect", endpoint,

@@ -9,6 +9,7 @@ in a browser is tests/test_stimulus_loop.py."""
 from __future__ import annotations
 
 import asyncio
+import os
 import subprocess
 import sys
 from collections.abc import Iterator
@@ -25,7 +26,10 @@ from acquisition.lsl_streams import loopback_config
 @pytest.fixture(scope="module")
 def stimulus_view(tmp_path_factory: pytest.TempPathFactory) -> Iterator[RunningView]:
     folder = tmp_path_factory.mktemp("stimulus-view")
-    (folder / "lsl_api.cfg").write_text(loopback_config(f"cfbci-test-{folder.name}"))
+    # The module's fixture may run in each pytest-xdist worker, under the same folder
+    # name: the process id keeps their LSL apart.
+    (folder / "lsl_api.cfg").write_text(
+        loopback_config(f"cfbci-test-{folder.name}-{os.getpid()}"))
     with pytest.MonkeyPatch.context() as patch:
         patch.setenv("LSLAPICFG", str(folder / "lsl_api.cfg"))
         with view_command("--stimulus", "--moves", f"moves-{folder.name}", "--onsets",
