@@ -464,10 +464,11 @@ class _Listener:
 
     def listen(self, keep_running: Callable[[], bool]) -> Simulation:
         sim, settings = self.sim, self.sim.settings
-        sim.eeg = sim._open_eeg()
         # An amplifier already running: the bridge starts the session once it has found
-        # the stream, and an onset shown at once has its window's |tmin| before it.
+        # the stream, and an onset shown at once has its window's |tmin| before it (the
+        # clock read before the stream exists: any onset after its creation is covered).
         sim.t0 = pylsl.local_clock() + sim.signals.tmin
+        sim.eeg = sim._open_eeg()
         markers = resolve_inlet(str(settings.onsets), settings.timeout, keep_running=keep_running)
         offset = 0.0 if on_this_host(markers) else markers.time_correction(timeout=5.0)
         sim._wait_for_truth_subscriber()

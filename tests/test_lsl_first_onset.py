@@ -26,8 +26,7 @@ from acquisition.lsl_streams import loopback_config
 from wire.zenoh_config import free_tcp_endpoint
 
 #: --marker-latency, s: the stimulus process pushes its marker once it has found the
-#: simulator's stream, a Zenoh link and the simulator's answer to the move, a few seconds
-#: at most on a loaded machine.
+#: simulator's stream and sent the move, within a few seconds on a loaded machine.
 BUDGET = 6.0
 TMAX = 1.0  # s, the synthetic epochs' end
 
@@ -41,17 +40,17 @@ from wire.zenoh_config import peer_config
 
 session, eeg, onsets, endpoint, tmax = sys.argv[1:6]
 with zenoh.open(peer_config([endpoint], [])) as link:
+    # the truth's subscriber, which the simulator waits for (its truths are not read)
+    pump = Pump(link, protocol.key(session, "truth"), "truth", queue.SimpleQueue())
     print("listening", flush=True)  # the simulator is started now, and connects at once
     outlet = marker_outlet(onsets, "test-stimulus")
     inlet = resolve_inlet(eeg, 60)
     opened = inlet.info().created_at()  # this machine's LSL clock when the stream appeared
-    truths = queue.SimpleQueue()
-    pump = Pump(link, protocol.key(session, "truth"), "truth", truths)
     outbox = Outbox(link)
     assert wait_for_subscribers(outbox.publisher(protocol.key(session, "move")), 60)
     outbox.send("move", session, {"step": 1, "from_state": 12, "action": "up",
                                   "to_state": 7, "target_reached": False})
-    truths.get(timeout=60)  # the simulator has answered the move
+    assert outlet.wait_for_consumers(60)  # the simulator listens for the onsets
     outlet.push_sample(["onset 1"], opened)
     print("onset", repr(opened), flush=True)
     while True:  # until the simulator has streamed past the epoch's end
