@@ -23,9 +23,11 @@ marker stream of this machine taken as it is, another's mapped with ``time_corre
 as the bridge does). A marker arrives after its timestamp and the epoch starts ``|tmin|``
 before it, so a sample stamped ``t`` is pushed at ``t + |tmin| + marker_latency``; a marker
 later than ``marker_latency`` finds the epoch's first samples sent: it is reported
-(``Simulation.late``) and nothing is written. Sample 0 is stamped ``|tmin|`` before the EEG
-outlet opens, as from an amplifier already running: an onset shown as soon as the bridge
-has found the stream has its whole window.
+(``Simulation.late``) and nothing is written. The simulator opens its EEG outlet only once
+it listens to the onset markers (the bridge starts a session only once it has found the EEG
+stream: no onset can come before), and stamps sample 0 ``|tmin|`` before, as from an
+amplifier already running: an onset shown as soon as the bridge has found the stream has
+its whole window.
 
 The user is `acquisition.user.SimulatedUser` with the random streams of
 `calibration_free.streams.session_streams`, and synthetic epochs come from the data
@@ -464,14 +466,16 @@ class _Listener:
 
     def listen(self, keep_running: Callable[[], bool]) -> Simulation:
         sim, settings = self.sim, self.sim.settings
-        # An amplifier already running: the bridge starts the session once it has found
-        # the stream, and an onset shown at once has its window's |tmin| before it (the
-        # clock read before the stream exists: any onset after its creation is covered).
-        sim.t0 = pylsl.local_clock() + sim.signals.tmin
-        sim.eeg = sim._open_eeg()
+        # Listening before the EEG stream exists: the bridge starts the session only once
+        # it has found that stream, so no onset is shown before (an inlet gets only what
+        # is pushed after it connected).
         markers = resolve_inlet(str(settings.onsets), settings.timeout, keep_running=keep_running)
         offset = 0.0 if on_this_host(markers) else markers.time_correction(timeout=5.0)
         sim._wait_for_truth_subscriber()
+        # An amplifier already running: an onset shown as soon as the bridge has found the
+        # stream has its window's |tmin| before it (the clock read before the stream exists).
+        sim.t0 = pylsl.local_clock() + sim.signals.tmin
+        sim.eeg = sim._open_eeg()
         try:
             while keep_running() and not _ended(self.inboxes["event"]):
                 for move in _decoded(self.inboxes["move"]):

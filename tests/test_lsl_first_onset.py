@@ -3,12 +3,14 @@
 A stimulus program may show the first move as soon as the bridge has started the session,
 which it does once it has found the amplifier's EEG stream: an onset can come right after
 that stream appeared, and its epoch starts ``|tmin|`` before it. ``cfbci lsl-simulator
---onsets`` therefore stamps its first sample ``|tmin|`` before it opens the stream, as an
-amplifier that was already running, so that such an onset's window is whole.
+--onsets`` therefore opens that stream only once it listens to the onset markers (an LSL
+inlet gets only what is pushed after it connected), and stamps its first sample ``|tmin|``
+before, as an amplifier that was already running, so that such an onset's window is whole.
 
 The test plays the stimulus program and the service's moves itself, in a process on the
-test's LSL (``STIMULUS``): it stamps step 1's onset at the very moment the simulator's EEG
-stream was created (``created_at``) and checks the simulator wrote the whole epoch there.
+test's LSL (``STIMULUS``): as soon as it has found the simulator's EEG stream it sends the
+move and step 1's onset, stamped at the very moment the stream was created (``created_at``),
+and checks the simulator wrote the whole epoch there.
 """
 
 from __future__ import annotations
@@ -50,7 +52,6 @@ with zenoh.open(peer_config([endpoint], [])) as link:
     assert wait_for_subscribers(outbox.publisher(protocol.key(session, "move")), 60)
     outbox.send("move", session, {"step": 1, "from_state": 12, "action": "up",
                                   "to_state": 7, "target_reached": False})
-    assert outlet.wait_for_consumers(60)  # the simulator listens for the onsets
     outlet.push_sample(["onset 1"], opened)
     print("onset", repr(opened), flush=True)
     while True:  # until the simulator has streamed past the epoch's end

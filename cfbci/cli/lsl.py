@@ -239,7 +239,8 @@ def _add_simulator(commands: argparse._SubParsersAction) -> None:
     p.add_argument("--onsets", metavar="NAME",
                    help="listen: make no onsets, take them from this marker stream (a "
                    "stimulus program's, e.g. cfbci view --stimulus) and the moves from the "
-                   "service; the EEG then runs |tmin| + --marker-latency behind real time")
+                   "service; the EEG stream opens once that stream is found, and runs "
+                   "|tmin| + --marker-latency behind real time")
     p.add_argument("--photodiode", type=float, metavar="SECONDS",
                    help="a display's delay: each epoch's onset this long after its marker, "
                    "marked by a pulse on a 'Photodiode' channel (for lsl-bridge --photodiode)")
