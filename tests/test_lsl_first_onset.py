@@ -34,7 +34,7 @@ TMAX = 1.0  # s, the synthetic epochs' end
 
 STIMULUS = """
 import queue, sys, time
-import pylsl, zenoh
+import zenoh
 from acquisition.lsl_streams import marker_outlet, resolve_inlet
 from wire import protocol
 from wire.transport import Outbox, Pump, wait_for_subscribers
